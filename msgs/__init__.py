@@ -1,0 +1,15 @@
+"""Message types of the FingerVision bus and their wire codec."""
+from msgs.camera import CameraInfo, Image
+from msgs.message import ArraySpec, Message, MessageError
+from msgs.status import NodeStatus
+from msgs.tactile import ContactSummary, DisplacementField, MarkerArray, SlipState
+from msgs.wire import decode, decode_header, encode, known_types, message_type, register
+
+for _cls in (Image, CameraInfo, MarkerArray, DisplacementField, ContactSummary, SlipState, NodeStatus):
+    register(_cls)
+
+__all__ = [
+    "ArraySpec", "CameraInfo", "ContactSummary", "DisplacementField", "Image", "MarkerArray",
+    "Message", "MessageError", "NodeStatus", "SlipState", "decode", "decode_header", "encode",
+    "known_types", "message_type", "register",
+]

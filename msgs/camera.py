@@ -1,0 +1,75 @@
+"""Camera messages: `Image` frames and the latched `CameraInfo` calibration."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+
+from msgs.message import ArraySpec, Message
+
+ENCODING_CHANNELS = {"mono8": 1, "bgr8": 3, "rgb8": 3}
+
+
+@dataclass(kw_only=True)
+class Image(Message):
+    """One camera frame.
+
+    data: (H, W) uint8 for "mono8", (H, W, 3) uint8 for "bgr8" / "rgb8".
+    stamp_ns is the capture time of the frame.
+    """
+
+    TYPE: ClassVar[str] = "Image"
+    VERSION: ClassVar[int] = 1
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {"data": ArraySpec("u", (2, 3))}
+
+    encoding: str = "mono8"
+    data: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.uint8))
+
+    def validate(self) -> None:
+        super().validate()
+        if self.encoding not in ENCODING_CHANNELS:
+            raise ValueError(f"encoding: {self.encoding!r} is not one of {sorted(ENCODING_CHANNELS)}")
+        channels = 1 if self.data.ndim == 2 else self.data.shape[2]
+        if channels != ENCODING_CHANNELS[self.encoding]:
+            raise ValueError(f"data: shape {self.data.shape} does not match encoding {self.encoding!r}")
+        if self.data.dtype != np.uint8:
+            raise ValueError(f"data: dtype {self.data.dtype} is not uint8")
+
+    @property
+    def width(self) -> int:
+        return int(self.data.shape[1])
+
+    @property
+    def height(self) -> int:
+        return int(self.data.shape[0])
+
+
+@dataclass(kw_only=True)
+class CameraInfo(Message):
+    """Fisheye camera calibration (OpenCV fisheye model), published latched.
+
+    K: (3, 3) float64 camera matrix in px. D: (4,) float64 fisheye coefficients k1..k4.
+    width, height: image size in px the calibration applies to. rms_px: calibration
+    reprojection error (0 when unknown, e.g. a simulated camera with exact intrinsics).
+    """
+
+    TYPE: ClassVar[str] = "CameraInfo"
+    VERSION: ClassVar[int] = 1
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {"K": ArraySpec("f", (2,)), "D": ArraySpec("f", (1,))}
+
+    model: str = "fisheye"
+    width: int = 0
+    height: int = 0
+    K: np.ndarray = field(default_factory=lambda: np.eye(3))
+    D: np.ndarray = field(default_factory=lambda: np.zeros(4))
+    rms_px: float = 0.0
+
+    def validate(self) -> None:
+        super().validate()
+        if self.K.shape != (3, 3):
+            raise ValueError(f"K: shape {self.K.shape} is not (3, 3)")
+        if self.D.shape != (4,):
+            raise ValueError(f"D: shape {self.D.shape} is not (4,)")
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"width/height: {self.width}x{self.height} is not a positive size")

@@ -1,0 +1,136 @@
+"""Tactile messages: tracked markers, the dense displacement field, contact and slip."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from dataclasses import field as dc_field
+from typing import ClassVar
+
+import numpy as np
+
+from msgs.message import ArraySpec, Message, require_same_length
+
+
+@dataclass(kw_only=True)
+class MarkerArray(Message):
+    """Tracked markers of one frame, in image px.
+
+    ref_px: (N, 2) float reference (undeformed) positions x, y.
+    cur_px: (N, 2) float current positions x, y (last seen position when not valid).
+    valid: (N,) bool, the marker was matched in this frame and passed the checks.
+    frames_since_seen: (N,) int, 0 when seen in this frame.
+    width, height: size in px of the image the markers were found in.
+    """
+
+    TYPE: ClassVar[str] = "MarkerArray"
+    VERSION: ClassVar[int] = 1
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {
+        "ref_px": ArraySpec("f", (2,)),
+        "cur_px": ArraySpec("f", (2,)),
+        "valid": ArraySpec("b", (1,)),
+        "frames_since_seen": ArraySpec("iu", (1,)),
+    }
+
+    ref_px: np.ndarray = dc_field(default_factory=lambda: np.zeros((0, 2), np.float32))
+    cur_px: np.ndarray = dc_field(default_factory=lambda: np.zeros((0, 2), np.float32))
+    valid: np.ndarray = dc_field(default_factory=lambda: np.zeros(0, bool))
+    frames_since_seen: np.ndarray = dc_field(default_factory=lambda: np.zeros(0, np.int32))
+    width: int = 0
+    height: int = 0
+
+    def validate(self) -> None:
+        super().validate()
+        for name in ("ref_px", "cur_px"):
+            if getattr(self, name).shape[1:] != (2,):
+                raise ValueError(f"{name}: shape {getattr(self, name).shape} is not (N, 2)")
+        require_same_length(self, ("ref_px", "cur_px", "valid", "frames_since_seen"))
+
+
+@dataclass(kw_only=True)
+class DisplacementField(Message):
+    """Dense marker displacement field on a regular grid in reference image coordinates.
+
+    field: (H, W, 3) float32, channels dx, dy, magnitude, in `units` (px).
+    grid_x_px: (W,) float x coordinate of each column; grid_y_px: (H,) of each row.
+    valid: False when too few markers were tracked to trust the field.
+    n_markers_used / n_markers: markers that entered the interpolation / tracked in all.
+    """
+
+    TYPE: ClassVar[str] = "DisplacementField"
+    VERSION: ClassVar[int] = 1
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {
+        "field": ArraySpec("f", (3,)),
+        "grid_x_px": ArraySpec("f", (1,)),
+        "grid_y_px": ArraySpec("f", (1,)),
+    }
+
+    field: np.ndarray = dc_field(default_factory=lambda: np.zeros((0, 0, 3), np.float32))
+    grid_x_px: np.ndarray = dc_field(default_factory=lambda: np.zeros(0, np.float32))
+    grid_y_px: np.ndarray = dc_field(default_factory=lambda: np.zeros(0, np.float32))
+    units: str = "px"
+    valid: bool = True
+    n_markers_used: int = 0
+    n_markers: int = 0
+    method: str = ""
+
+    def validate(self) -> None:
+        super().validate()
+        h, w, c = self.field.shape
+        if c != 3:
+            raise ValueError(f"field: shape {self.field.shape} is not (H, W, 3)")
+        if self.grid_x_px.shape != (w,):
+            raise ValueError(f"grid_x_px: shape {self.grid_x_px.shape} does not match field width {w}")
+        if self.grid_y_px.shape != (h,):
+            raise ValueError(f"grid_y_px: shape {self.grid_y_px.shape} does not match field height {h}")
+
+
+@dataclass(kw_only=True)
+class ContactSummary(Message):
+    """Contact descriptors computed from one displacement field (all in field units, px).
+
+    area_px2: area of grid cells whose displacement exceeds the contact threshold.
+    area_frac: that area as a share of the grid, in [0, 1].
+    centre_x_px, centre_y_px: displacement-weighted centre of the contact.
+    shear_x_px, shear_y_px: mean displacement over the contact (mean shear).
+    curl: mean curl of the field (torsion, rad-like, 1/px * px), divergence: mean
+    divergence (normal-press index: a press pushes markers outward).
+    """
+
+    TYPE: ClassVar[str] = "ContactSummary"
+    VERSION: ClassVar[int] = 1
+
+    in_contact: bool = False
+    area_px2: float = 0.0
+    area_frac: float = 0.0
+    centre_x_px: float = 0.0
+    centre_y_px: float = 0.0
+    shear_x_px: float = 0.0
+    shear_y_px: float = 0.0
+    curl: float = 0.0
+    divergence: float = 0.0
+
+
+@dataclass(kw_only=True)
+class SlipState(Message):
+    """Slip decision for the window of fields ending at `stamp_ns`.
+
+    probability: P(slip) in [0, 1]. slip: the decision after threshold and hysteresis.
+    window_stamps_ns: (T,) int64 capture stamps of the fields the model judged.
+    valid: False when the window held invalid fields (then probability is 0 and slip
+    keeps its last value).
+    """
+
+    TYPE: ClassVar[str] = "SlipState"
+    VERSION: ClassVar[int] = 1
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {"window_stamps_ns": ArraySpec("iu", (1,))}
+
+    probability: float = 0.0
+    slip: bool = False
+    threshold: float = 0.5
+    window_stamps_ns: np.ndarray = dc_field(default_factory=lambda: np.zeros(0, np.int64))
+    model: str = ""
+    valid: bool = True
+
+    def validate(self) -> None:
+        super().validate()
+        if not 0.0 <= self.probability <= 1.0:
+            raise ValueError(f"probability: {self.probability} is not in [0, 1]")

@@ -1,0 +1,181 @@
+"""Wire codec: a msgpack header frame followed by one raw frame per numpy array.
+
+Frames of one message::
+
+    [header, array_0, array_1, ...]
+
+header is a msgpack map ``{type, version, seq, stamp_ns, pub_ns, frame_id, node,
+fields: {name: value}, arrays: [[name, dtype, shape], ...]}`` where dtype is numpy's
+string with byte order (``"<f4"``, ``"|u1"``). Array frames are the arrays' raw C-order
+bytes, passed to ZeroMQ as buffers (no copy on send; decoded arrays are read-only
+views of the received frames).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Iterable
+
+import msgpack
+import numpy as np
+
+from msgs.message import HEADER_FIELDS, Message, MessageError
+
+MAX_NDIM = 8
+
+_REGISTRY: dict[str, type[Message]] = {}
+
+
+def register(cls: type[Message]) -> type[Message]:
+    """Make a message class decodable by its TYPE name."""
+    _REGISTRY[cls.TYPE] = cls
+    return cls
+
+
+def message_type(name: str) -> type[Message]:
+    """The registered class for a type name; KeyError naming the known types."""
+    try:
+        return _REGISTRY[name]
+    except KeyError:
+        raise KeyError(f"unknown message type {name!r}; known: {sorted(_REGISTRY)}") from None
+
+
+def known_types() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+def encode(msg: Message) -> list[Any]:
+    """Frames for `msg`: [header bytes, array buffers...]. Arrays are not copied when
+    already C-contiguous."""
+    arrays = []
+    specs = []
+    for name in msg.ARRAYS:
+        arr = np.ascontiguousarray(getattr(msg, name))
+        arrays.append(arr)
+        specs.append([name, arr.dtype.str, list(arr.shape)])
+    header = {
+        "type": msg.TYPE,
+        "version": msg.VERSION,
+        "seq": int(msg.seq),
+        "stamp_ns": int(msg.stamp_ns),
+        "pub_ns": int(msg.pub_ns),
+        "frame_id": msg.frame_id,
+        "node": msg.node,
+        "fields": msg.scalar_fields(),
+        "arrays": specs,
+    }
+    return [msgpack.packb(header, use_bin_type=True), *(memoryview(a).cast("B") for a in arrays)]
+
+
+def _buffer(frame: Any) -> memoryview:
+    buf = frame.buffer if hasattr(frame, "buffer") else frame
+    return memoryview(buf).cast("B")
+
+
+def decode_header(frame: Any, topic: str = "?") -> dict[str, Any]:
+    """Unpack and check the header frame alone (no arrays): for tools that only need
+    stamps, type and sizes."""
+    try:
+        header = msgpack.unpackb(_buffer(frame), raw=False, strict_map_key=True)
+    except Exception as exc:  # msgpack raises several unrelated types for garbage
+        raise MessageError(topic, "?", "header", f"not a msgpack map ({type(exc).__name__}: {exc})") from None
+    if not isinstance(header, dict):
+        raise MessageError(topic, "?", "header", f"expected a map, got {type(header).__name__}")
+    type_name = header.get("type")
+    if not isinstance(type_name, str):
+        raise MessageError(topic, "?", "type", "missing or not a string")
+    if type_name not in _REGISTRY:
+        raise MessageError(topic, type_name, "type", f"unknown type; known: {known_types()}")
+    cls = _REGISTRY[type_name]
+    if header.get("version") != cls.VERSION:
+        raise MessageError(topic, type_name, "version",
+                           f"wire version {header.get('version')!r}, this software reads {cls.VERSION}")
+    for name, kind in (("seq", int), ("stamp_ns", int), ("pub_ns", int), ("frame_id", str), ("node", str),
+                       ("fields", dict), ("arrays", list)):
+        if not isinstance(header.get(name), kind) or isinstance(header.get(name), bool):
+            raise MessageError(topic, type_name, name, f"missing or not {kind.__name__}")
+    return header
+
+
+def _check_scalar(cls: type[Message], name: str, value: Any, default: Any) -> Any:
+    if isinstance(default, bool):
+        ok = isinstance(value, bool)
+    elif isinstance(default, float):
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        value = float(value) if ok else value
+        ok = ok and math.isfinite(value)
+    elif isinstance(default, int):
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    else:
+        ok = isinstance(value, type(default))
+    if not ok:
+        raise TypeError(f"{value!r} is not a finite {type(default).__name__}")
+    return value
+
+
+def _defaults(cls: type[Message]) -> dict[str, Any]:
+    out = {}
+    for f in dataclasses.fields(cls):
+        if f.name in HEADER_FIELDS or f.name in cls.ARRAYS:
+            continue
+        out[f.name] = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+    return out
+
+
+def decode(frames: Iterable[Any], topic: str = "?") -> Message:
+    """Message from its frames; raises MessageError naming topic, type and field for a
+    malformed, truncated or wrong-version message."""
+    frames = list(frames)
+    if not frames:
+        raise MessageError(topic, "?", "header", "no frames")
+    header = decode_header(frames[0], topic)
+    type_name = header["type"]
+    cls = _REGISTRY[type_name]
+    kwargs: dict[str, Any] = {name: header[name] for name in HEADER_FIELDS}
+    fields = header["fields"]
+    for name, default in _defaults(cls).items():
+        if name not in fields:
+            raise MessageError(topic, type_name, name, "missing")
+        try:
+            kwargs[name] = _check_scalar(cls, name, fields[name], default)
+        except TypeError as exc:
+            raise MessageError(topic, type_name, name, str(exc)) from None
+    extra = set(fields) - set(_defaults(cls))
+    if extra:
+        raise MessageError(topic, type_name, sorted(extra)[0], "unknown field")
+    specs = header["arrays"]
+    if [s[0] if isinstance(s, list) and s else None for s in specs] != list(cls.ARRAYS):
+        raise MessageError(topic, type_name, "arrays", f"expected arrays {list(cls.ARRAYS)}, got {specs!r:.200}")
+    if len(frames) != 1 + len(specs):
+        raise MessageError(topic, type_name, "arrays",
+                           f"{len(frames) - 1} array frames for {len(specs)} arrays (truncated?)")
+    for spec, frame in zip(specs, frames[1:]):
+        kwargs[spec[0]] = _decode_array(topic, type_name, spec, frame)
+    msg = cls(**kwargs)
+    try:
+        msg.validate()
+    except ValueError as exc:
+        field, _, reason = str(exc).partition(": ")
+        raise MessageError(topic, type_name, field, reason or str(exc)) from None
+    return msg
+
+
+def _decode_array(topic: str, type_name: str, spec: list, frame: Any) -> np.ndarray:
+    name = spec[0]
+    if len(spec) != 3 or not isinstance(spec[1], str) or not isinstance(spec[2], list):
+        raise MessageError(topic, type_name, name, f"array spec {spec!r:.100} is not [name, dtype, shape]")
+    try:
+        dtype = np.dtype(spec[1])
+    except TypeError:
+        raise MessageError(topic, type_name, name, f"dtype {spec[1]!r} is not a numpy dtype") from None
+    if dtype.kind not in "biuf" or dtype.hasobject:
+        raise MessageError(topic, type_name, name, f"dtype {spec[1]!r} is not a plain numeric dtype")
+    shape = spec[2]
+    if len(shape) > MAX_NDIM or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape):
+        raise MessageError(topic, type_name, name, f"shape {shape!r:.100} is not a list of sizes")
+    buf = _buffer(frame)
+    expected = math.prod(shape) * dtype.itemsize
+    if buf.nbytes != expected:
+        raise MessageError(topic, type_name, name,
+                           f"frame holds {buf.nbytes} bytes, dtype {spec[1]} shape {shape} needs {expected}")
+    return np.frombuffer(buf, dtype=dtype).reshape(shape)

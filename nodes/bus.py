@@ -1,0 +1,228 @@
+"""Bus sockets: the topic envelope, a publisher socket and a topic reader.
+
+Every bus message is ``[envelope, header, array frames...]``. The envelope is
+``FLAG + topic + b"\\0" + node`` with FLAG ``b"L"`` (latched) or ``b"-"``. Subscribers
+subscribe to ``b"-" + topic + b"\\0"`` and ``b"L" + topic + b"\\0"``: ZeroMQ matches by
+prefix, and the NUL makes the match exact (``/slip`` never receives ``/slip_debug``).
+The forwarder keeps the last latched message per (topic, node) and replays it to each
+new subscriber, so latched topics reach late joiners.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import zmq
+
+import msgs
+from msgs import Message, MessageError
+from nodes.endpoints import BusAddress, bus_address, secure_client
+
+LATCHED = b"L"
+VOLATILE = b"-"
+LINGER_MS = 100
+PUB_HWM = 200
+SUB_HWM = 200
+ALL_TOPICS = ""
+
+log = logging.getLogger("fv.bus")
+
+
+def envelope(topic: str, node: str, latched: bool) -> bytes:
+    return (LATCHED if latched else VOLATILE) + topic.encode() + b"\0" + node.encode()
+
+
+def parse_envelope(frame: Any) -> tuple[str, str, bool]:
+    """(topic, node, latched) of an envelope frame; ValueError when it is not one."""
+    raw = frame.bytes if hasattr(frame, "bytes") else bytes(frame)
+    if len(raw) < 3 or raw[:1] not in (LATCHED, VOLATILE) or b"\0" not in raw:
+        raise ValueError(f"not a bus envelope: {raw[:40]!r}")
+    topic, _, node = raw[1:].partition(b"\0")
+    return topic.decode(errors="replace"), node.decode(errors="replace"), raw[:1] == LATCHED
+
+
+def subscription_prefixes(topic: str) -> list[bytes]:
+    """The ZeroMQ prefixes that receive exactly `topic` ("" = every topic)."""
+    if topic == ALL_TOPICS:
+        return [LATCHED, VOLATILE]
+    return [flag + topic.encode() + b"\0" for flag in (LATCHED, VOLATILE)]
+
+
+def validate_topic(topic: str) -> str:
+    if not topic.startswith("/") or "\0" in topic or " " in topic or topic.endswith("/") and topic != "/":
+        raise ValueError(f"topic {topic!r}: must start with '/', hold no spaces or NUL, and not end with '/'")
+    return topic
+
+
+def new_context() -> zmq.Context:
+    return zmq.Context.instance()
+
+
+class PublisherSocket:
+    """One node's publishing socket (an XPUB connected to the forwarder).
+
+    XPUB rather than PUB so the node sees which topics have subscribers (the forwarder
+    passes subscriptions upstream) and knows when the forwarder is connected. Thread-safe.
+    """
+
+    def __init__(self, node: str, address: BusAddress | None = None, ctx: zmq.Context | None = None) -> None:
+        self.node = node
+        self.address = address or bus_address()
+        self._lock = threading.Lock()
+        self._sock = (ctx or new_context()).socket(zmq.XPUB)
+        self._sock.linger = LINGER_MS
+        self._sock.sndhwm = PUB_HWM
+        secure_client(self._sock, self.address)
+        self._sock.connect(self.address.pub)
+        self._prefixes: set[bytes] = set()
+        self._seq: dict[str, int] = {}
+
+    def _drain_subscriptions(self) -> None:
+        while self._sock.poll(0):
+            event = self._sock.recv()
+            if event[:1] == b"\x01":
+                self._prefixes.add(event[1:])
+            elif event[:1] == b"\x00":
+                self._prefixes.discard(event[1:])
+
+    def wait_connected(self, timeout_s: float = 2.0) -> bool:
+        """Block until the forwarder has subscribed (it always asks for latched topics)."""
+        deadline = time.monotonic() + timeout_s
+        with self._lock:
+            while LATCHED not in self._prefixes:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or not self._sock.poll(int(remaining * 1000)):
+                    return False
+                self._drain_subscriptions()
+            return True
+
+    def has_subscribers(self, topic: str) -> bool:
+        """True when some subscriber asked for `topic` (exactly or through a wildcard)."""
+        key = VOLATILE + topic.encode() + b"\0"
+        with self._lock:
+            self._drain_subscriptions()
+            return any(key.startswith(p) for p in self._prefixes if p[:1] == VOLATILE)
+
+    def publish(self, topic: str, msg: Message, latched: bool = False) -> int:
+        """Stamp `msg` (seq, pub_ns, node) and send it; returns its seq. Never blocks."""
+        with self._lock:
+            self._drain_subscriptions()
+            seq = self._seq.get(topic, -1) + 1
+            self._seq[topic] = seq
+            msg.seq = seq
+            msg.node = self.node
+            msg.pub_ns = time.time_ns()
+            frames = [envelope(topic, self.node, latched), *msgs.encode(msg)]
+            try:
+                self._sock.send_multipart(frames, copy=False, flags=zmq.NOBLOCK)
+            except zmq.Again:
+                pass  # forwarder gone or HWM reached: dropping beats blocking the publisher
+            return seq
+
+    def close(self) -> None:
+        with self._lock:
+            self._sock.close(linger=LINGER_MS)
+
+
+@dataclass
+class SeqTracker:
+    """Counts sequence gaps per (topic, publisher node) and drops latched replays.
+
+    A latched message is replayed by the forwarder to every new subscriber; a subscriber
+    that already saw it sees its seq again and drops it. A seq that goes back for a
+    volatile message means the publisher restarted: the count starts over.
+    """
+
+    last: dict[tuple[str, str], int] = field(default_factory=dict)
+    gaps: int = 0
+
+    def accept(self, topic: str, node: str, seq: int, latched: bool) -> bool:
+        key = (topic, node)
+        prev = self.last.get(key)
+        if prev is not None and seq <= prev:
+            if latched:
+                return False
+            prev = None
+        if prev is not None and seq > prev + 1:
+            self.gaps += seq - prev - 1
+        self.last[key] = seq
+        return True
+
+
+@dataclass
+class Received:
+    """A decoded message with its routing: topic, publisher node and latched flag."""
+
+    topic: str
+    msg: Message
+    latched: bool
+
+
+class TopicReader:
+    """A blocking subscriber for tools and robot code (no threads, no callbacks).
+
+    >>> with TopicReader(["/slip"]) as reader:
+    ...     item = reader.recv(timeout_s=1.0)   # Received or None
+    """
+
+    def __init__(self, topics: list[str], address: BusAddress | None = None, ctx: zmq.Context | None = None,
+                 hwm: int = SUB_HWM) -> None:
+        self.address = address or bus_address()
+        self._sock = (ctx or new_context()).socket(zmq.SUB)
+        self._sock.linger = LINGER_MS
+        self._sock.rcvhwm = hwm
+        secure_client(self._sock, self.address)
+        self._sock.connect(self.address.sub)
+        for topic in topics:
+            for prefix in subscription_prefixes(topic if topic == ALL_TOPICS else validate_topic(topic)):
+                self._sock.setsockopt(zmq.SUBSCRIBE, prefix)
+        self.seq = SeqTracker()
+        self.malformed = 0
+
+    def recv_raw(self, timeout_s: float | None = None) -> tuple[str, str, bool, list[Any]] | None:
+        """(topic, node, latched, message frames) of the next fresh message, or None on
+        timeout. Latched replays already seen are skipped; gaps are counted."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            wait = None if deadline is None else max(0.0, deadline - time.monotonic())
+            if not self._sock.poll(None if wait is None else int(wait * 1000)):
+                return None
+            frames = self._sock.recv_multipart(copy=False)
+            try:
+                topic, node, latched = parse_envelope(frames[0])
+                header = msgs.decode_header(frames[1], topic) if len(frames) > 1 else None
+                if header is None:
+                    raise ValueError("no header frame")
+            except (ValueError, MessageError) as exc:
+                self.malformed += 1
+                log.debug("dropped malformed message: %s", exc)
+                continue
+            if self.seq.accept(topic, node, header["seq"], latched):
+                return topic, node, latched, frames[1:]
+
+    def recv(self, timeout_s: float | None = None) -> Received | None:
+        """Next decoded message, or None on timeout; malformed ones are counted and skipped."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            wait = None if deadline is None else max(0.0, deadline - time.monotonic())
+            raw = self.recv_raw(wait)
+            if raw is None:
+                return None
+            topic, _node, latched, frames = raw
+            try:
+                return Received(topic, msgs.decode(frames, topic), latched)
+            except MessageError as exc:
+                self.malformed += 1
+                log.debug("dropped malformed message: %s", exc)
+
+    def close(self) -> None:
+        self._sock.close(linger=LINGER_MS)
+
+    def __enter__(self) -> "TopicReader":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

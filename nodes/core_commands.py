@@ -1,0 +1,62 @@
+"""`fv forwarder`, `fv node`, `fv keys`: run the bus and single nodes."""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("forwarder", help="run the bus forwarder (the launcher starts one when none runs)")
+    p.add_argument("--tcp", metavar="tcp://HOST:PORT", help="also listen for other hosts (CURVE only)")
+    p.add_argument("--keys", type=Path, help="CURVE key folder made by `fv keys` (needed with --tcp)")
+    p.set_defaults(func=_forwarder)
+
+    p = sub.add_parser("node", help="run one node: fv node KIND [--name N] [--param k=v ...]")
+    p.add_argument("kind", help="node kind (see `fv node kinds`)")
+    p.add_argument("--name", help="node name (default: the kind)")
+    p.add_argument("--ns", default="", help="namespace for relative topic names")
+    p.add_argument("--param", "-p", action="append", default=[], metavar="KEY=VALUE", help="override a param")
+    p.add_argument("--params-json", default="", help="params as a JSON object (used by the launcher)")
+    p.add_argument("--remap", "-r", action="append", default=[], metavar="FROM:=TO", help="rename a topic")
+    p.set_defaults(func=_node)
+
+    p = sub.add_parser("keys", help="create CURVE keys for a TCP bus")
+    p.add_argument("folder", type=Path)
+    p.set_defaults(func=_keys)
+
+
+def _forwarder(args: argparse.Namespace) -> int:
+    from nodes.forwarder import serve
+    return serve(args.tcp, args.keys)
+
+
+def parse_remaps(items: list[str]) -> dict[str, str]:
+    out = {}
+    for item in items:
+        src, sep, dst = item.partition(":=")
+        if not sep or not src or not dst:
+            raise ValueError(f"remap {item!r} is not FROM:=TO")
+        out[src] = dst
+    return out
+
+
+def _node(args: argparse.Namespace) -> int:
+    from nodes.params import parse_assignments
+    from nodes.registry import NODES, node_class
+    if args.kind == "kinds":
+        print("\n".join(sorted(NODES)))
+        return 0
+    params = json.loads(args.params_json) if args.params_json else {}
+    params.update(parse_assignments(args.param))
+    node = node_class(args.kind)(args.name or args.kind, params, namespace=args.ns,
+                                 remap=parse_remaps(args.remap))
+    node.spin()
+    return 0
+
+
+def _keys(args: argparse.Namespace) -> int:
+    from nodes.endpoints import make_keys
+    for path in make_keys(args.folder):
+        print(path)
+    return 0

@@ -1,0 +1,185 @@
+"""The forwarder: one per host, like roscore. XSUB (publishers) <-> XPUB (subscribers).
+
+It forwards every message, caches the last latched message per (topic, node) and
+replays it to each new subscriber, and answers pings on the control socket. Locally it
+binds IPC only; with `tcp` it also listens for other hosts, and then only with CURVE
+encryption and authenticated client keys.
+"""
+from __future__ import annotations
+
+import fcntl
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import msgpack
+import zmq
+from zmq.auth.thread import ThreadAuthenticator
+
+from nodes.bus import LATCHED, LINGER_MS, new_context
+from nodes.endpoints import BUS_ENV, BusAddress, bus_address, secure_client, secure_server
+
+log = logging.getLogger("fv.forwarder")
+FWD_HWM = 200
+
+
+class ForwarderRunning(RuntimeError):
+    """Another forwarder already serves this bus."""
+
+
+class Forwarder:
+    """Bind the bus endpoints (IPC, plus TCP+CURVE when `tcp_url` is given)."""
+
+    def __init__(self, address: BusAddress | None = None, tcp_url: str | None = None,
+                 keys: Path | None = None) -> None:
+        self.address = address or bus_address()
+        self.ctx = zmq.Context()
+        self._lock_file = None
+        if self.address.ipc_dir is not None:
+            self.address.ipc_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
+            self._lock_file = open(self.address.url[len("ipc://"):] + ".lock", "w")
+            try:
+                fcntl.flock(self._lock_file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise ForwarderRunning(f"a forwarder already serves {self.address.url}") from None
+        self.auth: ThreadAuthenticator | None = None
+        self.sides: list[tuple[zmq.Socket, zmq.Socket, zmq.Socket]] = []
+        if self.address.is_tcp:
+            self.sides.append(self._bind_side(self.address, keys))
+        else:
+            self.sides.append(self._bind_side(self.address, None))
+        if tcp_url:
+            self.sides.append(self._bind_side(bus_address(tcp_url), keys))
+        self.latched: dict[bytes, list[zmq.Frame]] = {}
+        self.forwarded = 0
+        self.started = time.time()
+
+    def _bind_side(self, address: BusAddress, keys: Path | None) -> tuple[zmq.Socket, zmq.Socket, zmq.Socket]:
+        secure = address.is_tcp
+        if secure:
+            if keys is None:
+                raise ValueError(f"TCP bus {address.url} needs CURVE keys (--keys DIR, made by `fv keys DIR`)")
+            if self.auth is None:
+                self.auth = ThreadAuthenticator(self.ctx)
+                self.auth.start()
+                self.auth.configure_curve(domain="*", location=str(keys / "authorized"))
+        xsub = self.ctx.socket(zmq.XSUB)
+        xpub = self.ctx.socket(zmq.XPUB)
+        ctl = self.ctx.socket(zmq.REP)
+        xpub.setsockopt(zmq.XPUB_VERBOSER, 1)
+        xpub.sndhwm = FWD_HWM
+        xsub.rcvhwm = FWD_HWM
+        for sock, endpoint in ((xsub, address.pub), (xpub, address.sub), (ctl, address.ctl)):
+            sock.linger = LINGER_MS
+            if secure:
+                secure_server(sock, keys)
+            sock.bind(endpoint)
+        xsub.send(b"\x01" + LATCHED)
+        return xsub, xpub, ctl
+
+    def info(self) -> dict:
+        return {"pid": os.getpid(), "url": self.address.url, "uptime_s": time.time() - self.started,
+                "forwarded": self.forwarded, "latched": sorted(k.decode(errors="replace") for k in self.latched)}
+
+    def run(self, stop: threading.Event) -> None:
+        poller = zmq.Poller()
+        for side in self.sides:
+            for sock in side:
+                poller.register(sock, zmq.POLLIN)
+        xsubs = [s[0] for s in self.sides]
+        xpubs = [s[1] for s in self.sides]
+        ctls = [s[2] for s in self.sides]
+        while not stop.is_set():
+            for sock, _ in poller.poll(100):
+                if sock in xsubs:
+                    frames = sock.recv_multipart(copy=False)
+                    env = frames[0].bytes
+                    if env[:1] == LATCHED:
+                        self.latched[env] = frames
+                    for out in xpubs:
+                        out.send_multipart(frames, copy=False, flags=zmq.NOBLOCK)
+                    self.forwarded += 1
+                elif sock in xpubs:
+                    event = sock.recv()
+                    for up in xsubs:
+                        up.send(event)
+                    if event[:1] == b"\x01":
+                        prefix = event[1:]
+                        for env, frames in list(self.latched.items()):
+                            if env.startswith(prefix) and prefix:
+                                sock.send_multipart(frames, copy=False, flags=zmq.NOBLOCK)
+                elif sock in ctls:
+                    sock.recv()
+                    sock.send(msgpack.packb(self.info()))
+
+    def close(self) -> None:
+        for side in self.sides:
+            for sock in side:
+                sock.close(linger=0)
+        if self.auth is not None:
+            self.auth.stop()
+        self.ctx.term()
+        if self._lock_file is not None:
+            self._lock_file.close()
+
+
+def ping(address: BusAddress | None = None, timeout_s: float = 0.3) -> dict | None:
+    """The forwarder's info, or None when no forwarder answers within `timeout_s`."""
+    address = address or bus_address()
+    if address.ipc_dir is not None and not Path(address.ctl[len("ipc://"):]).exists():
+        return None
+    ctx = new_context()
+    sock = ctx.socket(zmq.REQ)
+    sock.linger = 0
+    try:
+        secure_client(sock, address)
+        sock.connect(address.ctl)
+        sock.send(b"ping")
+        if sock.poll(int(timeout_s * 1000)):
+            return msgpack.unpackb(sock.recv())
+        return None
+    finally:
+        sock.close(linger=0)
+
+
+def ensure_forwarder(address: BusAddress | None = None, timeout_s: float = 5.0) -> subprocess.Popen | None:
+    """Start a forwarder process unless one answers; returns it (the caller stops it) or
+    None when one was already running."""
+    address = address or bus_address()
+    if ping(address) is not None:
+        return None
+    env = dict(os.environ, **{BUS_ENV: address.url})
+    proc = subprocess.Popen([sys.executable, "-m", "nodes.cli", "forwarder"], env=env,
+                            start_new_session=False)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if ping(address, 0.2) is not None:
+            return proc
+        if proc.poll() is not None:
+            raise RuntimeError(f"forwarder for {address.url} exited with code {proc.returncode} at start")
+        time.sleep(0.05)
+    proc.terminate()
+    raise RuntimeError(f"forwarder for {address.url} did not answer within {timeout_s} s")
+
+
+def serve(tcp_url: str | None = None, keys: Path | None = None) -> int:
+    """Run a forwarder in this process until SIGINT/SIGTERM; the `fv forwarder` command."""
+    try:
+        fwd = Forwarder(tcp_url=tcp_url, keys=keys)
+    except ForwarderRunning as exc:
+        log.error("%s", exc)
+        return 1
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    log.info("forwarder on %s%s", fwd.address.url, f" and {tcp_url} (CURVE)" if tcp_url else "")
+    try:
+        fwd.run(stop)
+    finally:
+        fwd.close()
+    return 0

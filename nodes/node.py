@@ -1,0 +1,359 @@
+"""The node runtime: publishers, subscriptions with queue policies, timers, params,
+logging and a periodic `NodeStatus` on `/status`.
+
+Threading model: one receiver thread drains the node's SUB socket into per-subscription
+queues (so ZeroMQ buffers never fill and a slow callback never slows a publisher), and
+`spin()` runs callbacks and timers one at a time on the calling thread. A queue of depth
+N keeps the last N messages (depth 1 = latest only, for camera frames) and counts what
+it drops; depth None keeps all (up to `KEEP_ALL_CAP`).
+"""
+from __future__ import annotations
+
+import collections
+import logging
+import os
+import signal
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, ClassVar
+
+import numpy as np
+import zmq
+
+import msgs
+from msgs import Message, MessageError, NodeStatus
+from nodes.bus import (ALL_TOPICS, LINGER_MS, SUB_HWM, PublisherSocket, SeqTracker, new_context,
+                       parse_envelope, subscription_prefixes, validate_topic)
+from nodes.endpoints import BusAddress, bus_address, secure_client
+from nodes.params import build_params
+
+STATUS_TOPIC = "/status"
+KEEP_ALL_CAP = 10_000
+_PAGE = os.sysconf("SC_PAGE_SIZE")
+
+
+@dataclass
+class NoParams:
+    """A node without parameters."""
+
+
+class Publisher:
+    """Publishes one message type on one topic (resolved name)."""
+
+    def __init__(self, sock: PublisherSocket, topic: str, msg_type: type[Message], latched: bool) -> None:
+        self.topic = topic
+        self.msg_type = msg_type
+        self.latched = latched
+        self._sock = sock
+        self.count = 0
+
+    def publish(self, msg: Message) -> int:
+        if not isinstance(msg, self.msg_type):
+            raise TypeError(f"{self.topic}: publishes {self.msg_type.TYPE}, got {type(msg).__name__}")
+        self.count += 1
+        return self._sock.publish(self.topic, msg, self.latched)
+
+    def has_subscribers(self) -> bool:
+        return self._sock.has_subscribers(self.topic)
+
+
+class Subscription:
+    """A callback on one topic with its queue (depth None = keep all)."""
+
+    def __init__(self, topic: str, msg_type: type[Message] | None, callback: Callable[[Message], None],
+                 depth: int | None) -> None:
+        if depth is not None and depth < 1:
+            raise ValueError(f"subscription {topic}: depth {depth} must be >= 1 or None (keep all)")
+        self.topic = topic
+        self.msg_type = msg_type
+        self.callback = callback
+        self.depth = depth
+        self.queue: collections.deque = collections.deque()
+        self.drops = 0
+        self.received = 0
+
+
+@dataclass
+class Timer:
+    period_s: float
+    callback: Callable[[], None]
+    next_s: float
+
+
+class _Stats:
+    """Callback timings and counters over one status period."""
+
+    def __init__(self) -> None:
+        self.proc_ms: list[float] = []
+        self.calls = 0
+        self.errors = 0
+        self.malformed = 0
+        self.started = time.monotonic()
+        self.cpu0 = time.process_time()
+        self.wall0 = time.monotonic()
+
+
+class Node:
+    """Base class of every node. Subclasses set `Params` (a dataclass) and override
+    `setup()` to create publishers, subscriptions and timers from `self.params`."""
+
+    Params: ClassVar[type] = NoParams
+    STATUS_PERIOD_S: ClassVar[float] = 1.0
+
+    def __init__(self, name: str, params: dict[str, Any] | None = None, *, namespace: str = "",
+                 remap: dict[str, str] | None = None, address: BusAddress | None = None) -> None:
+        self.name = name
+        self.namespace = namespace.rstrip("/")
+        self.remap = dict(remap or {})
+        self.params = build_params(self.Params, params or {}, where=f"node {name!r}")
+        self.log = logging.getLogger(name)
+        self.address = address or bus_address()
+        self.ctx = new_context()
+        self._pub_sock = PublisherSocket(name, self.address, self.ctx)
+        self._publishers: list[Publisher] = []
+        self._subs: dict[str, list[Subscription]] = {}
+        self._timers: list[Timer] = []
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._seq = SeqTracker()
+        self._stats = _Stats()
+        self._totals = {"drops": 0, "malformed": 0, "errors": 0}
+        self._logged_kinds: set[str] = set()
+        self.state = "ok"
+        self.message = ""
+        self.counters: dict[str, int] = {}
+        self._receiver: threading.Thread | None = None
+        self._ctl_addr = f"inproc://fv-node-{id(self)}"
+        self._ctl_out = self.ctx.socket(zmq.PAIR)
+        self._ctl_out.bind(self._ctl_addr)
+        self._started = time.monotonic()
+        self._status_pub = self.publisher(STATUS_TOPIC, NodeStatus, latched=True)
+        self.timer(self.STATUS_PERIOD_S, self._publish_status)
+
+    # -- names ---------------------------------------------------------------------
+    def resolve(self, topic: str) -> str:
+        """Absolute topic name: relative names get the namespace, then remaps apply."""
+        if topic == ALL_TOPICS:
+            return topic
+        full = topic if topic.startswith("/") else f"{self.namespace}/{topic}"
+        return validate_topic(self.remap.get(full, self.remap.get(topic, full)))
+
+    # -- endpoints -----------------------------------------------------------------
+    def publisher(self, topic: str, msg_type: type[Message], latched: bool = False) -> Publisher:
+        pub = Publisher(self._pub_sock, self.resolve(topic), msg_type, latched)
+        self._publishers.append(pub)
+        return pub
+
+    def subscribe(self, topic: str, msg_type: type[Message] | None, callback: Callable[[Message], None],
+                  depth: int | None = 10) -> Subscription:
+        """Call `callback(msg)` for each message on `topic` (msg_type None = any type)."""
+        sub = Subscription(self.resolve(topic), msg_type, callback, depth)
+        with self._cond:
+            first = sub.topic not in self._subs
+            self._subs.setdefault(sub.topic, []).append(sub)
+        if first and self._receiver is not None and self._receiver.is_alive():
+            self._ctl_out.send_string("sub " + sub.topic)
+        return sub
+
+    def timer(self, period_s: float, callback: Callable[[], None]) -> Timer:
+        if period_s <= 0:
+            raise ValueError(f"timer period {period_s} s must be > 0")
+        t = Timer(period_s, callback, time.monotonic() + period_s)
+        with self._cond:
+            self._timers.append(t)
+            self._cond.notify()
+        return t
+
+    # -- life cycle ----------------------------------------------------------------
+    def setup(self) -> None:
+        """Create the node's publishers, subscriptions and timers (override)."""
+
+    def teardown(self) -> None:
+        """Release the node's resources (override when it holds devices or files)."""
+
+    def warn(self, message: str) -> None:
+        """Report a degraded state in NodeStatus (and log it once per message)."""
+        self.state, self.message = "warn", message
+        self._log_once("warn:" + message, logging.WARNING, message)
+
+    def clear_warning(self) -> None:
+        self.state, self.message = "ok", ""
+
+    def stop(self) -> None:
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+
+    @property
+    def stopped(self) -> bool:
+        return self._stop.is_set()
+
+    def spin(self, install_signals: bool = True) -> None:
+        """Run setup, then callbacks and timers until stop() or SIGINT/SIGTERM."""
+        if install_signals and threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, lambda *_: self.stop())
+        self._receiver = threading.Thread(target=self._receive_loop, name=f"{self.name}-rx", daemon=True)
+        self._receiver.start()
+        self._pub_sock.wait_connected(2.0)
+        try:
+            self.setup()
+            self._publish_status()
+            self._executor_loop()
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        self._stop.set()
+        try:
+            self.teardown()
+        finally:
+            if self._receiver is not None and self._receiver.is_alive():
+                self._ctl_out.send_string("stop")
+                self._receiver.join(2.0)
+            self._ctl_out.close(linger=0)
+            self._pub_sock.close()
+
+    # -- receiving -----------------------------------------------------------------
+    def _receive_loop(self) -> None:
+        sub = self.ctx.socket(zmq.SUB)
+        sub.linger = LINGER_MS
+        sub.rcvhwm = SUB_HWM
+        secure_client(sub, self.address)
+        sub.connect(self.address.sub)
+        ctl = self.ctx.socket(zmq.PAIR)
+        ctl.connect(self._ctl_addr)
+        with self._cond:
+            topics = list(self._subs)
+        for topic in topics:
+            for prefix in subscription_prefixes(topic):
+                sub.setsockopt(zmq.SUBSCRIBE, prefix)
+        poller = zmq.Poller()
+        poller.register(sub, zmq.POLLIN)
+        poller.register(ctl, zmq.POLLIN)
+        try:
+            while True:
+                ready = dict(poller.poll())
+                if ctl in ready:
+                    cmd = ctl.recv_string()
+                    if cmd == "stop":
+                        return
+                    for prefix in subscription_prefixes(cmd[4:]):
+                        sub.setsockopt(zmq.SUBSCRIBE, prefix)
+                if sub in ready:
+                    while sub.poll(0):
+                        self._enqueue(sub.recv_multipart(copy=False))
+        finally:
+            sub.close(linger=0)
+            ctl.close(linger=0)
+
+    def _enqueue(self, frames: list[zmq.Frame]) -> None:
+        try:
+            topic, node, latched = parse_envelope(frames[0])
+            if len(frames) < 2:
+                raise ValueError(f"topic {topic!r}: no header frame")
+            header = msgs.decode_header(frames[1], topic)
+        except (ValueError, MessageError) as exc:
+            self._malformed(exc)
+            return
+        with self._cond:
+            if not self._seq.accept(topic, node, header["seq"], latched):
+                return
+            targets = list(self._subs.get(topic, ())) + list(self._subs.get(ALL_TOPICS, ()))
+            for s in targets:
+                s.received += 1
+                s.queue.append((topic, frames[1:]))
+                limit = s.depth or KEEP_ALL_CAP
+                while len(s.queue) > limit:
+                    s.queue.popleft()
+                    s.drops += 1
+                    self._totals["drops"] += 1
+            self._cond.notify()
+
+    # -- executing -----------------------------------------------------------------
+    def _next_work(self) -> tuple[Subscription, str, list] | Timer | None:
+        """Wait for the next due timer or queued message; None when stopping."""
+        with self._cond:
+            while not self._stop.is_set():
+                now = time.monotonic()
+                due = min(self._timers, key=lambda t: t.next_s, default=None)
+                if due is not None and due.next_s <= now:
+                    due.next_s = max(due.next_s + due.period_s, now)
+                    return due
+                for subs in self._subs.values():
+                    for s in subs:
+                        if s.queue:
+                            topic, frames = s.queue.popleft()
+                            # rotate so busy topics cannot starve the others
+                            subs.append(subs.pop(subs.index(s)))
+                            return s, topic, frames
+                self._cond.wait(None if due is None else due.next_s - now)
+        return None
+
+    def _executor_loop(self) -> None:
+        while True:
+            work = self._next_work()
+            if work is None:
+                return
+            if isinstance(work, Timer):
+                self._run(work.callback)
+                continue
+            sub, topic, frames = work
+            try:
+                msg = msgs.decode(frames, topic)
+                if sub.msg_type is not None and not isinstance(msg, sub.msg_type):
+                    raise MessageError(topic, msg.TYPE, "type", f"subscription expects {sub.msg_type.TYPE}")
+            except MessageError as exc:
+                self._malformed(exc)
+                continue
+            self._run(sub.callback, msg)
+
+    def _run(self, fn: Callable, *args: Any) -> None:
+        t0 = time.perf_counter()
+        try:
+            fn(*args)
+        except Exception as exc:  # a node never dies on one bad callback
+            self._stats.errors += 1
+            self._totals["errors"] += 1
+            self._log_once(f"err:{type(exc).__name__}:{getattr(fn, '__name__', fn)}", logging.ERROR,
+                           f"{getattr(fn, '__name__', fn)} raised {type(exc).__name__}: {exc} (counted; repeats not logged)",
+                           exc_info=True)
+        if args:
+            self._stats.calls += 1
+            self._stats.proc_ms.append((time.perf_counter() - t0) * 1e3)
+
+    def _malformed(self, exc: Exception) -> None:
+        self._totals["malformed"] += 1
+        kind = f"{getattr(exc, 'topic', '?')}:{getattr(exc, 'type_name', '?')}:{getattr(exc, 'field', type(exc).__name__)}"
+        self._log_once("bad:" + kind, logging.WARNING, f"dropped malformed message: {exc} (counted; repeats not logged)")
+
+    def _log_once(self, kind: str, level: int, text: str, exc_info: bool = False) -> None:
+        if kind not in self._logged_kinds:
+            self._logged_kinds.add(kind)
+            self.log.log(level, text, exc_info=exc_info)
+
+    # -- status --------------------------------------------------------------------
+    def status(self) -> NodeStatus:
+        """The NodeStatus for the period since the last call (resets period stats)."""
+        st, self._stats = self._stats, _Stats()
+        wall = max(time.monotonic() - st.wall0, 1e-9)
+        proc = np.asarray(st.proc_ms) if st.proc_ms else np.zeros(1)
+        try:
+            with open("/proc/self/statm") as f:
+                rss = int(f.read().split()[1]) * _PAGE
+        except OSError:
+            rss = 0
+        subs = [[t, (s.msg_type.TYPE if s.msg_type else "*")] for t, ss in self._subs.items() for s in ss]
+        return NodeStatus(
+            stamp_ns=time.time_ns(), state=self.state, message=self.message, pid=os.getpid(),
+            uptime_s=time.monotonic() - self._started, rate_hz=st.calls / wall,
+            proc_ms_mean=float(proc.mean()), proc_ms_p99=float(np.percentile(proc, 99)),
+            drops=self._totals["drops"], gaps=self._seq.gaps, malformed=self._totals["malformed"],
+            errors=self._totals["errors"], cpu_percent=100.0 * (time.process_time() - st.cpu0) / wall,
+            rss_bytes=rss, publishes=[[p.topic, p.msg_type.TYPE] for p in self._publishers],
+            subscribes=subs, counters=dict(self.counters))
+
+    def _publish_status(self) -> None:
+        self._status_pub.publish(self.status())
+
