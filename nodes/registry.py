@@ -9,6 +9,8 @@ from nodes.node import Node
 NODES: dict[str, str] = {
     "talker": "nodes.demo:Talker",
     "listener": "nodes.demo:Listener",
+    "camera": "nodes.camera:CameraNode",
+    "slip_monitor": "nodes.slip_monitor:SlipMonitor",
 }
 
 

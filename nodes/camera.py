@@ -1,0 +1,152 @@
+"""The `camera` node: frames from the simulator, a video file, a folder of images or a
+V4L2 device, published as `Image` on `/camera/image` with capture stamps, plus a latched
+`CameraInfo` on `/camera/info`. A lost source is reported in NodeStatus and reopened
+with backoff; a source that cannot be opened at start fails with a clear error."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from msgs import CameraInfo, Image
+from nodes.camera_sources import FolderSource, Frame, FrameSource, SourceError, V4L2Source, VideoFileSource
+from nodes.node import Node
+
+SOURCES = ("sim", "video", "folder", "v4l2")
+ENCODINGS = ("mono8", "bgr8")
+
+
+@dataclass
+class CameraParams:
+    source: str = "sim"  # sim | video | folder | v4l2
+    path: str = ""  # video file, image folder, or V4L2 index / device path
+    scene: str = ""  # sim: scene file (YAML/JSON); "" = looping random scenarios
+    fps: float = 30.0  # publish rate in Hz (video: 0 = the file's own rate)
+    loop: bool = True  # video / folder: start again at the end
+    width: int = 640  # v4l2 capture size (px)
+    height: int = 480
+    exposure: float = -1.0  # v4l2 manual exposure (driver units), < 0 = auto
+    white_balance: float = -1.0  # v4l2 white balance temperature (K), < 0 = auto
+    calibration: str = ""  # calibration JSON from `fv calibrate` ("" = none / sim's own)
+    undistort: bool = False  # remap frames with the calibration before publishing
+    encoding: str = "mono8"  # mono8 | bgr8
+    seed: int = 0  # sim: random seed
+    frame_id: str = "fv_camera"
+    reopen_backoff_s: float = 0.5  # first retry delay after a lost source; doubles up to 8 s
+
+    def __post_init__(self) -> None:
+        if self.source not in SOURCES:
+            raise ValueError(f"source {self.source!r} is not one of {SOURCES}")
+        if self.encoding not in ENCODINGS:
+            raise ValueError(f"encoding {self.encoding!r} is not one of {ENCODINGS}")
+        if self.fps < 0 or (self.fps == 0 and self.source != "video"):
+            raise ValueError(f"fps {self.fps} must be > 0 (0 only for a video's own rate)")
+        if self.source in ("video", "folder", "v4l2") and not self.path:
+            raise ValueError(f"source {self.source!r} needs a path")
+        if self.undistort and not self.calibration and self.source != "sim":
+            raise ValueError("undistort needs a calibration file")
+
+
+def make_source(p: CameraParams) -> FrameSource:
+    """The frame source the params ask for (not opened yet)."""
+    if p.source == "video":
+        return VideoFileSource(p.path, p.loop)
+    if p.source == "folder":
+        return FolderSource(p.path, p.loop)
+    if p.source == "v4l2":
+        return V4L2Source(p.path, p.width, p.height, p.fps, p.exposure, p.white_balance)
+    from nodes.sim_source import SimSource
+    return SimSource(p.scene, p.seed, p.fps)
+
+
+class CameraNode(Node):
+    """Publishes frames at `fps` from the configured source."""
+
+    Params = CameraParams
+
+    def setup(self) -> None:
+        p = self.params
+        self.source = make_source(p)
+        self.source.open()  # SourceError at start is fatal, with the source named
+        self.image_pub = self.publisher("/camera/image", Image)
+        self.info_pub = self.publisher("/camera/info", CameraInfo, latched=True)
+        self.fisheye = self._load_calibration()
+        self.maps = self.fisheye.undistort_maps() if (p.undistort and self.fisheye) else None
+        self._publish_info()
+        rate = p.fps or getattr(self.source, "file_fps", 0.0) or 30.0
+        self.backoff_s = 0.0
+        self.retry_at = 0.0
+        self.counters.update(frames=0, lost=0, reopened=0)
+        self.timer(1.0 / rate, self.tick)
+
+    def _load_calibration(self):
+        from fv_algos.fisheye import FisheyeCamera
+        if self.params.calibration:
+            return FisheyeCamera.load(self.params.calibration)
+        return getattr(self.source, "camera", None)
+
+    def _publish_info(self) -> None:
+        cam = self.fisheye
+        if cam is None:
+            return
+        self.info_pub.publish(CameraInfo(stamp_ns=time.time_ns(), frame_id=self.params.frame_id, width=cam.width,
+                                         height=cam.height, K=np.asarray(cam.K, np.float64),
+                                         D=np.asarray(cam.D, np.float64).reshape(4), rms_px=float(getattr(cam, "rms_px", 0.0) or 0.0)))
+
+    def tick(self) -> None:
+        if getattr(self.source, "finished", False):
+            return
+        if self.retry_at:
+            if time.monotonic() < self.retry_at:
+                return
+            self._reopen()
+            return
+        try:
+            frame = self.source.read()
+        except SourceError as exc:
+            self._lost(str(exc))
+            return
+        if frame is None:
+            if getattr(self.source, "finished", False):
+                self.warn(f"{self.source.name}: end of input")
+                return
+            self._lost("no frame")
+            return
+        self.publish_frame(frame)
+
+    def _lost(self, why: str) -> None:
+        self.counters["lost"] += 1
+        self.backoff_s = min(8.0, max(self.params.reopen_backoff_s, 2 * self.backoff_s))
+        self.retry_at = time.monotonic() + self.backoff_s
+        self.warn(f"{self.source.name}: {why}; reopening in {self.backoff_s:.1f} s")
+        self.source.close()
+
+    def _reopen(self) -> None:
+        try:
+            self.source.open()
+        except SourceError as exc:
+            self._lost(str(exc))
+            return
+        self.retry_at = 0.0
+        self.backoff_s = 0.0
+        self.counters["reopened"] += 1
+        self.clear_warning()
+        self._publish_info()
+
+    def publish_frame(self, frame: Frame) -> None:
+        image = frame.image
+        if self.params.encoding == "mono8" and image.ndim == 3:
+            image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        elif self.params.encoding == "bgr8" and image.ndim == 2:
+            image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+        if self.maps is not None:
+            image = cv2.remap(image, self.maps[0], self.maps[1], cv2.INTER_LINEAR)
+        self.image_pub.publish(Image(stamp_ns=frame.stamp_ns, frame_id=self.params.frame_id,
+                                     encoding=self.params.encoding, data=np.ascontiguousarray(image)))
+        self.counters["frames"] += 1
+
+    def teardown(self) -> None:
+        if hasattr(self, "source"):
+            self.source.close()

@@ -1,0 +1,164 @@
+"""Frame sources for the camera node: a video file, a folder of images, a V4L2 device,
+and the simulated sensor. Each is a small class with `open()`, `read()` and `close()`;
+`read()` returns the frame and its capture stamp, or None when no frame came (the node
+then reports the source lost and reopens it with backoff)."""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import cv2
+import numpy as np
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
+log = logging.getLogger("fv.camera")
+
+
+class SourceError(RuntimeError):
+    """A source that cannot be opened; the message names the source and why."""
+
+
+@dataclass
+class Frame:
+    """image: (H, W) or (H, W, 3) uint8 (BGR); stamp_ns: capture time (ns since epoch)."""
+
+    image: np.ndarray
+    stamp_ns: int
+
+
+class FrameSource(Protocol):
+    name: str
+
+    def open(self) -> None: ...
+
+    def read(self) -> Frame | None: ...
+
+    def close(self) -> None: ...
+
+
+class VideoFileSource:
+    """Frames of a video file, optionally looping; a file that vanishes is reported
+    as lost, not fatal."""
+
+    def __init__(self, path: str, loop: bool = True) -> None:
+        self.path = Path(path)
+        self.loop = loop
+        self.name = f"video {self.path}"
+        self._cap: cv2.VideoCapture | None = None
+        self.file_fps = 0.0
+        self.finished = False
+
+    def open(self) -> None:
+        if not self.path.is_file():
+            raise SourceError(f"{self.name}: no such file")
+        cap = cv2.VideoCapture(str(self.path))
+        if not cap.isOpened():
+            raise SourceError(f"{self.name}: OpenCV cannot decode it")
+        self._cap = cap
+        self.file_fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+
+    def read(self) -> Frame | None:
+        if self._cap is None:
+            return None
+        ok, image = self._cap.read()
+        stamp = time.time_ns()
+        if ok:
+            return Frame(image, stamp)
+        if not self.loop:
+            self.finished = True
+            return None
+        self.close()
+        self.open()  # raises SourceError when the file has gone: the node reopens with backoff
+        ok, image = self._cap.read()
+        return Frame(image, time.time_ns()) if ok else None
+
+    def close(self) -> None:
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
+
+
+class FolderSource:
+    """Images of a folder in name order, optionally looping."""
+
+    def __init__(self, path: str, loop: bool = True) -> None:
+        self.path = Path(path)
+        self.loop = loop
+        self.name = f"folder {self.path}"
+        self._files: list[Path] = []
+        self._index = 0
+        self.finished = False
+
+    def open(self) -> None:
+        if not self.path.is_dir():
+            raise SourceError(f"{self.name}: no such folder")
+        self._files = sorted(p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        if not self._files:
+            raise SourceError(f"{self.name}: holds no images ({', '.join(IMAGE_SUFFIXES)})")
+        self._index = 0
+
+    def read(self) -> Frame | None:
+        if self._index >= len(self._files):
+            if not self.loop:
+                self.finished = True
+                return None
+            self._index = 0
+        path = self._files[self._index]
+        self._index += 1
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            log.warning("%s: cannot read %s, skipped", self.name, path.name)
+            return None
+        if image.dtype != np.uint8:
+            image = cv2.convertScaleAbs(image, alpha=255.0 / max(float(image.max()), 1.0))
+        return Frame(image, time.time_ns())
+
+    def close(self) -> None:
+        self._files = []
+
+
+class V4L2Source:
+    """A V4L2 webcam (index or /dev/videoN) with size, rate, exposure and white balance
+    locked by params (a negative exposure / white balance keeps the camera's auto mode)."""
+
+    def __init__(self, device: str, width: int, height: int, fps: float, exposure: float,
+                 white_balance: float) -> None:
+        self.device = int(device) if device.isdigit() else device
+        self.name = f"v4l2 {device}"
+        self.settings = (width, height, fps, exposure, white_balance)
+        self._cap: cv2.VideoCapture | None = None
+
+    def open(self) -> None:
+        cap = cv2.VideoCapture(self.device, cv2.CAP_V4L2)
+        if not cap.isOpened():
+            raise SourceError(f"{self.name}: cannot open the device (missing, busy or no permission)")
+        width, height, fps, exposure, white_balance = self.settings
+        cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
+        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
+        cap.set(cv2.CAP_PROP_FPS, fps)
+        cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)
+        if exposure >= 0:
+            cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, 1)  # V4L2 "manual" mode
+            cap.set(cv2.CAP_PROP_EXPOSURE, exposure)
+        if white_balance >= 0:
+            cap.set(cv2.CAP_PROP_AUTO_WB, 0)
+            cap.set(cv2.CAP_PROP_WB_TEMPERATURE, white_balance)
+        self._cap = cap
+
+    def read(self) -> Frame | None:
+        if self._cap is None:
+            return None
+        ok = self._cap.grab()
+        stamp = time.time_ns()
+        if not ok:
+            return None
+        ok, image = self._cap.retrieve()
+        return Frame(image, stamp) if ok else None
+
+    def close(self) -> None:
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
