@@ -297,7 +297,7 @@ class Node:
             if work is None:
                 return
             if isinstance(work, Timer):
-                self._run(work.callback)
+                self._run(work.callback, counted=work.callback != self._publish_status)
                 continue
             sub, topic, frames = work
             try:
@@ -309,7 +309,9 @@ class Node:
                 continue
             self._run(sub.callback, msg)
 
-    def _run(self, fn: Callable, *args: Any) -> None:
+    def _run(self, fn: Callable, *args: Any, counted: bool = True) -> None:
+        """Call fn(*args), timing it for NodeStatus when `counted`; an exception is
+        counted and logged once per kind, never raised."""
         t0 = time.perf_counter()
         try:
             fn(*args)
@@ -319,12 +321,13 @@ class Node:
             self._log_once(f"err:{type(exc).__name__}:{getattr(fn, '__name__', fn)}", logging.ERROR,
                            f"{getattr(fn, '__name__', fn)} raised {type(exc).__name__}: {exc} (counted; repeats not logged)",
                            exc_info=True)
-        if args:
+        if counted:
             self._stats.calls += 1
             self._stats.proc_ms.append((time.perf_counter() - t0) * 1e3)
 
     def _malformed(self, exc: Exception) -> None:
-        self._totals["malformed"] += 1
+        with self._cond:  # counted from the receiver and the executor thread
+            self._totals["malformed"] += 1
         kind = f"{getattr(exc, 'topic', '?')}:{getattr(exc, 'type_name', '?')}:{getattr(exc, 'field', type(exc).__name__)}"
         self._log_once("bad:" + kind, logging.WARNING, f"dropped malformed message: {exc} (counted; repeats not logged)")
 

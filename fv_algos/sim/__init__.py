@@ -1,0 +1,1 @@
+"""Simulated FingerVision sensor: skin, contact mechanics, objects, scenes, rendering, ground truth."""

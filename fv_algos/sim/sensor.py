@@ -1,0 +1,329 @@
+"""The simulated sensor: scene -> contact mechanics -> renderer -> frame + ground truth.
+
+`SceneRunner` steps a scene's mechanics (object pose, loads, contact state) frame by
+frame; `SimSensor` adds the fisheye renderer and per-frame ground truth; `write_sequence`
+stores frames (PNG) and truth (npz + json) for inspection; `preview_image` draws the true
+markers and displacement arrows over a frame.
+"""
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from fv_algos.fisheye import DEFAULT_CAMERA_DISTANCE_MM, FisheyeCamera
+from fv_algos.sim.contact import ContactModel, ContactParams, ContactState
+from fv_algos.sim.halfspace import SurfaceGrid
+from fv_algos.sim.render import RenderParams, SkinRenderer
+from fv_algos.sim.render import EFFECTS as RENDER_EFFECTS
+from fv_algos.sim.scene import DEFAULT_RENDER_EFFECTS, SCENARIO_KINDS, Command, Scene, random_scenario, scene_commands
+from fv_algos.sim.skin import SkinParams, marker_grid_mm
+
+
+@dataclass(frozen=True)
+class SensorParams:
+    """Everything that defines the simulated sensor, defaults in one place.
+
+    Attributes:
+        skin: skin geometry and material.
+        contact: contact solver settings (incl. the incipient-slip threshold).
+        render: renderer appearance.
+        camera_distance_mm: camera centre to undeformed skin, mm.
+    """
+
+    skin: SkinParams = field(default_factory=SkinParams)
+    contact: ContactParams = field(default_factory=ContactParams)
+    render: RenderParams = field(default_factory=RenderParams)
+    camera_distance_mm: float = DEFAULT_CAMERA_DISTANCE_MM
+
+
+@dataclass
+class MechanicsFrame:
+    """Mechanics of one frame: the command, the object pose and the contact state.
+
+    Attributes:
+        index: frame index within the scene.
+        command: what the script asked for.
+        centre_mm: (2,) object centre on the skin, mm.
+        angle_rad: object rotation about the skin normal, rad.
+        state: the contact solution.
+    """
+
+    index: int
+    command: Command
+    centre_mm: np.ndarray
+    angle_rad: float
+    state: ContactState
+
+
+class SceneRunner:
+    """Steps a scene's mechanics; gross slip moves the object only with the "slip" effect."""
+
+    def __init__(self, scene: Scene, skin: SkinParams, contact: ContactParams) -> None:
+        self.scene = scene
+        self.model = ContactModel(skin, contact)
+        self._commands = scene_commands(scene)
+        self._effects = frozenset(scene.effects)
+
+    def __len__(self) -> int:
+        return len(self._commands)
+
+    def __iter__(self) -> Iterator[MechanicsFrame]:
+        """Yields MechanicsFrame for frames 0 .. n_frames - 1."""
+        scene = self.scene
+        self.model.reset()
+        centre = np.array(scene.start_mm, dtype=np.float64)
+        angle = float(np.radians(scene.start_angle_deg))
+        dt = 1.0 / scene.fps
+        for k, cmd in enumerate(self._commands):
+            velocity = np.array(cmd.velocity_mm_s, dtype=np.float64)
+            speed = float(np.hypot(*velocity))
+            direction = velocity / speed if speed > 0 else np.zeros(2)
+            if cmd.motion == "spin":
+                direction = np.array([np.sign(cmd.angular_velocity_rad_s), 0.0])
+            state = self.model.solve(
+                scene.obj, centre, angle, cmd.loads.normal_N, np.array(cmd.loads.force_N), cmd.loads.torque_Nmm,
+                cmd.motion if cmd.motion == "roll" or "slip" in self._effects else "none", direction, self._effects,
+            )
+            yield MechanicsFrame(k, cmd, centre.copy(), angle, state)
+            if cmd.motion == "roll" or (cmd.motion == "slide" and "slip" in self._effects):
+                centre = centre + velocity * dt
+            elif cmd.motion == "spin" and "slip" in self._effects:
+                angle += cmd.angular_velocity_rad_s * dt
+            elif state.slip_state == "gross" and "slip" in self._effects:
+                if state.slip_type == "translational":
+                    force = np.array(cmd.loads.force_N)
+                    centre = centre + scene.slide_speed_mm_s * dt * force / max(float(np.hypot(*force)), 1e-12)
+                else:
+                    angle += float(np.sign(cmd.loads.torque_Nmm)) * np.radians(scene.spin_rate_deg_s) * dt
+
+
+@dataclass
+class FrameTruth:
+    """Ground truth of one simulated frame.
+
+    Attributes:
+        index: frame index since the sensor started.
+        markers_ref_mm: (N, 2) float64 marker rest positions on the skin, mm.
+        marker_displacement_mm: (N, 3) float64 marker displacement (ux, uy, uz), mm; uz
+            toward the camera.
+        markers_px: (N, 2) float64 true image centres of the displaced markers, px.
+        visible: (N,) bool markers fully visible in the image.
+        mechanics: the frame's mechanics (pose, loads, contact state with pressure,
+            traction, displacement field, contact and slip masks on `grid`).
+        grid: the mechanics grid the fields live on.
+        camera: the camera model.
+        camera_distance_mm: camera centre to undeformed skin, mm.
+        lens: whether the fisheye distortion was rendered.
+    """
+
+    index: int
+    markers_ref_mm: np.ndarray
+    marker_displacement_mm: np.ndarray
+    markers_px: np.ndarray
+    visible: np.ndarray
+    mechanics: MechanicsFrame
+    grid: SurfaceGrid
+    camera: FisheyeCamera
+    camera_distance_mm: float
+    lens: bool
+
+    @property
+    def slip_state(self) -> str:
+        """"stick", "incipient" or "gross" (see ContactState)."""
+        return self.mechanics.state.slip_state
+
+    @property
+    def slip_type(self) -> str:
+        """"none", "translational" or "rotational"."""
+        return self.mechanics.state.slip_type
+
+    @property
+    def is_slip(self) -> bool:
+        """Incipient or gross slip: the paper's slip label."""
+        return self.mechanics.state.is_slip
+
+    @property
+    def contact_area_mm2(self) -> float:
+        """Contact patch area, mm^2 (0 without contact)."""
+        return float(self.mechanics.state.contact.sum() * self.grid.cell_area_mm2)
+
+    @property
+    def contact_centre_mm(self) -> np.ndarray:
+        """(2,) pressure-weighted contact centre, mm; the object centre when there is no contact."""
+        p = self.mechanics.state.pressure_mpa
+        total = p.sum()
+        if total <= 0:
+            return self.mechanics.centre_mm.copy()
+        x, y = self.grid.mesh_mm()
+        return np.array([np.sum(p * x) / total, np.sum(p * y) / total])
+
+    @property
+    def markers_ref_px(self) -> np.ndarray:
+        """(N, 2) float64 image centres of the markers at rest, px."""
+        ref = np.column_stack([self.markers_ref_mm, np.full(len(self.markers_ref_mm), self.camera_distance_mm)])
+        return self.camera.project(ref, lens=self.lens)
+
+    def image_displacement_px(self, points_px: np.ndarray) -> np.ndarray:
+        """True image-plane displacement at reference (undeformed) image points.
+
+        Each point is unprojected to the undeformed skin plane, displaced by the skin
+        displacement there and projected again.
+
+        Args:
+            points_px: (M, 2) float64 reference image points, px.
+        Returns:
+            (M, 2) float64 displacement, px; zero for points whose skin point is off the skin.
+        """
+        pts = np.asarray(points_px, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 2 or not np.all(np.isfinite(pts)):
+            raise ValueError(f"points_px must be a finite (M, 2) array, got shape {pts.shape}")
+        d = self.camera_distance_mm
+        skin_xy = self.camera.unproject_to_plane(pts, d, lens=self.lens)
+        u = self.grid.sample(self.mechanics.state.displacement_mm, skin_xy)
+        ref = np.column_stack([skin_xy, np.full(len(pts), d)])
+        moved = np.column_stack([skin_xy[:, 0] + u[0], skin_xy[:, 1] + u[1], d - u[2]])
+        return self.camera.project(moved, lens=self.lens) - self.camera.project(ref, lens=self.lens)
+
+
+@dataclass
+class SimFrame:
+    """One simulated camera frame: (H, W) uint8 image, time stamp s, ground truth."""
+
+    image: np.ndarray
+    stamp_s: float
+    truth: FrameTruth
+
+
+class SimSensor:
+    """Simulated FingerVision camera, deterministic from its seed.
+
+    With a scene it plays that scene once; with `scene=None` it loops over random
+    scenarios of all kinds (`random_loop_frames` frames each) forever.
+    """
+
+    def __init__(
+        self,
+        scene: Scene | None,
+        params: SensorParams | None = None,
+        camera: FisheyeCamera | None = None,
+        seed: int = 0,
+        loop_fps: float = 60.0,
+        random_loop_frames: int = 60,
+        render_effects: frozenset[str] = DEFAULT_RENDER_EFFECTS,
+    ) -> None:
+        """
+        Args:
+            scene: the scene to play, or None for the looping random-scenario mode.
+            params: sensor parameters (defaults: SensorParams()).
+            camera: camera model (default FisheyeCamera.default()).
+            seed: seed of the renderer and of the random scenarios.
+            loop_fps: frame rate of the random scenarios, Hz (random mode only).
+            random_loop_frames: frames per random scenario (random mode only).
+            render_effects: render effects of the random mode (a scene brings its own).
+        """
+        self.params = params if params is not None else SensorParams()
+        self.camera = camera if camera is not None else FisheyeCamera.default()
+        self.scene = scene
+        self._rng = np.random.default_rng(seed)
+        self._loop_fps = float(loop_fps)
+        self._loop_frames = int(random_loop_frames)
+        effects = (scene.effects if scene is not None else frozenset(render_effects)) & RENDER_EFFECTS
+        skin = self.params.skin
+        self.renderer = SkinRenderer(self.camera, self.params.camera_distance_mm, skin.marker_diameter_mm, self.params.render, effects, seed)
+        self.markers_ref_mm = marker_grid_mm(skin)
+        self._lens = "lens" in effects
+        self._index = 0
+        self._time_offset_s = 0.0
+        self.last_frame_s = 0.0
+
+    def _scenes(self) -> Iterator[Scene]:
+        if self.scene is not None:
+            yield self.scene
+            return
+        while True:
+            kind = SCENARIO_KINDS[int(self._rng.integers(len(SCENARIO_KINDS)))]
+            yield random_scenario(self._rng, kind, self._loop_frames, self._loop_fps, self.renderer.effects)
+
+    def __iter__(self) -> Iterator[SimFrame]:
+        """Yields SimFrame; finite for a scene, endless in random mode."""
+        skin = self.params.skin
+        for scene in self._scenes():
+            runner = SceneRunner(scene, skin, self.params.contact)
+            started = time.perf_counter()
+            for mech in runner:
+                u = runner.model.grid.sample(mech.state.displacement_mm, self.markers_ref_mm).T
+                deformed = np.column_stack([self.markers_ref_mm + u[:, :2], u[:, 2]])
+                result = self.renderer.render(deformed)
+                truth = FrameTruth(self._index, self.markers_ref_mm, u, result.markers_px, result.visible, mech, runner.model.grid, self.camera, self.params.camera_distance_mm, self._lens)
+                self.last_frame_s = time.perf_counter() - started
+                yield SimFrame(result.image, self._time_offset_s + mech.command.stamp_s, truth)
+                self._index += 1
+                started = time.perf_counter()
+            self._time_offset_s += scene.n_frames / scene.fps
+
+
+def preview_image(frame: SimFrame, arrow_scale: float = 5.0) -> np.ndarray:
+    """The frame in colour with true marker centres (green) and displacement arrows (red).
+
+    Args:
+        frame: a simulated frame.
+        arrow_scale: arrow length per px of image displacement.
+    Returns:
+        (H, W, 3) uint8 BGR image.
+    """
+    out = cv2.cvtColor(frame.image, cv2.COLOR_GRAY2BGR)
+    truth = frame.truth
+    rest = truth.markers_ref_px
+    for (u0, v0), (u1, v1), ok in zip(rest, truth.markers_px, truth.visible):
+        if not ok:
+            continue
+        cv2.circle(out, (int(round(u1)), int(round(v1))), 2, (0, 200, 0), -1, cv2.LINE_AA)
+        tip = (int(round(u0 + arrow_scale * (u1 - u0))), int(round(v0 + arrow_scale * (v1 - v0))))
+        cv2.arrowedLine(out, (int(round(u0)), int(round(v0))), tip, (0, 0, 255), 1, cv2.LINE_AA, tipLength=0.3)
+    state = truth.mechanics.state
+    label = f"{state.slip_state} {state.slip_type}  P={state.normal_N:.2f}N"
+    cv2.putText(out, label, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 255, 255), 1, cv2.LINE_AA)
+    return out
+
+
+def write_sequence(sensor: SimSensor, out_dir: str | Path, n_frames: int) -> Path:
+    """Write `n_frames` frames as PNG plus ground truth for inspection.
+
+    Files: frame_%05d.png, preview_%05d.png, truth.npz (stamp_s (T,), markers_ref_mm
+    (N, 2), marker_displacement_mm (T, N, 3), markers_px (T, N, 2), visible (T, N),
+    contact (T, n, n), slip (T, n, n), displacement_mm (T, 3, n, n), slip_label (T,)),
+    truth.json (per-frame slip state/type, loads, contact area and centre, pose).
+
+    Returns:
+        The output folder.
+    """
+    if n_frames < 1:
+        raise ValueError(f"n_frames must be >= 1, got {n_frames}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    arrays: dict[str, list[np.ndarray]] = {k: [] for k in ("stamp_s", "marker_displacement_mm", "markers_px", "visible", "contact", "slip", "displacement_mm", "slip_label")}
+    records = []
+    for i, frame in zip(range(n_frames), sensor):
+        t = frame.truth
+        state = t.mechanics.state
+        cv2.imwrite(str(out / f"frame_{i:05d}.png"), frame.image)
+        cv2.imwrite(str(out / f"preview_{i:05d}.png"), preview_image(frame))
+        for key, value in (("stamp_s", frame.stamp_s), ("marker_displacement_mm", t.marker_displacement_mm), ("markers_px", t.markers_px), ("visible", t.visible), ("contact", state.contact), ("slip", state.slip), ("displacement_mm", state.displacement_mm), ("slip_label", t.is_slip)):
+            arrays[key].append(np.asarray(value))
+        records.append({
+            "index": i, "stamp_s": frame.stamp_s, "action": t.mechanics.command.action,
+            "slip_state": state.slip_state, "slip_type": state.slip_type, "slip_share": state.slip_share,
+            "normal_N": state.normal_N, "force_N": state.force_N.tolist(), "torque_Nmm": state.torque_Nmm,
+            "contact_area_mm2": t.contact_area_mm2, "contact_centre_mm": t.contact_centre_mm.tolist(),
+            "object_centre_mm": t.mechanics.centre_mm.tolist(), "object_angle_rad": t.mechanics.angle_rad,
+            "converged": state.converged,
+        })
+    np.savez_compressed(out / "truth.npz", markers_ref_mm=sensor.markers_ref_mm, **{k: np.stack(v) for k, v in arrays.items()})
+    (out / "truth.json").write_text(json.dumps({"frames": records}, indent=1))
+    return out

@@ -1,0 +1,44 @@
+"""The simulated sensor as a camera-node frame source."""
+from __future__ import annotations
+
+import time
+from typing import Iterator
+
+from fv_algos.sim.scene import load_scene
+from fv_algos.sim.sensor import SimFrame, SimSensor
+from nodes.camera_sources import Frame, SourceError
+
+
+class SimSource:
+    """Frames of the simulated sensor: a scene file played in a loop, or endless random
+    scenarios (`scene_path` ""). `camera` is the simulator's exact fisheye model."""
+
+    def __init__(self, scene_path: str, seed: int, fps: float) -> None:
+        self.scene_path = scene_path
+        self.seed = seed
+        self.fps = fps
+        self.name = f"sim {scene_path or 'random scenarios'}"
+        try:
+            scene = load_scene(scene_path) if scene_path else None
+        except (OSError, ValueError) as exc:
+            raise SourceError(f"{self.name}: {exc}") from None
+        self.sensor = SimSensor(scene, seed=seed, loop_fps=fps)
+        self.camera = self.sensor.camera
+        self._frames: Iterator[SimFrame] | None = None
+        self.last: SimFrame | None = None
+
+    def open(self) -> None:
+        self._frames = iter(self.sensor)
+
+    def read(self) -> Frame | None:
+        if self._frames is None:
+            return None
+        frame = next(self._frames, None)
+        if frame is None:  # a scene ended: play it again
+            self._frames = iter(self.sensor)
+            frame = next(self._frames)
+        self.last = frame
+        return Frame(frame.image, time.time_ns())
+
+    def close(self) -> None:
+        self._frames = None

@@ -1,0 +1,118 @@
+"""Scene descriptions, actions and random scenarios."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from fv_algos.sim.contact import ContactParams
+from fv_algos.sim.scene import NON_SLIP_KINDS, SLIP_KINDS, load_scene, noisy_labels, random_scenario, scene_from_dict
+from fv_algos.sim.sensor import SceneRunner
+from fv_algos.sim.skin import SkinParams
+
+EXAMPLE = {
+    "object": {"shape": "sphere", "radius_mm": 10, "mu": 0.8},
+    "fps": 20,
+    "effects": ["normal", "shear", "slip", "noise"],
+    "steps": [
+        {"action": "press", "duration_s": 0.5, "normal_N": 2.0},
+        {"action": "shear", "duration_s": 0.5, "force_N": [0.8, 0]},
+        {"action": "slide", "duration_s": 0.5, "velocity_mm_s": [4, 0]},
+        {"action": "release", "duration_s": 0.5},
+    ],
+}
+
+
+def _run(desc: dict) -> list:
+    return list(SceneRunner(scene_from_dict(desc), SkinParams(), ContactParams()))
+
+
+def test_actions_do_what_they_say() -> None:
+    frames = _run(EXAMPLE)
+    assert len(frames) == 40
+    normal = [f.state.normal_N for f in frames[:10]]
+    assert np.all(np.diff(normal) > 0)  # press raises the normal load
+    shear = frames[19].state
+    assert shear.force_N[0] == pytest.approx(0.8 * 9 / 10, rel=0.01) and shear.slip_state != "gross"
+    sliding = frames[21:30]
+    assert all(f.state.slip_state == "gross" and f.state.slip_type == "translational" for f in sliding)
+    centres = np.array([f.centre_mm[0] for f in sliding])
+    np.testing.assert_allclose(np.diff(centres), 4.0 / 20)  # the object slides 4 mm/s
+    x = frames[0].state.displacement_mm  # contact patch moves with it
+    patch_x = [np.mean(np.meshgrid(*(2 * [np.arange(64)]))[0][f.state.contact]) for f in (sliding[0], sliding[-1])]
+    assert patch_x[1] - patch_x[0] == pytest.approx((centres[-1] - centres[0]) / (24 / 64), abs=1.0)
+    assert not np.any(x)  # t = 0: nothing pressed yet
+    release = _run({**EXAMPLE, "steps": EXAMPLE["steps"] + [{"action": "hold", "duration_s": 0.1}]})[-1]
+    assert release.state.normal_N == 0 and not np.any(release.state.displacement_mm)
+
+
+def test_twist_and_roll() -> None:
+    desc = {"object": {"shape": "key"}, "fps": 10, "initial": {"normal_N": 2.0},
+            "steps": [{"action": "twist", "duration_s": 0.5, "angular_velocity_deg_s": 40}, {"action": "roll", "duration_s": 0.5, "velocity_mm_s": [0, 2]}]}
+    frames = _run(desc)
+    assert scene_from_dict(desc).effects == {"normal", "torsion", "slip"}
+    assert all(f.state.slip_type == "rotational" and f.state.slip_state == "gross" for f in frames[:5])
+    assert frames[5].angle_rad == pytest.approx(np.radians(40 * 0.5))
+    rolling = frames[6:]
+    assert all(f.state.slip_state == "stick" and not np.any(f.state.traction_mpa) for f in rolling)
+    assert rolling[-1].centre_mm[1] - rolling[0].centre_mm[1] == pytest.approx(2 * 0.3)
+
+
+@pytest.mark.parametrize(
+    "change, key",
+    [
+        ({"fps": -1}, "fps"),
+        ({"object": {"shape": "banana"}}, "shape"),
+        ({"object": {"shape": "sphere", "radius": 3}}, "radius"),
+        ({"steps": [{"action": "press", "duration_s": 1}]}, "normal_N"),
+        ({"steps": [{"action": "jump", "duration_s": 1}]}, "action"),
+        ({"steps": [{"action": "shear", "duration_s": 1, "force_N": [1]}]}, "force_N"),
+        ({"steps": [{"action": "hold", "duration_s": 0}]}, "duration_s"),
+        ({"effects": ["normal"]}, "effects"),
+        ({"colour": "red"}, "colour"),
+        ({"steps": [{"action": "press", "duration_s": 1, "normal_N": 1, "torque_Nmm": 2}]}, "torque_Nmm"),
+    ],
+)
+def test_bad_descriptions_name_the_key(change: dict, key: str) -> None:
+    with pytest.raises(ValueError, match=key):
+        scene_from_dict({**EXAMPLE, **change})
+
+
+def test_yaml_and_json_files(tmp_path) -> None:
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump(EXAMPLE))
+    (tmp_path / "s.json").write_text(json.dumps(EXAMPLE))
+    assert load_scene(tmp_path / "s.yaml") == load_scene(tmp_path / "s.json") == scene_from_dict(EXAMPLE)
+    with pytest.raises(ValueError, match="yaml"):
+        load_scene(tmp_path / "s.txt")
+
+
+@pytest.mark.parametrize("kind", SLIP_KINDS + NON_SLIP_KINDS)
+def test_random_scenarios_have_the_labels_they_claim(kind: str) -> None:
+    rng = np.random.default_rng(11)
+    for _ in range(3):
+        scene = random_scenario(rng, kind)
+        frames = list(SceneRunner(scene, SkinParams(), ContactParams()))
+        assert len(frames) == 15 and scene.fps == 15
+        labels = np.array([f.state.is_slip for f in frames])
+        if kind in SLIP_KINDS:
+            # Every 10-frame window contains slip of the claimed kind.
+            assert all(labels[k:k + 10].any() for k in range(6)), (kind, scene.obj, labels)
+            claimed = "translational" if kind == "incipient" else kind
+            assert all(f.state.slip_type == claimed for f in frames if f.state.is_slip)
+            if kind == "incipient":
+                assert all(f.state.slip_state == "incipient" for f in frames)
+        else:
+            assert not labels.any(), (kind, scene.obj, [f.state.slip_share for f in frames])
+
+
+def test_noisy_labels() -> None:
+    labels = np.array([0] * 6 + [1] * 9, dtype=bool)
+    rng = np.random.default_rng(0)
+    assert np.array_equal(noisy_labels(labels, rng), labels)
+    assert np.array_equal(noisy_labels(labels, rng, flip_probability=1.0), ~labels)
+    shifted = noisy_labels(labels, rng, max_onset_shift_frames=3)
+    assert abs(int(np.argmax(shifted)) - 6) <= 3 and shifted[-1]
+    with pytest.raises(ValueError, match="flip_probability"):
+        noisy_labels(labels, rng, flip_probability=2.0)
