@@ -85,14 +85,15 @@ class DisplacementField(Message):
 
 @dataclass(kw_only=True)
 class ContactSummary(Message):
-    """Contact descriptors computed from one displacement field (all in field units, px).
+    """Contact descriptors computed from one displacement field (field units: px).
 
     area_px2: area of grid cells whose displacement exceeds the contact threshold.
-    area_frac: that area as a share of the grid, in [0, 1].
+    area_share: those cells as a share of the grid, in [0, 1].
     centre_x_px, centre_y_px: displacement-weighted centre of the contact.
     shear_x_px, shear_y_px: mean displacement over the contact (mean shear).
-    curl: mean curl of the field (torsion, rad-like, 1/px * px), divergence: mean
-    divergence (normal-press index: a press pushes markers outward).
+    rotation_rad: half the mean curl (torsion; > 0 clockwise on screen).
+    divergence: mean divergence, dimensionless (normal-press index: > 0 when the skin
+    spreads out under a press).
     """
 
     TYPE: ClassVar[str] = "ContactSummary"
@@ -100,12 +101,12 @@ class ContactSummary(Message):
 
     in_contact: bool = False
     area_px2: float = 0.0
-    area_frac: float = 0.0
+    area_share: float = 0.0
     centre_x_px: float = 0.0
     centre_y_px: float = 0.0
     shear_x_px: float = 0.0
     shear_y_px: float = 0.0
-    curl: float = 0.0
+    rotation_rad: float = 0.0
     divergence: float = 0.0
 
 

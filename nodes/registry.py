@@ -11,6 +11,11 @@ NODES: dict[str, str] = {
     "listener": "nodes.demo:Listener",
     "camera": "nodes.camera:CameraNode",
     "slip_monitor": "nodes.slip_monitor:SlipMonitor",
+    "tracker": "nodes.tracker:TrackerNode",
+    "interpolator": "nodes.interpolator:InterpolatorNode",
+    "slip_detector": "nodes.slip_detector:SlipDetectorNode",
+    "bag_record": "nodes.bag.recorder:BagRecord",
+    "bag_play": "nodes.bag.player:BagPlay",
 }
 
 
