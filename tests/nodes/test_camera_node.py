@@ -1,0 +1,96 @@
+"""Camera node: publishes at the configured rate from each source, reports a vanished
+video instead of dying, and fails clearly on a source it cannot open."""
+from __future__ import annotations
+
+import shutil
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from nodes.bus import TopicReader
+from tests.nodes.conftest import run_fv, wait_status
+
+
+def _rate(topic: str, seconds: float, skip_s: float = 1.0) -> tuple[float, object]:
+    """Messages per second on `topic` over `seconds` after the first message + skip_s."""
+    with TopicReader([topic]) as reader:
+        first = reader.recv(15.0)
+        assert first is not None, f"nothing on {topic}"
+        deadline = time.monotonic() + skip_s
+        while time.monotonic() < deadline:
+            reader.recv(0.1)
+        count, t0, last = 0, time.monotonic(), first
+        while time.monotonic() - t0 < seconds:
+            item = reader.recv(0.2)
+            if item is not None:
+                count, last = count + 1, item
+        return count / seconds, last.msg
+
+
+def _write_video(path: Path, frames: int = 20) -> None:
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (160, 120))
+    for i in range(frames):
+        image = np.full((120, 160, 3), 200, np.uint8)
+        cv2.circle(image, (20 + 5 * i, 60), 6, (20, 20, 20), -1)
+        writer.write(image)
+    writer.release()
+
+
+def test_video_source_rate_and_info(bus, spawn, tmp_path: Path) -> None:
+    video = tmp_path / "clip.avi"
+    _write_video(video)
+    spawn("node", "camera", "-p", "source=video", "-p", f"path={video}", "-p", "fps=20")
+    rate, msg = _rate("/camera/image", 2.0)
+    assert 16.0 <= rate <= 22.0, rate
+    assert msg.data.shape == (120, 160) and msg.encoding == "mono8"
+    assert abs(msg.stamp_ns - time.time_ns()) < 2e9  # capture stamps are wall-clock times
+
+
+def test_folder_source_bgr(bus, spawn, tmp_path: Path) -> None:
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / f"f{i}.png"), np.full((40, 50, 3), 50 * i, np.uint8))
+    spawn("node", "camera", "-p", "source=folder", "-p", f"path={tmp_path}", "-p", "fps=15", "-p", "encoding=bgr8")
+    rate, msg = _rate("/camera/image", 2.0)
+    assert 12.0 <= rate <= 17.0, rate
+    assert msg.data.shape == (40, 50, 3) and msg.encoding == "bgr8"
+
+
+def test_sim_source_publishes_frames_and_latched_info(bus, spawn) -> None:
+    spawn("node", "camera", "-p", "fps=20")
+    rate, msg = _rate("/camera/image", 2.0)
+    assert rate >= 14.0, rate  # the simulator renders a frame in ~10 ms; 20 Hz leaves room on a loaded CI core
+    assert msg.data.shape == (480, 640)
+    with TopicReader(["/camera/info"]) as late_joiner:  # latched: arrives although published long ago
+        info = late_joiner.recv(3.0)
+    assert info is not None and info.msg.K.shape == (3, 3) and info.msg.width == 640
+
+
+def test_video_that_disappears_is_reported_not_fatal(bus, spawn, tmp_path: Path) -> None:
+    video = tmp_path / "clip.avi"
+    _write_video(video, frames=10)
+    proc = spawn("node", "camera", "-p", "source=video", "-p", f"path={video}", "-p", "fps=25",
+                 "-p", "reopen_backoff_s=0.2")
+    wait_status("camera", lambda st: st.counters.get("frames", 0) > 0, 10.0)
+    hidden = tmp_path / "moved.avi"
+    shutil.move(video, hidden)  # unplugged: the loop's reopen fails
+    st = wait_status("camera", lambda st: st.state == "warn", 8.0)
+    assert "clip.avi" in st.message and st.counters["lost"] >= 1
+    assert proc.poll() is None
+    shutil.move(hidden, video)  # plugged back
+    st = wait_status("camera", lambda st: st.state == "ok" and st.counters.get("reopened", 0) >= 1, 10.0)
+    assert proc.poll() is None
+
+
+def test_missing_source_fails_at_start_with_clear_error(bus, tmp_path: Path) -> None:
+    result = run_fv("node", "camera", "-p", "source=video", "-p", f"path={tmp_path / 'none.avi'}", timeout_s=20)
+    assert result.returncode != 0
+    assert "none.avi" in result.stderr and "no such file" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_unknown_source_param_is_rejected(bus) -> None:
+    result = run_fv("node", "camera", "-p", "source=webcam", timeout_s=20)
+    assert result.returncode == 2 and "source 'webcam'" in result.stderr
