@@ -176,6 +176,10 @@ class SkinRenderer:
     Each call to `render` is the next frame in time (exposure drift, turning gradient,
     occluders moving); a renderer built with the same arguments and fed the same markers
     returns identical frames.
+
+    Attributes:
+        background: (H, W) float32 read-only skin background (grey levels) before markers
+            and effects; the same for every effect set with the same seed.
     """
 
     def __init__(
@@ -279,6 +283,19 @@ class SkinRenderer:
         frame = self._frame.reshape(-1)
         frame[flat] += alpha * (np.float32(level) - frame[flat])
 
+    def _paint_disc(self, centre_px: np.ndarray, radius_px: float, level: float) -> None:
+        """Blend `level` into the frame over an anti-aliased disc (the part inside the image)."""
+        h, w = self._frame.shape
+        u0, v0 = np.maximum(np.floor(centre_px - radius_px - 1.0).astype(int), 0)
+        u1, v1 = np.minimum(np.ceil(centre_px + radius_px + 2.0).astype(int), [w, h])
+        if u0 >= u1 or v0 >= v1:
+            return
+        du = (np.arange(u0, u1, dtype=np.float32) - np.float32(centre_px[0]))[None, :]
+        dv = (np.arange(v0, v1, dtype=np.float32) - np.float32(centre_px[1]))[:, None]
+        alpha = np.clip(np.float32(radius_px + 0.5) - np.sqrt(du * du + dv * dv), 0.0, 1.0)
+        patch = self._frame[v0:v1, u0:u1]
+        patch += alpha * (np.float32(level) - patch)
+
     def _step_occluder(self) -> tuple[np.ndarray, float] | None:
         """Advance (or start) the passing occluder; return its (centre px, radius px) or None."""
         p = self.params
@@ -369,8 +386,7 @@ class SkinRenderer:
             if occluder is not None:
                 centre, radius = occluder
                 visible &= np.hypot(*(centres - centre).T) > radius + extent
-                coverage, origin = ellipse_coverage(centre[None], radius * np.eye(2)[None], int(np.ceil(radius)) + 1)
-                self._paint(coverage, origin, p.occluder_level)
+                self._paint_disc(centre, radius, p.occluder_level)
         if "lighting" in self.effects:
             self._apply_lighting()
         if "noise" in self.effects:
