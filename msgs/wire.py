@@ -64,7 +64,7 @@ def encode(msg: Message) -> list[Any]:
         "fields": msg.scalar_fields(),
         "arrays": specs,
     }
-    return [msgpack.packb(header, use_bin_type=True), *(memoryview(a).cast("B") for a in arrays)]
+    return [msgpack.packb(header, use_bin_type=True), *(memoryview(a.reshape(-1).view(np.uint8)) for a in arrays)]
 
 
 def _buffer(frame: Any) -> memoryview:
@@ -142,7 +142,7 @@ def decode(frames: Iterable[Any], topic: str = "?") -> Message:
             raise MessageError(topic, type_name, name, str(exc)) from None
     extra = set(fields) - set(_defaults(cls))
     if extra:
-        raise MessageError(topic, type_name, sorted(extra)[0], "unknown field")
+        raise MessageError(topic, type_name, sorted(map(str, extra))[0], "unknown field")
     specs = header["arrays"]
     if [s[0] if isinstance(s, list) and s else None for s in specs] != list(cls.ARRAYS):
         raise MessageError(topic, type_name, "arrays", f"expected arrays {list(cls.ARRAYS)}, got {specs!r:.200}")
@@ -166,7 +166,7 @@ def _decode_array(topic: str, type_name: str, spec: list, frame: Any) -> np.ndar
         raise MessageError(topic, type_name, name, f"array spec {spec!r:.100} is not [name, dtype, shape]")
     try:
         dtype = np.dtype(spec[1])
-    except TypeError:
+    except (TypeError, ValueError, SyntaxError):  # numpy parses "(2," with Python's parser
         raise MessageError(topic, type_name, name, f"dtype {spec[1]!r} is not a numpy dtype") from None
     if dtype.kind not in "biuf" or dtype.hasobject:
         raise MessageError(topic, type_name, name, f"dtype {spec[1]!r} is not a plain numeric dtype")
@@ -178,4 +178,7 @@ def _decode_array(topic: str, type_name: str, spec: list, frame: Any) -> np.ndar
     if buf.nbytes != expected:
         raise MessageError(topic, type_name, name,
                            f"frame holds {buf.nbytes} bytes, dtype {spec[1]} shape {shape} needs {expected}")
-    return np.frombuffer(buf, dtype=dtype).reshape(shape)
+    try:
+        return np.frombuffer(buf, dtype=dtype).reshape(shape)
+    except ValueError as exc:  # an empty frame with an absurd shape such as [0, 2**63]
+        raise MessageError(topic, type_name, name, f"shape {shape!r:.100}: {exc}") from None

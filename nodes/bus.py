@@ -122,6 +122,18 @@ class PublisherSocket:
                 pass  # forwarder gone or HWM reached: dropping beats blocking the publisher
             return seq
 
+    def publish_raw(self, topic: str, node: str, latched: bool, frames: list[Any]) -> None:
+        """Send already encoded message frames unchanged (bag play): the header keeps its
+        recorded seq / pub_ns / node and the envelope names `node`, the recorded
+        publisher, so subscribers' SeqTrackers and the forwarder's latched cache see it
+        as that publisher. Never blocks (dropped when the forwarder is gone)."""
+        with self._lock:
+            self._drain_subscriptions()
+            try:
+                self._sock.send_multipart([envelope(topic, node, latched), *frames], copy=False, flags=zmq.NOBLOCK)
+            except zmq.Again:
+                pass
+
     def close(self) -> None:
         with self._lock:
             self._sock.close(linger=LINGER_MS)

@@ -10,6 +10,12 @@ import sys
 
 COMMAND_MODULES = [
     "nodes.core_commands",
+    "nodes.sim_commands",
+    "nodes.launcher",
+    "nodes.topic_tools",
+    "nodes.bench_bus",
+    "nodes.bag.commands",
+    "nodes.bench_commands",
 ]
 
 

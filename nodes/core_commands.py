@@ -12,13 +12,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--keys", type=Path, help="CURVE key folder made by `fv keys` (needed with --tcp)")
     p.set_defaults(func=_forwarder)
 
-    p = sub.add_parser("node", help="run one node: fv node KIND [--name N] [--param k=v ...]")
-    p.add_argument("kind", help="node kind (see `fv node kinds`)")
+    p = sub.add_parser("node", help="run one node: fv node KIND [--name N] [--param k=v ...]; "
+                                    "`fv node kinds`, `fv node list [--json]`")
+    p.add_argument("kind", help="node kind (see `fv node kinds`), or `list` for the running nodes")
     p.add_argument("--name", help="node name (default: the kind)")
     p.add_argument("--ns", default="", help="namespace for relative topic names")
     p.add_argument("--param", "-p", action="append", default=[], metavar="KEY=VALUE", help="override a param")
     p.add_argument("--params-json", default="", help="params as a JSON object (used by the launcher)")
     p.add_argument("--remap", "-r", action="append", default=[], metavar="FROM:=TO", help="rename a topic")
+    p.add_argument("--json", action="store_true", help="with `list`: JSON output")
+    p.add_argument("--wait", type=float, default=0.3, help="with `list`: seconds to collect node status")
     p.set_defaults(func=_node)
 
     p = sub.add_parser("keys", help="create CURVE keys for a TCP bus")
@@ -47,6 +50,9 @@ def _node(args: argparse.Namespace) -> int:
     if args.kind == "kinds":
         print("\n".join(sorted(NODES)))
         return 0
+    if args.kind == "list":
+        from nodes.topic_tools import node_list
+        return node_list(args)
     params = json.loads(args.params_json) if args.params_json else {}
     params.update(parse_assignments(args.param))
     node = node_class(args.kind)(args.name or args.kind, params, namespace=args.ns,

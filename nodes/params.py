@@ -11,7 +11,12 @@ import yaml
 
 
 class ParamError(ValueError):
-    """A parameter that does not exist or has the wrong type; names the key."""
+    """A parameter that does not exist or has the wrong type; names the key (also in
+    `key`, None when the error concerns the params as a whole)."""
+
+    def __init__(self, message: str, key: str | None = None) -> None:
+        super().__init__(message)
+        self.key = key
 
 
 def _accepts(tp: Any, value: Any) -> bool:
@@ -68,11 +73,11 @@ def build_params(cls: type, overrides: dict[str, Any], where: str = "params") ->
     values = {}
     for key, value in overrides.items():
         if key not in names:
-            raise ParamError(f"{where}: unknown param {key!r}; known: {sorted(names)}")
+            raise ParamError(f"{where}: unknown param {key!r}; known: {sorted(names)}", key)
         if isinstance(value, str) and hints[key] is not str and not _accepts(hints[key], value):
             value = parse_text(value)
         if not _accepts(hints[key], value):
-            raise ParamError(f"{where}: param {key!r} = {value!r} is not of type {_type_name(hints[key])}")
+            raise ParamError(f"{where}: param {key!r} = {value!r} is not of type {_type_name(hints[key])}", key)
         values[key] = _coerce(hints[key], value)
     try:
         return cls(**values)

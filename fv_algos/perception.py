@@ -1,0 +1,123 @@
+"""The perception core as one object: detect -> track -> field per frame, with stage timings.
+
+`PerceptionParams.preset(name)` gives the three named configurations:
+- 'paper': cv2.SimpleBlobDetector, nearest-neighbour tracking (several markers may take one
+  detection), scipy RBFInterpolator refitted every frame;
+- 'default': fast thresholded-component detector with sub-pixel centroids, one-to-one
+  neighbour-predicted tracking, precomputed RBF operator;
+- 'fastest': as 'default' with no centroid refinement and a single propagation round.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from fv_algos.detection import (
+    DetectorParams,
+    Detections,
+    MarkerParams,
+    detect_blobs,
+    detect_fast,
+    drop_border_markers,
+    estimate_marker_params,
+)
+from fv_algos.field import DisplacementField, FieldInterpolator, FieldParams
+from fv_algos.tracking import Tracker, TrackerParams, TrackState
+
+PresetName = Literal["paper", "default", "fastest"]
+
+
+@dataclass(frozen=True)
+class PerceptionParams:
+    """Everything the perception core needs; defaults are the 'default' preset.
+
+    detector: 'blob' (the paper) or 'fast'. marker: marker appearance, None = estimated
+    from the reference frame by `estimate_marker_params`. interpolation: the field settings.
+    """
+
+    detector: Literal["blob", "fast"] = "fast"
+    marker: MarkerParams | None = None
+    detection: DetectorParams = field(default_factory=DetectorParams)
+    tracking: TrackerParams = field(default_factory=TrackerParams)
+    interpolation: FieldParams = field(default_factory=FieldParams)
+
+    def __post_init__(self) -> None:
+        if self.detector not in ("blob", "fast"):
+            raise ValueError(f"PerceptionParams.detector must be 'blob' or 'fast', got {self.detector!r}")
+
+    @staticmethod
+    def preset(name: PresetName) -> "PerceptionParams":
+        """One of the named configurations 'paper', 'default', 'fastest'."""
+        if name == "default":
+            return PerceptionParams()
+        if name == "paper":
+            return PerceptionParams(
+                detector="blob",
+                tracking=TrackerParams(method="nearest"),
+                interpolation=FieldParams(method="rbf_refit"),
+            )
+        if name == "fastest":
+            return PerceptionParams(
+                detection=DetectorParams(refine_iterations=0),
+                tracking=TrackerParams(rounds=1),
+            )
+        raise ValueError(f"unknown preset {name!r}; use 'paper', 'default' or 'fastest'")
+
+
+class Perception:
+    """detect -> track -> field on camera frames ((H, W) uint8 or (H, W, 3) uint8 BGR).
+
+    The first frame given to `reset` (or to `step` when none was) is the reference: the
+    skin at rest. `timings_ms` holds the last frame's 'detect', 'track', 'field' times in ms.
+    """
+
+    def __init__(self, params: PerceptionParams = PerceptionParams()) -> None:
+        self.params = params
+        self.marker: MarkerParams | None = params.marker
+        self.tracker: Tracker | None = None
+        self.interpolator: FieldInterpolator | None = None
+        self.timings_ms: dict[str, float] = {}
+
+    def detect(self, image: np.ndarray) -> Detections:
+        """Detections of one frame with the configured detector (needs `self.marker`)."""
+        if self.marker is None:
+            raise ValueError("marker parameters unknown: call reset() with a reference frame first")
+        if self.params.detector == "blob":
+            return detect_blobs(image, self.marker, self.params.detection)
+        return detect_fast(image, self.marker, self.params.detection)
+
+    def reset(self, reference_image: np.ndarray) -> TrackState:
+        """Start over with `reference_image` as the undeformed skin (estimates markers if unset).
+
+        Markers cut by the frame edge are left out of the reference.
+        """
+        if self.params.marker is None:
+            self.marker = estimate_marker_params(reference_image)
+        assert self.marker is not None
+        reference = drop_border_markers(
+            self.detect(reference_image), reference_image.shape, 0.5 * self.marker.diameter_px + 1.0
+        )
+        if len(reference) < 3:
+            raise ValueError(f"reference frame shows {len(reference)} markers, need >= 3")
+        self.tracker = Tracker(reference, self.params.tracking)
+        self.interpolator = FieldInterpolator(reference.centres_px, self.params.interpolation)
+        return self.tracker.state
+
+    def step(self, image: np.ndarray) -> tuple[TrackState, DisplacementField]:
+        """Track one frame; returns the `TrackState` and the `DisplacementField`."""
+        if self.tracker is None or self.interpolator is None:
+            self.reset(image)
+            return self.step(image)
+        t0 = time.perf_counter()
+        detections = self.detect(image)
+        t1 = time.perf_counter()
+        state = self.tracker.step(detections)
+        t2 = time.perf_counter()
+        dense = self.interpolator.interpolate(state.current_px, state.valid)
+        t3 = time.perf_counter()
+        self.timings_ms = {"detect": 1e3 * (t1 - t0), "track": 1e3 * (t2 - t1), "field": 1e3 * (t3 - t2)}
+        return state, dense
+

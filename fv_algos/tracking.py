@@ -1,0 +1,335 @@
+"""Marker tracking: the paper's nearest-neighbour tracker and a robust one-to-one tracker.
+
+Markers are a fixed set of N reference positions (no grid assumption). Each frame the
+tracker matches them to the frame's detections and returns a `TrackState`. Coordinates
+are (x, y) px.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
+
+from fv_algos.detection import Detections
+
+
+@dataclass(frozen=True)
+class TrackerParams:
+    """Tracker settings; distances are fractions of the median reference marker spacing.
+
+    method: 'nearest' (the paper: each marker takes its nearest detection within the gate,
+        two markers may take one detection, a missed marker keeps its last position) or
+        'assignment' (one-to-one, neighbour-predicted, plausibility-checked).
+    gate_ratio: the paper's distance threshold d, and the final gate of 'assignment'.
+    strict_gate_ratio: gate of the neighbour-propagation rounds of 'assignment'.
+    rounds: at most this many propagation rounds per frame.
+    neighbours: number of reference neighbours used for prediction and plausibility.
+    tolerance_ratio: plausibility floor of `neighbour_consistency`.
+    area_ratio_max: a detection whose area differs from the marker's reference area by
+        more than this factor (either way) is rejected; 0 disables the check.
+    use_velocity: predict markers seen in the last two frames with their last step.
+    """
+
+    method: Literal["nearest", "assignment"] = "assignment"
+    gate_ratio: float = 0.5
+    strict_gate_ratio: float = 0.35
+    rounds: int = 6
+    neighbours: int = 6
+    tolerance_ratio: float = 0.25
+    area_ratio_max: float = 3.0
+    use_velocity: bool = True
+
+    def __post_init__(self) -> None:
+        if self.method not in ("nearest", "assignment"):
+            raise ValueError(f"TrackerParams.method must be 'nearest' or 'assignment', got {self.method!r}")
+        if not 0.0 < self.strict_gate_ratio <= self.gate_ratio:
+            raise ValueError(
+                f"need 0 < strict_gate_ratio <= gate_ratio, got {self.strict_gate_ratio}, {self.gate_ratio}"
+            )
+        if self.rounds < 1 or self.neighbours < 1:
+            raise ValueError(f"rounds and neighbours must be >= 1, got {self.rounds}, {self.neighbours}")
+        if not self.tolerance_ratio > 0.0:
+            raise ValueError(f"tolerance_ratio must be > 0, got {self.tolerance_ratio}")
+        if self.area_ratio_max != 0.0 and not self.area_ratio_max > 1.0:
+            raise ValueError(f"area_ratio_max must be 0 (off) or > 1, got {self.area_ratio_max}")
+
+
+@dataclass(frozen=True)
+class TrackState:
+    """Tracked markers after one frame.
+
+    reference_px: (N, 2) float64 undeformed positions. current_px: (N, 2) float64 positions
+    (the last measured one for a marker not seen this frame). valid: (N,) bool, measured and
+    plausible this frame. frames_since_seen: (N,) int64, 0 when valid.
+    """
+
+    reference_px: np.ndarray
+    current_px: np.ndarray
+    valid: np.ndarray
+    frames_since_seen: np.ndarray
+
+    @property
+    def displacement_px(self) -> np.ndarray:
+        """(N, 2) float64 current minus reference position, px."""
+        return self.current_px - self.reference_px
+
+
+def _checked_points(points: np.ndarray, name: str) -> np.ndarray:
+    """(N, 2) float64 copy of `points`; ValueError naming `name` when the shape is wrong."""
+    array = np.asarray(points, dtype=np.float64)
+    if array.ndim != 2 or array.shape[1] != 2:
+        raise ValueError(f"{name} must have shape (N, 2), got {array.shape}")
+    return array.copy()
+
+
+def neighbour_graph(reference_px: np.ndarray, neighbours: int) -> tuple[np.ndarray, np.ndarray]:
+    """k nearest reference neighbours of each marker.
+
+    reference_px: (N, 2) float64 finite px. Returns indices (N, k) int64 (k = min(neighbours,
+    N - 1); a marker with no other marker gets an empty row) and spacing (N,) float64 px,
+    the distance to the nearest other marker (the median spacing when N == 1).
+    """
+    n = reference_px.shape[0]
+    k = min(neighbours, n - 1)
+    if k <= 0:
+        return np.zeros((n, 0), dtype=np.int64), np.ones(n)
+    distances, indices = cKDTree(reference_px).query(reference_px, k=k + 1)
+    spacing = np.maximum(distances[:, 1], 1e-9)
+    return indices[:, 1:].astype(np.int64), spacing
+
+
+def masked_median(values: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Median over axis 1 of `values` (N, k, C) where `mask` (N, k) is True.
+
+    Returns medians (N, C) float64 (0 where a row has no True entry) and has (N,) bool.
+    """
+    n, k, c = values.shape
+    if k == 0:
+        return np.zeros((n, c)), np.zeros(n, dtype=bool)
+    filled = np.where(mask[:, :, None], values, np.inf)
+    ordered = np.sort(filled, axis=1)
+    count = mask.sum(axis=1)
+    lo = np.maximum((count - 1) // 2, 0)
+    hi = np.maximum(count // 2, 0)
+    rows = np.arange(n)
+    low = ordered[rows, np.minimum(lo, k - 1)]
+    high = ordered[rows, np.minimum(hi, k - 1)]
+    has = count > 0
+    median = np.where(has[:, None], 0.5 * (low + high), 0.0)
+    return median, has
+
+
+def _inconsistent(
+    displacement: np.ndarray, valid: np.ndarray, graph: np.ndarray, spacing: np.ndarray, tolerance_ratio: float
+) -> np.ndarray:
+    """(N,) bool: valid markers whose displacement (N, 2) leaves its valid neighbours' band.
+
+    The band is the neighbours' median displacement +/- (tolerance_ratio * spacing + 3 x the
+    neighbours' median absolute deviation). Markers with fewer than 2 valid neighbours are
+    not judged.
+    """
+    if graph.shape[1] == 0:
+        return np.zeros(displacement.shape[0], dtype=bool)
+    nb_valid = valid[graph]
+    nb_disp = displacement[graph]
+    median, _ = masked_median(nb_disp, nb_valid)
+    deviation = np.linalg.norm(nb_disp - median[:, None, :], axis=2)
+    mad, _ = masked_median(deviation[:, :, None], nb_valid)
+    tolerance = tolerance_ratio * spacing + 3.0 * mad[:, 0]
+    residual = np.linalg.norm(displacement - median, axis=1)
+    return valid & (nb_valid.sum(axis=1) >= 2) & (residual > tolerance)
+
+
+def neighbour_consistency(
+    reference_px: np.ndarray,
+    current_px: np.ndarray,
+    valid: np.ndarray,
+    neighbours: int = 6,
+    tolerance_ratio: float = 0.25,
+) -> np.ndarray:
+    """Flag markers whose displacement disagrees with their neighbours' (swap / wrong match test).
+
+    reference_px, current_px: (N, 2) float64 px; valid: (N,) bool. Neighbours are the
+    `neighbours` nearest markers in the reference. A valid marker is flagged when its
+    displacement is farther from its valid neighbours' median displacement than
+    tolerance_ratio x its spacing + 3 x the neighbours' median absolute deviation (a smooth
+    field passes, a swapped or wrongly matched marker, off by ~one pitch, does not).
+    Returns (N,) bool, True = inconsistent. Non-finite rows count as not valid.
+    """
+    ref = _checked_points(reference_px, "reference_px")
+    cur = _checked_points(current_px, "current_px")
+    mask = np.asarray(valid, dtype=bool)
+    if cur.shape != ref.shape or mask.shape != (ref.shape[0],):
+        raise ValueError(f"shapes disagree: reference {ref.shape}, current {cur.shape}, valid {mask.shape}")
+    finite_ref = np.all(np.isfinite(ref), axis=1)
+    if not finite_ref.all():
+        raise ValueError("reference_px holds non-finite coordinates")
+    mask = mask & np.all(np.isfinite(cur), axis=1)
+    graph, spacing = neighbour_graph(ref, neighbours)
+    displacement = np.where(mask[:, None], cur - ref, 0.0)
+    return _inconsistent(displacement, mask, graph, spacing, tolerance_ratio)
+
+
+def _assign(pred: np.ndarray, det: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
+    """One-to-one pairs (rows into pred, cols into det) with distance < gate.
+
+    Mutual nearest neighbours are taken directly; the rest is solved by
+    scipy.optimize.linear_sum_assignment on the gated distances.
+    """
+    empty = np.zeros(0, dtype=np.int64)
+    if pred.shape[0] == 0 or det.shape[0] == 0:
+        return empty, empty
+    d_pd, i_pd = cKDTree(det).query(pred, k=1, distance_upper_bound=gate)
+    _, i_dp = cKDTree(pred).query(det, k=1, distance_upper_bound=gate)
+    m = det.shape[0]
+    rows = np.flatnonzero(i_pd < m)
+    mutual = rows[i_dp[i_pd[rows]] == rows]
+    cols = i_pd[mutual]
+    rest_rows = np.setdiff1d(rows, mutual)
+    if rest_rows.size == 0:
+        return mutual.astype(np.int64), cols.astype(np.int64)
+    taken = np.zeros(m, dtype=bool)
+    taken[cols] = True
+    rest_cols = np.flatnonzero(~taken)
+    cost = np.linalg.norm(pred[rest_rows, None, :] - det[None, rest_cols, :], axis=2)
+    big = 1e6 * gate
+    cost = np.where(cost < gate, cost, big)
+    r, c = linear_sum_assignment(cost)
+    ok = cost[r, c] < gate
+    out_rows = np.concatenate([mutual, rest_rows[r[ok]]]).astype(np.int64)
+    out_cols = np.concatenate([cols, rest_cols[c[ok]]]).astype(np.int64)
+    return out_rows, out_cols
+
+
+class Tracker:
+    """Tracks a fixed set of reference markers through frames of detections.
+
+    Usage: `Tracker(reference, params)`, then `step(detections) -> TrackState` per frame;
+    `reset(reference)` starts over from new reference detections.
+    """
+
+    def __init__(self, reference: Detections, params: TrackerParams = TrackerParams()) -> None:
+        self.params = params
+        self.reset(reference)
+
+    def reset(self, reference: Detections) -> None:
+        """Take `reference` (finite centres (N, 2) px, N >= 1) as the undeformed markers."""
+        ref = _checked_points(reference.centres_px, "reference centres_px")
+        if ref.shape[0] == 0:
+            raise ValueError("reference holds no markers")
+        if not np.all(np.isfinite(ref)):
+            raise ValueError("reference centres_px holds non-finite coordinates")
+        areas = np.asarray(reference.areas_px2, dtype=np.float64)
+        if areas.shape != (ref.shape[0],):
+            raise ValueError(f"reference areas_px2 must have shape ({ref.shape[0]},), got {areas.shape}")
+        self._ref = ref
+        self._ref_areas = areas
+        self._cur = ref.copy()
+        self._velocity = np.zeros_like(ref)
+        self._valid = np.ones(ref.shape[0], dtype=bool)
+        self._since = np.zeros(ref.shape[0], dtype=np.int64)
+        self._graph, self._spacing = neighbour_graph(ref, self.params.neighbours)
+        self.pitch_px = float(np.median(self._spacing)) if ref.shape[0] > 1 else 1.0
+
+    @property
+    def state(self) -> TrackState:
+        """The current `TrackState` (copies)."""
+        return TrackState(self._ref.copy(), self._cur.copy(), self._valid.copy(), self._since.copy())
+
+    def step(self, detections: Detections) -> TrackState:
+        """Match one frame's detections (rows with non-finite coordinates are ignored)."""
+        det = np.asarray(detections.centres_px, dtype=np.float64).reshape(-1, 2)
+        areas = np.asarray(detections.areas_px2, dtype=np.float64).reshape(-1)
+        if areas.shape[0] != det.shape[0]:
+            raise ValueError(f"detections: {det.shape[0]} centres but {areas.shape[0]} areas")
+        finite = np.all(np.isfinite(det), axis=1) & np.isfinite(areas)
+        det, areas = det[finite], areas[finite]
+        if self.params.method == "nearest":
+            matched = self._match_nearest(det)
+        else:
+            matched = self._match_assignment(det, areas)
+        seen = matched >= 0
+        new = self._cur.copy()
+        new[seen] = det[matched[seen]]
+        both = seen & self._valid
+        self._velocity = np.where(both[:, None], new - self._cur, 0.0)
+        self._cur = new
+        self._valid = seen
+        self._since = np.where(seen, 0, self._since + 1)
+        return self.state
+
+    def _match_nearest(self, det: np.ndarray) -> np.ndarray:
+        """The paper: nearest detection within the gate, several markers may share one."""
+        matched = np.full(self._ref.shape[0], -1, dtype=np.int64)
+        if det.shape[0] == 0:
+            return matched
+        dist, idx = cKDTree(det).query(self._cur, k=1, distance_upper_bound=self.params.gate_ratio * self.pitch_px)
+        hit = np.isfinite(dist)
+        matched[hit] = idx[hit]
+        return matched
+
+    def _neighbour_prediction(self, matched: np.ndarray, det: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (N, 2) predicted from matched neighbours' motion, and (N,) bool where possible."""
+        seen = matched >= 0
+        new = np.where(seen[:, None], det[np.maximum(matched, 0)], self._cur)
+        step_med, step_has = masked_median((new - self._cur)[self._graph], (seen & self._valid)[self._graph])
+        total_med, total_has = masked_median((new - self._ref)[self._graph], seen[self._graph])
+        use_step = self._valid & step_has
+        pred = np.where(use_step[:, None], self._cur + step_med, self._ref + total_med)
+        return pred, use_step | total_has
+
+    def _gated_round(
+        self, pred: np.ndarray, det: np.ndarray, ratio: np.ndarray, gate: float, matched: np.ndarray, free: np.ndarray
+    ) -> int:
+        """Assign unmatched markers (predicted at pred (N, 2)) to free detections within `gate` px.
+
+        ratio: (N, M) detection area / reference area. Updates `matched` (N,) and `free` (M,)
+        in place and returns the number of new matches.
+        """
+        todo = np.flatnonzero(matched < 0)
+        cols_free = np.flatnonzero(free)
+        if todo.size == 0 or cols_free.size == 0:
+            return 0
+        rows, cols = _assign(pred[todo], det[cols_free], gate)
+        rows, cols = todo[rows], cols_free[cols]
+        limit = self.params.area_ratio_max
+        if limit > 0.0:
+            r = ratio[rows, cols]
+            ok = (r <= limit) & (r >= 1.0 / limit)
+            rows, cols = rows[ok], cols[ok]
+        matched[rows] = cols
+        free[cols] = False
+        return int(rows.size)
+
+    def _match_assignment(self, det: np.ndarray, areas: np.ndarray) -> np.ndarray:
+        """One-to-one matching grown outwards from confident matches, then plausibility checks."""
+        p = self.params
+        n = self._ref.shape[0]
+        matched = np.full(n, -1, dtype=np.int64)
+        if det.shape[0] == 0:
+            return matched
+        ratio = areas[None, :] / np.maximum(self._ref_areas[:, None], 1e-9)
+        last_total = np.where(self._valid[:, None], self._cur - self._ref, 0.0)
+        total_med, total_has = masked_median(last_total[self._graph], self._valid[self._graph])
+        velocity = self._velocity if p.use_velocity else np.zeros_like(self._velocity)
+        pred = np.where(
+            self._valid[:, None],
+            self._cur + velocity,
+            np.where(total_has[:, None], self._ref + total_med, self._cur),
+        )
+        free = np.ones(det.shape[0], dtype=bool)
+        strict_gate = p.strict_gate_ratio * self.pitch_px
+        for _ in range(p.rounds):
+            if self._gated_round(pred, det, ratio, strict_gate, matched, free) == 0 or np.all(matched >= 0):
+                break
+            pred_next, has = self._neighbour_prediction(matched, det)
+            pred = np.where(has[:, None], pred_next, pred)
+        self._gated_round(pred, det, ratio, p.gate_ratio * self.pitch_px, matched, free)
+        seen = matched >= 0
+        new = np.where(seen[:, None], det[np.maximum(matched, 0)], self._cur)
+        bad = _inconsistent(new - self._ref, seen, self._graph, self._spacing, p.tolerance_ratio)
+        matched[bad] = -1
+        return matched

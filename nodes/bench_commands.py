@@ -1,0 +1,31 @@
+"""`fv bench KIND ...`: the benchmarks, one sub-command each.
+
+A benchmark is one line in `BENCHMARKS`: name -> (module, function). The function is
+called as ``function(kinds, name)`` with the `fv bench` sub-parsers and adds its own
+parser named `name` (flags, ``set_defaults(func=...)``); its module imports heavy
+libraries only inside the command function, like every command module.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+
+BENCHMARKS: dict[str, tuple[str, str]] = {
+    "bag": ("nodes.bag.bench", "add_parser"),
+}
+
+
+def _bench_group(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
+    """The sub-parsers of `fv bench`, created here unless a command module that predates
+    this group (nodes.bench_bus) already made the `bench` parser."""
+    bench = sub.choices.get("bench")
+    if bench is None:
+        bench = sub.add_parser("bench", help="benchmarks (fv bench KIND --help)")
+        return bench.add_subparsers(dest="bench", required=True, metavar="KIND")
+    return next(a for a in bench._actions if isinstance(a, argparse._SubParsersAction))
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    kinds = _bench_group(sub)
+    for name, (module, function) in BENCHMARKS.items():
+        getattr(importlib.import_module(module), function)(kinds, name)

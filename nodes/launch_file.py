@@ -1,0 +1,345 @@
+"""Launch files: parse and validate a YAML launch file into `NodeSpec`s before anything
+starts.
+
+Format (every key but `nodes[].kind` optional)::
+
+    args:                        # launch arguments, overridden by `fv launch FILE name:=value`
+      rate_hz: 10.0              #   a default value
+      topic: {default: /chatter, description: "where to talk"}
+      robot: {description: "no default: must be given"}
+    include:                     # other launch files, relative to this one
+      - file: sensors.yaml
+        args: {rate_hz: $(arg rate_hz)}
+    nodes:
+      - kind: talker             # a kind known to `nodes/registry.py`
+        name: talker             # default: the kind; unique in the launch
+        namespace: /left         # for relative topic names
+        params: {rate_hz: $(arg rate_hz)}
+        remap: {/chatter: /left/chatter}
+        env: {OMP_NUM_THREADS: 1}
+        respawn: true            # restart when it exits...
+        respawn_delay: 1.0       # ...after this many seconds (default 1.0)
+        max_retries: 5           # ...at most this often (default: no limit)
+        required: false          # its final exit stops the whole launch
+
+``$(arg name)`` is replaced by the argument's value: a whole-string substitution keeps the
+value's YAML type (``rate_hz: $(arg rate_hz)`` stays a float), an embedded one is text.
+Every error is a `LaunchError` naming the file, the line and the key.
+"""
+from __future__ import annotations
+
+import json
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from nodes.params import ParamError, build_params, parse_text
+
+TOP_KEYS = {"args", "include", "nodes"}
+NODE_KEYS = {"kind", "name", "namespace", "params", "remap", "env", "respawn", "respawn_delay", "max_retries",
+             "required"}
+INCLUDE_KEYS = {"file", "args"}
+ARG_KEYS = {"default", "description"}
+DEFAULT_RESPAWN_DELAY_S = 1.0
+_ARG_RE = re.compile(r"\$\(arg ([A-Za-z_][A-Za-z0-9_]*)\)")
+_NO_DEFAULT = object()
+
+
+class LaunchError(ValueError):
+    """A launch file that cannot run: names the file, the line and the key."""
+
+
+class _Dict(dict):
+    """A YAML mapping that remembers the line (1-based) of itself and of each key."""
+
+    line: int = 0
+    lines: dict
+
+
+class _List(list):
+    """A YAML sequence that remembers the line (1-based) of itself and of each item."""
+
+    line: int = 0
+    lines: list
+
+
+class _Loader(yaml.SafeLoader):
+    """SafeLoader whose mappings and sequences carry line numbers; duplicate keys fail."""
+
+
+def _construct_mapping(loader: _Loader, node: yaml.MappingNode) -> _Dict:
+    loader.flatten_mapping(node)
+    out = _Dict()
+    out.line, out.lines = node.start_mark.line + 1, {}
+    for key_node, value_node in node.value:
+        key = loader.construct_object(key_node, deep=True)
+        if not isinstance(key, str):
+            raise yaml.constructor.ConstructorError(None, None, f"key {key!r} is not a string", key_node.start_mark)
+        if key in out:
+            raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key!r}", key_node.start_mark)
+        out[key] = loader.construct_object(value_node, deep=True)
+        out.lines[key] = key_node.start_mark.line + 1
+    return out
+
+
+def _construct_sequence(loader: _Loader, node: yaml.SequenceNode) -> _List:
+    out = _List(loader.construct_object(item, deep=True) for item in node.value)
+    out.line, out.lines = node.start_mark.line + 1, [item.start_mark.line + 1 for item in node.value]
+    return out
+
+
+_Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
+_Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_SEQUENCE_TAG, _construct_sequence)
+
+
+@dataclass
+class NodeSpec:
+    """One node of a launch, validated: what `fv node` needs plus the supervision policy.
+
+    respawn_delay_s: seconds between an exit and the restart. max_retries: restarts
+    allowed (None = no limit). source: "file:line" of the entry, for messages.
+    """
+
+    kind: str
+    name: str
+    params: dict[str, Any] = field(default_factory=dict)
+    remap: dict[str, str] = field(default_factory=dict)
+    namespace: str = ""
+    env: dict[str, str] = field(default_factory=dict)
+    respawn: bool = False
+    respawn_delay_s: float = DEFAULT_RESPAWN_DELAY_S
+    max_retries: int | None = None
+    required: bool = False
+    source: str = ""
+
+    def argv(self) -> list[str]:
+        """The `fv node` arguments that run this node (after `python -m nodes.cli`)."""
+        out = ["node", self.kind, "--name", self.name, "--params-json", json.dumps(self.params)]
+        if self.namespace:
+            out += ["--ns", self.namespace]
+        for src, dst in self.remap.items():
+            out += ["--remap", f"{src}:={dst}"]
+        return out
+
+
+def _line(container: Any, key: Any, fallback: int) -> int:
+    """Line of `key` in a YAML container (`fallback` for values made by substitution)."""
+    lines = getattr(container, "lines", None)
+    if isinstance(lines, dict):
+        return lines.get(key, fallback)
+    if isinstance(lines, list) and isinstance(key, int) and key < len(lines):
+        return lines[key]
+    return fallback
+
+
+class _File:
+    """Error helpers bound to one launch file."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def error(self, line: int, key: str, reason: str) -> LaunchError:
+        return LaunchError(f"{self.path}:{line}: {key}: {reason}")
+
+    def expect(self, value: Any, kind: type | tuple[type, ...], line: int, key: str, what: str) -> Any:
+        kinds = kind if isinstance(kind, tuple) else (kind,)
+        if not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds):
+            raise self.error(line, key, f"{value!r} is not {what}")
+        return value
+
+    def check_keys(self, mapping: _Dict, allowed: set[str], key: str) -> None:
+        for name in mapping:
+            if name not in allowed:
+                raise self.error(mapping.lines[name], f"{key}.{name}" if key else name,
+                                 f"unknown key; allowed: {sorted(allowed)}")
+
+
+def load_yaml(path: Path) -> Any:
+    """The file's YAML with line numbers; LaunchError (file and line) for bad YAML."""
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise LaunchError(f"{path}: cannot read launch file: {exc.strerror}") from None
+    try:
+        return yaml.load(text, Loader=_Loader)
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        line = mark.line + 1 if mark is not None else 0
+        raise LaunchError(f"{path}:{line}: bad YAML: {exc.problem or exc}") from None
+    except yaml.YAMLError as exc:
+        raise LaunchError(f"{path}: bad YAML: {exc}") from None
+
+
+def parse_arg_overrides(items: list[str]) -> dict[str, Any]:
+    """["name:=value", ...] from the command line -> {name: YAML-typed value}."""
+    out: dict[str, Any] = {}
+    for item in items:
+        name, sep, value = item.partition(":=")
+        if not sep or not name:
+            raise LaunchError(f"launch argument {item!r} is not name:=value")
+        out[name] = parse_text(value)
+    return out
+
+
+def load_launch(path: Path | str, args: dict[str, Any] | None = None, _stack: tuple[Path, ...] = ()) -> list[NodeSpec]:
+    """Validated node specs of launch file `path` (includes expanded) with `args` given.
+
+    Checks everything a node would check at start (kinds, param names and types, arg
+    references), so a bad file fails before any process starts.
+    """
+    from nodes.registry import node_class  # imports node modules only when validating
+
+    path = Path(path).resolve()
+    f = _File(path)
+    if path in _stack:
+        raise LaunchError(f"{path}: included again by itself (include cycle: {' -> '.join(map(str, _stack))})")
+    doc = load_yaml(path)
+    if doc is None:
+        doc = _Dict()
+        doc.line, doc.lines = 1, {}
+    if not isinstance(doc, _Dict):
+        raise f.error(1, "(top level)", "a launch file is a mapping with keys args, include, nodes")
+    f.check_keys(doc, TOP_KEYS, "")
+    values = _resolve_args(f, doc, dict(args or {}))
+    specs: list[NodeSpec] = []
+    for i, inc in enumerate(_section(f, doc, "include")):
+        key = f"include[{i}]"
+        line = _line(doc["include"], i, 1)
+        inc = _substitute(f, f.expect(inc, _Dict, line, key, "a mapping with keys file, args"), values, key)
+        f.check_keys(inc, INCLUDE_KEYS, key)
+        if "file" not in inc:
+            raise f.error(line, f"{key}.file", "missing")
+        target = path.parent / f.expect(inc["file"], str, inc.lines["file"], f"{key}.file", "a file name")
+        inc_args = inc.get("args", {})
+        f.expect(inc_args, dict, _line(inc, "args", line), f"{key}.args", "a mapping of argument values")
+        if not target.is_file():
+            raise f.error(inc.lines["file"], f"{key}.file", f"{target} does not exist")
+        specs += load_launch(target, inc_args, _stack + (path,))
+    for i, entry in enumerate(_section(f, doc, "nodes")):
+        key = f"nodes[{i}]"
+        line = _line(doc["nodes"], i, 1)
+        entry = _substitute(f, f.expect(entry, _Dict, line, key, "a mapping with at least `kind`"), values, key)
+        specs.append(_node_spec(f, entry, line, key, node_class))
+    _check_unique(specs)
+    return specs
+
+
+def _section(f: _File, doc: _Dict, name: str) -> _List:
+    value = doc.get(name)
+    if value is None:
+        out = _List()
+        out.line, out.lines = doc.lines.get(name, 1), []
+        return out
+    return f.expect(value, _List, doc.lines[name], name, "a list")
+
+
+def _resolve_args(f: _File, doc: _Dict, given: dict[str, Any]) -> dict[str, Any]:
+    declared = doc.get("args") or _Dict()
+    f.expect(declared, dict, doc.lines.get("args", 1), "args", "a mapping of argument names to defaults")
+    for name in given:
+        if name not in declared:
+            raise LaunchError(f"{f.path}: argument {name!r} given but not declared; declared: {sorted(declared)}")
+    values = {}
+    for name, spec in declared.items():
+        key, line = f"args.{name}", declared.lines[name]
+        default = spec
+        if isinstance(spec, _Dict):
+            f.check_keys(spec, ARG_KEYS, key)
+            default = spec.get("default", _NO_DEFAULT)
+        value = given.get(name, default)
+        if value is _NO_DEFAULT:
+            raise f.error(line, key, f"no default and not given (fv launch {f.path.name} {name}:=VALUE)")
+        values[name] = value
+    return values
+
+
+def _substitute(f: _File, value: Any, args: dict[str, Any], key: str, line: int = 0) -> Any:
+    """`value` with every `$(arg name)` replaced; keeps line numbers of containers."""
+    if isinstance(value, _Dict):
+        out = _Dict()
+        out.line, out.lines = value.line, value.lines
+        for k, v in value.items():
+            out[k] = _substitute(f, v, args, f"{key}.{k}", value.lines[k])
+        return out
+    if isinstance(value, _List):
+        out_list = _List(_substitute(f, v, args, f"{key}[{i}]", value.lines[i]) for i, v in enumerate(value))
+        out_list.line, out_list.lines = value.line, value.lines
+        return out_list
+    if not isinstance(value, str) or "$(" not in value:
+        return value
+    for name in _ARG_RE.findall(value):
+        if name not in args:
+            raise f.error(line, key, f"$(arg {name}) is not declared under args; declared: {sorted(args)}")
+    whole = _ARG_RE.fullmatch(value)
+    if whole:
+        return args[whole.group(1)]
+    out_text = _ARG_RE.sub(lambda m: str(args[m.group(1)]), value)
+    if "$(" in out_text:
+        raise f.error(line, key, f"{value!r}: only $(arg NAME) substitutions are known")
+    return out_text
+
+
+def _node_spec(f: _File, entry: _Dict, line: int, key: str, node_class: Any) -> NodeSpec:
+    f.check_keys(entry, NODE_KEYS, key)
+    lines = entry.lines
+    if "kind" not in entry:
+        raise f.error(line, f"{key}.kind", "missing")
+    kind = f.expect(entry["kind"], str, lines["kind"], f"{key}.kind", "a node kind")
+    try:
+        cls = node_class(kind)
+    except KeyError as exc:
+        raise f.error(lines["kind"], f"{key}.kind", exc.args[0]) from None
+    name = f.expect(entry.get("name", kind), str, lines.get("name", line), f"{key}.name", "a node name")
+    if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_\-]*", name):
+        raise f.error(lines.get("name", line), f"{key}.name", f"{name!r} is not a name (letters, digits, _ and -)")
+    key = f"{key} ({name})"
+    params = f.expect(entry.get("params", {}), dict, lines.get("params", line), f"{key}.params", "a mapping")
+    try:
+        build_params(cls.Params, params, where=f"node kind {kind!r}")
+    except ParamError as exc:
+        at = _line(params, exc.key, lines.get("params", line))
+        raise f.error(at, f"{key}.params" + (f".{exc.key}" if exc.key else ""), str(exc)) from None
+    for pname, pvalue in params.items():
+        try:
+            json.dumps(pvalue, allow_nan=True)
+        except (TypeError, ValueError):
+            raise f.error(_line(params, pname, line), f"{key}.params.{pname}",
+                          f"{pvalue!r} is not a plain YAML value (number, text, list, mapping)") from None
+    remap = f.expect(entry.get("remap", {}), dict, lines.get("remap", line), f"{key}.remap", "a mapping FROM: TO")
+    for src, dst in remap.items():
+        f.expect(dst, str, _line(remap, src, line), f"{key}.remap.{src}", "a topic name")
+    env = f.expect(entry.get("env", {}), dict, lines.get("env", line), f"{key}.env", "a mapping NAME: value")
+    for var, val in env.items():
+        f.expect(val, (str, int, float), _line(env, var, line), f"{key}.env.{var}", "text or a number")
+    delay = f.expect(entry.get("respawn_delay", DEFAULT_RESPAWN_DELAY_S), (int, float),
+                     lines.get("respawn_delay", line), f"{key}.respawn_delay", "a number of seconds")
+    if not math.isfinite(delay) or delay < 0:
+        raise f.error(lines["respawn_delay"], f"{key}.respawn_delay", f"{delay} s is not >= 0")
+    retries = entry.get("max_retries")
+    if retries is not None:
+        f.expect(retries, int, lines["max_retries"], f"{key}.max_retries", "a whole number")
+        if retries < 0:
+            raise f.error(lines["max_retries"], f"{key}.max_retries", f"{retries} is not >= 0")
+    return NodeSpec(
+        kind=kind, name=name, params=dict(params), remap=dict(remap),
+        namespace=f.expect(entry.get("namespace", ""), str, lines.get("namespace", line), f"{key}.namespace",
+                           "a namespace"),
+        env={var: str(val) for var, val in env.items()},
+        respawn=f.expect(entry.get("respawn", False), bool, lines.get("respawn", line), f"{key}.respawn",
+                         "true or false"),
+        respawn_delay_s=float(delay), max_retries=retries,
+        required=f.expect(entry.get("required", False), bool, lines.get("required", line), f"{key}.required",
+                          "true or false"),
+        source=f"{f.path}:{line}")
+
+
+def _check_unique(specs: list[NodeSpec]) -> None:
+    seen: dict[str, str] = {}
+    for spec in specs:
+        if spec.name in seen:
+            raise LaunchError(f"{spec.source}: name: node name {spec.name!r} is already used at {seen[spec.name]}")
+        seen[spec.name] = spec.source

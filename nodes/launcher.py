@@ -1,0 +1,232 @@
+"""Run a launch file: start the forwarder when none runs, one process per node, prefix
+their output with the node name, respawn what should respawn, and stop everything on
+Ctrl-C, SIGTERM or the exit of a required node (`fv launch FILE [name:=value ...]`).
+
+Each node runs in its own process group, so a terminal's Ctrl-C reaches only the
+launcher, which then stops the nodes in order: SIGTERM to each group, SIGKILL after
+`GRACE_S`, then the forwarder it started.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+from nodes.launch_file import NodeSpec, load_launch, parse_arg_overrides
+
+GRACE_S = 1.2
+FORWARDER_GRACE_S = 0.5
+POLL_S = 0.05
+
+
+@dataclass
+class Child:
+    """A node's current process and its supervision state."""
+
+    spec: NodeSpec
+    proc: subprocess.Popen | None = None
+    retries: int = 0
+    restart_at: float | None = None
+    reader: threading.Thread | None = None
+    exit_codes: list[int] = field(default_factory=list)
+
+
+class Launch:
+    """A validated set of nodes and the processes running them.
+
+    >>> launch = Launch.from_file("launch/demo.yaml", {"rate_hz": 5})
+    >>> launch.start(); ...; launch.stop()
+    """
+
+    def __init__(self, specs: list[NodeSpec], output: TextIO | None = None, name: str = "launch") -> None:
+        self.specs = specs
+        self.name = name
+        self.output = output or sys.stdout
+        self.children = [Child(spec) for spec in specs]
+        self.exit_code = 0
+        self._forwarder: subprocess.Popen | None = None
+        self._out_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._done = threading.Event()
+        self._supervisor: threading.Thread | None = None
+
+    @classmethod
+    def from_file(cls, path: str | Path, args: dict[str, Any] | None = None, output: TextIO | None = None) -> "Launch":
+        """Parse and validate `path` with launch arguments `args`; LaunchError names file, line and key."""
+        return cls(load_launch(path, args), output, Path(path).stem)
+
+    # -- output ----------------------------------------------------------------------
+    def say(self, text: str, who: str = "launch") -> None:
+        """Write one line prefixed by `[who]` (whole lines, never interleaved)."""
+        prefix = f"[{who}] "
+        line = text if text.startswith(prefix) else prefix + text
+        with self._out_lock:
+            self.output.write(line.rstrip("\n") + "\n")
+            self.output.flush()
+
+    def _pump(self, name: str, stream: TextIO) -> None:
+        for line in stream:  # node log lines already start with "[name] ": say() keeps one prefix
+            self.say(line, name)
+        stream.close()
+
+    # -- processes -------------------------------------------------------------------
+    def _spawn(self, child: Child) -> None:
+        spec = child.spec
+        env = dict(os.environ, PYTHONUNBUFFERED="1", **spec.env)
+        child.proc = subprocess.Popen([sys.executable, "-m", "nodes.cli", *spec.argv()], env=env,
+                                      stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                      text=True, bufsize=1, start_new_session=True)
+        child.restart_at = None
+        child.reader = threading.Thread(target=self._pump, args=(spec.name, child.proc.stdout),
+                                        name=f"out-{spec.name}", daemon=True)
+        child.reader.start()
+        self.say(f"started {spec.name} ({spec.kind}) pid {child.proc.pid}")
+
+    def pid(self, name: str) -> int | None:
+        """The pid of node `name`'s running process, None when it is not running."""
+        for child in self.children:
+            if child.spec.name == name and child.proc is not None and child.proc.poll() is None:
+                return child.proc.pid
+        return None
+
+    def start(self) -> None:
+        """Start the forwarder (when none answers) and every node; supervise in a thread."""
+        from nodes.endpoints import bus_address
+        from nodes.forwarder import ensure_forwarder, ping
+
+        address = bus_address()
+        if address.is_tcp:
+            if ping(address, 1.0) is None:
+                raise RuntimeError(f"no forwarder answers at {address.url}; start `fv forwarder --tcp ...` there")
+        else:
+            self._forwarder = ensure_forwarder(address)
+            if self._forwarder is not None:
+                self.say(f"started forwarder on {address.url} pid {self._forwarder.pid}")
+        try:
+            for child in self.children:
+                self._spawn(child)
+        except BaseException:
+            self._shutdown()
+            raise
+        self._supervisor = threading.Thread(target=self._supervise, name="launch-supervisor", daemon=True)
+        self._supervisor.start()
+
+    def wait(self, timeout_s: float | None = None) -> bool:
+        """Block until the launch ended by itself (required node died, all nodes exited)
+        or was stopped; False on timeout."""
+        return self._done.wait(timeout_s)
+
+    def stop(self) -> int:
+        """Stop every node and the forwarder this launch started; returns the exit code."""
+        self._stop.set()
+        if self._supervisor is not None:
+            self._supervisor.join()
+        return self.exit_code
+
+    def run(self) -> int:
+        """start(), then wait for Ctrl-C / SIGTERM / the end of the launch, then stop()."""
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, lambda signum, _frame: self._stop.set())
+        try:
+            self.start()
+            while not self._done.wait(0.1):
+                pass
+        finally:
+            self.stop()
+        return self.exit_code
+
+    # -- supervision -----------------------------------------------------------------
+    def _supervise(self) -> None:
+        try:
+            while not self._stop.is_set():
+                now = time.monotonic()
+                for child in self.children:
+                    if child.proc is not None and child.proc.poll() is not None:
+                        self._exited(child, now)
+                    if child.restart_at is not None and now >= child.restart_at and not self._stop.is_set():
+                        self._spawn(child)
+                if not any(c.proc is not None or c.restart_at is not None for c in self.children):
+                    self.say("all nodes have exited")
+                    break
+                self._stop.wait(POLL_S)
+        finally:
+            self._shutdown()
+            self._done.set()
+
+    def _exited(self, child: Child, now: float) -> None:
+        spec, code = child.spec, child.proc.returncode
+        child.exit_codes.append(code)
+        child.proc = None
+        if child.reader is not None:
+            child.reader.join(1.0)
+        if self._stop.is_set():
+            return
+        if spec.respawn and (spec.max_retries is None or child.retries < spec.max_retries):
+            child.retries += 1
+            child.restart_at = now + spec.respawn_delay_s
+            self.say(f"{spec.name} exited with code {code}; respawn {child.retries} in {spec.respawn_delay_s:g} s")
+            return
+        self.say(f"{spec.name} exited with code {code}" + ("" if not spec.respawn else " (no retries left)"))
+        if spec.required:
+            self.say(f"{spec.name} is required: stopping the launch")
+            self.exit_code = 1
+            self._stop.set()
+
+    def _shutdown(self) -> None:
+        running = [c for c in self.children if c.proc is not None]
+        for child in running:
+            _signal_group(child.proc, signal.SIGTERM)
+        deadline = time.monotonic() + GRACE_S
+        for child in running:
+            try:
+                child.proc.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self.say(f"{child.spec.name} did not stop within {GRACE_S} s: killed")
+                _signal_group(child.proc, signal.SIGKILL)
+                child.proc.wait()
+            if child.reader is not None:
+                child.reader.join(1.0)
+            child.proc = None
+        for child in self.children:
+            child.restart_at = None
+        if self._forwarder is not None:
+            self._forwarder.terminate()
+            try:
+                self._forwarder.wait(FORWARDER_GRACE_S)
+            except subprocess.TimeoutExpired:
+                self._forwarder.kill()
+                self._forwarder.wait()
+            self._forwarder = None
+
+
+def _signal_group(proc: subprocess.Popen, sig: int) -> None:
+    """Send `sig` to the process group `proc` leads (its children included)."""
+    try:
+        os.killpg(proc.pid, sig)
+    except ProcessLookupError:
+        pass
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("launch", help="run a launch file: fv launch FILE [name:=value ...]")
+    p.add_argument("file", type=Path, help="launch file (YAML), e.g. launch/demo.yaml")
+    p.add_argument("args", nargs="*", metavar="name:=value", help="launch argument overrides")
+    p.add_argument("--check", action="store_true", help="validate the file and list its nodes; start nothing")
+    p.set_defaults(func=_launch)
+
+
+def _launch(args: argparse.Namespace) -> int:
+    launch = Launch.from_file(args.file, parse_arg_overrides(args.args))  # LaunchError: `fv` prints it, exit 2
+    if args.check:
+        for spec in launch.specs:
+            print(f"{spec.name}: {spec.kind} params={spec.params} ({spec.source})")
+        return 0
+    return launch.run()

@@ -1,0 +1,177 @@
+"""Marker detection against synthetic frames with exact ground truth, and the real light-marker frame.
+
+`render_markers` and `grid_centres` are imported by the other perception test modules.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from fv_algos.detection import (
+    Detections,
+    MarkerParams,
+    detect_blobs,
+    detect_fast,
+    estimate_marker_params,
+    to_gray,
+)
+
+
+def grid_centres(rows: int = 16, cols: int = 16, pitch_px: float = 25.0, origin_px: tuple[float, float] = (132.3, 52.7)) -> np.ndarray:
+    """(rows*cols, 2) float64 (x, y) px centres of a square marker grid, row-major."""
+    ys, xs = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    return np.column_stack([origin_px[0] + pitch_px * xs.ravel(), origin_px[1] + pitch_px * ys.ravel()])
+
+
+def render_markers(
+    centres_px: np.ndarray,
+    diameter_px: float = 9.0,
+    shape: tuple[int, int] = (480, 640),
+    background: float = 190.0,
+    marker: float = 60.0,
+    noise_sigma: float = 0.0,
+    supersample: int = 8,
+    seed: int = 0,
+) -> np.ndarray:
+    """(H, W) uint8 frame of discs at exact sub-pixel centres (pixel centres at integers).
+
+    Each pixel is the area-weighted mix of `background` and `marker` grey levels, the disc
+    coverage being measured on a supersample x supersample grid of points inside the pixel.
+    """
+    h, w = shape
+    coverage = np.zeros(shape, dtype=np.float32)
+    centres = np.asarray(centres_px, dtype=np.float64).reshape(-1, 2)
+    centres = centres[np.all(np.isfinite(centres), axis=1)]
+    radius = diameter_px / 2.0
+    half = int(np.ceil(radius)) + 1
+    offs = np.arange(-half, half + 1)
+    sub = (np.arange(supersample) + 0.5) / supersample - 0.5
+    for cx, cy in centres:
+        ix, iy = int(round(cx)), int(round(cy))
+        px = ix + offs[None, :, None, None] + sub[None, None, None, :] - cx
+        py = iy + offs[:, None, None, None] + sub[None, None, :, None] - cy
+        cov = ((px * px + py * py) <= radius * radius).mean(axis=(2, 3)).astype(np.float32)
+        x0, y0 = ix - half, iy - half
+        xa, ya = max(x0, 0), max(y0, 0)
+        xb, yb = min(x0 + cov.shape[1], w), min(y0 + cov.shape[0], h)
+        if xa >= xb or ya >= yb:
+            continue
+        patch = cov[ya - y0 : yb - y0, xa - x0 : xb - x0]
+        np.maximum(coverage[ya:yb, xa:xb], patch, out=coverage[ya:yb, xa:xb])
+    image = background + (marker - background) * coverage
+    if noise_sigma > 0.0:
+        image = image + np.random.default_rng(seed).normal(0.0, noise_sigma, shape)
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+SIM_MARKER = MarkerParams(diameter_px=9.0, pitch_px=25.0, polarity="dark", contrast=130.0)
+
+
+def _match_error(found: Detections, truth: np.ndarray) -> tuple[np.ndarray, int]:
+    """Distance of each truth centre to its nearest detection (px) and the number of detections."""
+    d = np.linalg.norm(found.centres_px[None, :, :] - truth[:, None, :], axis=2)
+    return d.min(axis=1), len(found)
+
+
+def test_fast_detector_is_subpixel_exact_on_clean_frame() -> None:
+    truth = grid_centres() + np.random.default_rng(1).uniform(-0.5, 0.5, (256, 2))
+    found = detect_fast(render_markers(truth), SIM_MARKER)
+    error, count = _match_error(found, truth)
+    assert count == 256
+    assert np.sqrt(np.mean(error**2)) < 0.03
+    assert error.max() < 0.08
+
+
+def test_fast_detector_with_noise_and_shading() -> None:
+    truth = grid_centres() + np.random.default_rng(2).uniform(-0.5, 0.5, (256, 2))
+    image = render_markers(truth, noise_sigma=3.0).astype(np.float64)
+    ramp = np.linspace(-50.0, 50.0, image.shape[1])[None, :]
+    shaded = np.clip(image + ramp, 0, 255).astype(np.uint8)
+    found = detect_fast(shaded, SIM_MARKER)
+    error, count = _match_error(found, truth)
+    assert count == 256
+    assert np.sqrt(np.mean(error**2)) < 0.1
+
+
+def test_blob_detector_finds_every_marker() -> None:
+    truth = grid_centres()
+    found = detect_blobs(render_markers(truth), SIM_MARKER)
+    error, count = _match_error(found, truth)
+    assert count == 256
+    assert error.max() < 0.5
+
+
+def test_light_markers_and_bgr_input() -> None:
+    truth = grid_centres(8, 8, 40.0, (100.0, 80.0)) + 0.3
+    mono = render_markers(truth, diameter_px=12.0, background=70.0, marker=200.0)
+    bgr = cv2.merge([mono, mono, mono])
+    light = MarkerParams(diameter_px=12.0, pitch_px=40.0, polarity="light", contrast=130.0)
+    for image in (mono, bgr):
+        error, count = _match_error(detect_fast(image, light), truth)
+        assert count == 64
+        assert error.max() < 0.08
+
+
+def test_red_overlay_is_not_dark_for_dark_markers() -> None:
+    truth = grid_centres(4, 4, 30.0, (40.0, 40.0))
+    mono = render_markers(truth, diameter_px=10.0, shape=(160, 160))
+    bgr = cv2.merge([mono, mono, mono])
+    cv2.line(bgr, (0, 150), (159, 150), (0, 0, 255), 3)
+    gray = to_gray(bgr, "dark")
+    assert gray[150].min() == 255
+    found = detect_fast(bgr, MarkerParams(diameter_px=10.0, pitch_px=30.0, contrast=130.0))
+    assert len(found) == 16
+
+
+def test_estimate_marker_params_recovers_size_pitch_polarity() -> None:
+    dark = render_markers(grid_centres(), diameter_px=9.0)
+    est = estimate_marker_params(dark)
+    assert est.polarity == "dark"
+    assert est.diameter_px == pytest.approx(9.0, rel=0.1)
+    assert est.pitch_px == pytest.approx(25.0, rel=0.02)
+    assert est.contrast == pytest.approx(130.0, abs=15.0)
+    light = render_markers(grid_centres(8, 8, 40.0, (100.0, 80.0)), diameter_px=12.0, background=70.0, marker=200.0)
+    est = estimate_marker_params(light)
+    assert est.polarity == "light"
+    assert est.diameter_px == pytest.approx(12.0, rel=0.1)
+    assert est.pitch_px == pytest.approx(40.0, rel=0.02)
+
+
+@pytest.mark.parametrize("value", [0, 255])
+def test_flat_frames_give_no_detections(value: int) -> None:
+    flat = np.full((480, 640), value, dtype=np.uint8)
+    assert len(detect_fast(flat, SIM_MARKER)) == 0
+    assert len(detect_blobs(flat, SIM_MARKER)) == 0
+    with pytest.raises(ValueError, match="consistent marker blobs"):
+        estimate_marker_params(flat)
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [np.zeros((480, 640), dtype=np.float32), np.zeros((480, 640, 4), dtype=np.uint8), np.zeros((4, 4), dtype=np.uint8)],
+)
+def test_bad_images_raise(bad: np.ndarray) -> None:
+    with pytest.raises(ValueError, match="image"):
+        detect_fast(bad, SIM_MARKER)
+
+
+def test_bad_marker_params_raise() -> None:
+    with pytest.raises(ValueError, match="pitch_px"):
+        MarkerParams(diameter_px=9.0, pitch_px=5.0)
+    with pytest.raises(ValueError, match="polarity"):
+        MarkerParams(polarity="grey")  # type: ignore[arg-type]
+
+
+def test_real_light_markers_all_found(real_data: Path) -> None:
+    image = cv2.imread(str(real_data / "gelsight_light_markers_1280x720.png"))
+    marker = estimate_marker_params(image)
+    assert marker.polarity == "light"
+    for detector in (detect_fast, detect_blobs):
+        found = detector(image, marker)
+        assert len(found) == 64
+        xs = np.sort(found.centres_px[:, 0])
+        columns = np.diff(xs) > 0.5 * marker.pitch_px
+        assert columns.sum() == 7

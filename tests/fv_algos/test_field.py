@@ -1,0 +1,138 @@
+"""Displacement field: the precomputed RBF operator against closed forms and scipy's refit."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fv_algos.field import FieldInterpolator, FieldParams, grid_axes, rbf_operator
+from tests.fv_algos.test_detection import grid_centres
+
+REF = grid_centres(16, 16, 25.0) + np.random.default_rng(0).normal(0.0, 1.0, (256, 2))
+VALID = np.ones(len(REF), dtype=bool)
+KERNELS = ["thin_plate_spline", "multiquadric", "inverse_multiquadric", "gaussian", "linear", "cubic"]
+
+
+def _smooth(points: np.ndarray) -> np.ndarray:
+    """A smooth test displacement field (N, 2) px."""
+    c = REF.mean(axis=0)
+    return np.column_stack([3.0 * np.sin((points[:, 0] - c[0]) / 60.0), 2.0 * np.cos((points[:, 1] - c[1]) / 80.0)])
+
+
+def _grid_points(field_x: np.ndarray, field_y: np.ndarray) -> np.ndarray:
+    gx, gy = np.meshgrid(field_x, field_y)
+    return np.column_stack([gx.ravel(), gy.ravel()])
+
+
+def test_grid_spans_reference_bounding_box() -> None:
+    x, y = grid_axes(REF, (30, 20))
+    assert x.shape == (20,) and y.shape == (30,)
+    assert x[0] == REF[:, 0].min() and x[-1] == REF[:, 0].max()
+    assert y[0] == REF[:, 1].min() and y[-1] == REF[:, 1].max()
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_affine_motion_is_reproduced_exactly(kernel: str) -> None:
+    """Every kernel carries a linear polynomial, so translation + linear strain is exact."""
+    a = np.array([[0.02, -0.05], [0.03, 0.01]])
+    t = np.array([1.5, -2.0])
+    interp = FieldInterpolator(REF, FieldParams(kernel=kernel))  # type: ignore[arg-type]
+    out = interp.interpolate(REF + REF @ a.T + t, VALID)
+    truth = _grid_points(out.x_px, out.y_px) @ a.T + t
+    assert out.valid and out.markers_used == 256
+    assert out.field.shape == (30, 30, 3) and out.field.dtype == np.float32
+    assert np.abs(out.field[:, :, :2].reshape(-1, 2) - truth).max() < 1e-3
+    assert np.allclose(out.field[:, :, 2], np.hypot(out.field[:, :, 0], out.field[:, :, 1]))
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_operator_equals_scipy_refit(kernel: str) -> None:
+    cur = REF + _smooth(REF)
+    op = FieldInterpolator(REF, FieldParams(kernel=kernel)).interpolate(cur, VALID)  # type: ignore[arg-type]
+    refit = FieldInterpolator(REF, FieldParams(kernel=kernel, method="rbf_refit")).interpolate(cur, VALID)  # type: ignore[arg-type]
+    assert np.abs(op.field - refit.field).max() < 1e-4
+
+
+def test_smooth_field_accuracy_and_griddata_alternative() -> None:
+    cur = REF + _smooth(REF)
+    out = FieldInterpolator(REF).interpolate(cur, VALID)
+    truth = _smooth(_grid_points(out.x_px, out.y_px))
+    assert np.abs(out.field[:, :, :2].reshape(-1, 2) - truth).max() < 0.06
+    grid = FieldInterpolator(REF, FieldParams(method="griddata")).interpolate(cur, VALID)
+    assert grid.valid and np.all(np.isfinite(grid.field))
+    assert grid.filled_cells > 0
+    inside = np.abs(grid.field[:, :, :2].reshape(-1, 2) - truth)
+    assert np.median(inside) < 0.05
+
+
+def test_missing_markers_use_a_cached_operator_per_pattern() -> None:
+    cur = REF + _smooth(REF)
+    interp = FieldInterpolator(REF, FieldParams(cache_size=2))
+    mask = VALID.copy()
+    mask[::3] = False
+    out = interp.interpolate(cur, mask)
+    assert out.markers_used == int(mask.sum())
+    truth = _smooth(_grid_points(out.x_px, out.y_px))
+    assert np.abs(out.field[:, :, :2].reshape(-1, 2) - truth).max() < 0.2
+    first = interp.operator(mask)
+    assert interp.operator(mask) is first
+    interp.operator(VALID)
+    interp.operator(~mask)
+    assert interp.operator(mask) is not first
+
+
+@pytest.mark.parametrize("kept", [0, 2, 25])
+def test_all_or_almost_all_markers_lost(kept: int) -> None:
+    mask = np.zeros(len(REF), dtype=bool)
+    mask[np.random.default_rng(1).choice(len(REF), kept, replace=False)] = True
+    cur = REF + 2.0
+    for method in ("rbf_operator", "rbf_refit", "griddata"):
+        out = FieldInterpolator(REF, FieldParams(method=method)).interpolate(cur, mask)  # type: ignore[arg-type]
+        assert np.all(np.isfinite(out.field))
+        assert out.valid == (kept >= 3)
+        if out.valid:
+            assert np.abs(out.field[:, :, :2] - 2.0).max() < 1e-3
+
+
+def test_nan_positions_are_treated_as_missing() -> None:
+    cur = REF + 1.0
+    cur[:10] = np.nan
+    cur[10, 1] = np.inf
+    out = FieldInterpolator(REF).interpolate(cur, VALID)
+    assert out.valid and out.markers_used == 245
+    assert np.abs(out.field[:, :, :2] - 1.0).max() < 1e-3
+
+
+def test_collinear_and_coincident_markers_stay_finite() -> None:
+    line = np.column_stack([np.linspace(0.0, 300.0, 20), np.full(20, 50.0)])
+    op, condition = rbf_operator(line, np.array([[10.0, 60.0], [150.0, 40.0]]))
+    assert np.all(np.isfinite(op)) and condition > 1e8
+    dup = np.vstack([REF, REF[:20], REF[:5] + 1e-9])
+    interp = FieldInterpolator(dup)
+    out = interp.interpolate(dup + np.array([0.5, -0.25]), np.ones(len(dup), dtype=bool))
+    assert out.valid
+    assert np.abs(out.field[:, :, 0] - 0.5).max() < 1e-3
+    assert np.abs(out.field[:, :, 1] + 0.25).max() < 1e-3
+    collinear = FieldInterpolator(line).interpolate(line + 1.0, np.ones(20, dtype=bool))
+    assert np.all(np.isfinite(collinear.field))
+
+
+@pytest.mark.parametrize("width_px", [1e-3, 1e6])
+def test_gaussian_width_extremes_stay_finite(width_px: float) -> None:
+    cur = REF + _smooth(REF)
+    out = FieldInterpolator(REF, FieldParams(kernel="gaussian", width_px=width_px)).interpolate(cur, VALID)
+    assert out.valid and np.all(np.isfinite(out.field))
+    assert np.abs(out.field[:, :, :2]).max() < 10.0
+
+
+def test_no_motion_gives_zero_field() -> None:
+    out = FieldInterpolator(REF).interpolate(REF, VALID)
+    assert np.abs(out.field).max() < 1e-9
+
+
+def test_bad_input_raises() -> None:
+    with pytest.raises(ValueError, match="kernel"):
+        FieldParams(kernel="sinc")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="non-finite"):
+        FieldInterpolator(np.array([[np.nan, 0.0], [1.0, 1.0]]))
+    with pytest.raises(ValueError, match="current_px"):
+        FieldInterpolator(REF).interpolate(REF[:5], VALID)

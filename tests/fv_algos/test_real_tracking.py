@@ -1,0 +1,116 @@
+"""The perception core on real recordings (skipped when ../shared/data/real is absent)."""
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from fv_algos.detection import DetectorParams
+from fv_algos.perception import Perception, PerceptionParams
+from fv_algos.tracking import neighbour_consistency
+
+
+def _frames(path: Path, step: int = 1) -> list[tuple[int, np.ndarray]]:
+    """(index, BGR frame) for every `step`-th frame of a video."""
+    capture = cv2.VideoCapture(str(path))
+    out: list[tuple[int, np.ndarray]] = []
+    index = 0
+    while True:
+        ok, frame = capture.read()
+        if not ok:
+            break
+        if index % step == 0:
+            out.append((index, frame))
+        index += 1
+    capture.release()
+    return out
+
+
+@pytest.mark.slow
+def test_gsmini_example_all_markers_tracked_without_swaps(real_data: Path) -> None:
+    frames = _frames(real_data / "gsmini_mini_example.avi")
+    perception = Perception()
+    reference = perception.reset(frames[0][1])
+    assert len(reference.valid) >= 60
+    inconsistent = 0
+    shares = []
+    for _, frame in frames[1:]:
+        state, field = perception.step(frame)
+        assert field.valid and np.all(np.isfinite(field.field))
+        inconsistent += int(neighbour_consistency(state.reference_px, state.current_px, state.valid).sum())
+        shares.append(state.valid.mean())
+    assert inconsistent == 0
+    assert np.mean(shares) > 0.98
+    assert min(shares) > 0.95
+
+
+@pytest.mark.slow
+def test_gsmini_overlay_matches_gelsight_tracker(real_data: Path) -> None:
+    table = np.loadtxt(real_data / "gsmini_tracked_marker_locations_5.csv", delimiter=",", skiprows=1)
+    frames = _frames(real_data / "gsmini_tracked_video_5_overlay.avi", step=2)
+    perception = Perception()
+    reference = perception.reset(frames[0][1])
+    first = table[table[:, 0] == 1]
+    distance = np.linalg.norm(reference.reference_px[:, None, :] - first[None, :, 3:5], axis=2)
+    mapped = distance.min(axis=1) < 2.0
+    keys = (first[distance.argmin(axis=1), 1] * 100 + first[distance.argmin(axis=1), 2]).astype(int)
+    assert mapped.sum() >= 60
+    position_error, displacement_error, inconsistent = [], [], 0
+    for index, frame in frames[1:]:
+        state, _ = perception.step(frame)
+        rows = table[table[:, 0] == index + 1]
+        lookup = {int(r[1] * 100 + r[2]): r for r in rows}
+        both = mapped & state.valid
+        theirs = np.array([lookup[k] for k in keys[both]])
+        position_error.append(np.linalg.norm(state.current_px[both] - theirs[:, 5:7], axis=1))
+        displacement_error.append(
+            np.linalg.norm(state.displacement_px[both] - (theirs[:, 5:7] - theirs[:, 3:5]), axis=1)
+        )
+        inconsistent += int(neighbour_consistency(state.reference_px, state.current_px, state.valid).sum())
+    assert np.median(np.concatenate(displacement_error)) < 0.5
+    assert np.median(np.concatenate(position_error)) < 1.0
+    assert inconsistent == 0
+
+
+def test_light_marker_frame_through_perception(real_data: Path) -> None:
+    image = cv2.imread(str(real_data / "gelsight_light_markers_1280x720.png"))
+    perception = Perception()
+    state, field = perception.step(image)
+    assert perception.marker is not None and perception.marker.polarity == "light"
+    assert state.valid.sum() == 64
+    assert np.abs(field.field).max() < 1e-6
+
+
+@pytest.mark.slow
+def test_fingervision_validity_drops_instead_of_wrong_matches(real_data: Path) -> None:
+    frames = _frames(real_data / "fingervision_cam1_0002.m4v", step=8)
+    stack = np.stack([f for _, f in frames[:: max(1, len(frames) // 25)]])
+    reference_image = np.median(stack, axis=0).astype(np.uint8)
+    params = replace(PerceptionParams(), detection=DetectorParams(min_area_ratio=0.1, min_downsampled_px=8.0))
+    perception = Perception(params)
+    reference = perception.reset(reference_image)
+    assert len(reference.valid) >= 30
+    shares, inconsistent = [], 0
+    for _, frame in frames:
+        state, field = perception.step(frame)
+        assert np.all(np.isfinite(field.field))
+        shares.append(state.valid.mean())
+        inconsistent += int(neighbour_consistency(state.reference_px, state.current_px, state.valid).sum())
+    assert np.median(shares) > 0.7
+    assert min(shares) < 0.6
+    assert inconsistent <= 0.002 * len(reference.valid) * len(frames)
+
+
+def test_isd_grasp_video_tracks(isd_data: Path) -> None:
+    frames = _frames(isd_data / "train" / "avocado_real" / "exp_num_1" / "camera_0.avi", step=5)[1:40]
+    perception = Perception()
+    reference = perception.reset(frames[0][1])
+    assert len(reference.valid) >= 40
+    for _, frame in frames[1:]:
+        state, field = perception.step(frame)
+        assert field.valid
+        assert not neighbour_consistency(state.reference_px, state.current_px, state.valid).any()
+        assert state.valid.mean() > 0.9

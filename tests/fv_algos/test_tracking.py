@@ -1,0 +1,180 @@
+"""Tracking on arrays of detections with known identities (no images: fast and exact)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fv_algos.detection import Detections
+from fv_algos.tracking import Tracker, TrackerParams, neighbour_consistency
+from tests.fv_algos.test_detection import grid_centres
+
+PITCH = 25.0
+REF = grid_centres(16, 16, PITCH)
+AREA = np.pi / 4.0 * 9.0**2
+
+
+def _det(points: np.ndarray, seed: int | None = 0) -> Detections:
+    """Detections in shuffled order (identities must come from the tracker, not the order)."""
+    order = np.random.default_rng(seed).permutation(len(points)) if seed is not None else np.arange(len(points))
+    return Detections(points[order].copy(), np.full(len(points), AREA))
+
+
+def _bump(points: np.ndarray, amplitude_px: float, sigma_px: float = 3 * PITCH, direction: tuple[float, float] = (0.6, 0.8)) -> np.ndarray:
+    """Points moved by a Gaussian bump of shear peaking at the grid centre."""
+    centre = points.mean(axis=0)
+    weight = np.exp(-((points - centre) ** 2).sum(axis=1) / (2.0 * sigma_px**2))
+    return points + amplitude_px * weight[:, None] * np.asarray(direction)
+
+
+def test_clean_small_motion_is_exact() -> None:
+    tracker = Tracker(_det(REF, None))
+    rng = np.random.default_rng(3)
+    for k in range(5):
+        truth = _bump(REF, 2.0 * k) + rng.normal(0.0, 0.05, REF.shape)
+        state = tracker.step(_det(truth, k))
+        assert state.valid.all()
+        assert np.sqrt(np.mean((state.current_px - truth) ** 2)) < 1e-12
+
+
+def test_static_input_is_a_fixed_point_so_no_drift() -> None:
+    """A static frame leaves the state unchanged (bit for bit), so 100,000 frames cannot drift;
+    2,000 real steps with 0.05 px jitter stay centred on the truth."""
+    tracker = Tracker(_det(REF, None))
+    static = _det(REF, None)
+    first = tracker.step(static)
+    second = tracker.step(static)
+    for a, b in zip((first.current_px, first.valid, first.frames_since_seen), (second.current_px, second.valid, second.frames_since_seen)):
+        assert np.array_equal(a, b)
+    assert np.array_equal(second.current_px, REF)
+    rng = np.random.default_rng(11)
+    error = np.zeros_like(REF)
+    for k in range(2000):
+        state = tracker.step(_det(REF + rng.normal(0.0, 0.05, REF.shape), None))
+        error += state.current_px - REF
+    assert state.valid.all()
+    assert np.abs(error / 2000).max() < 0.01
+
+
+@pytest.mark.parametrize("pitches", [0.8, 1.0, 1.5])
+def test_large_shear_with_velocity_has_no_swap(pitches: float) -> None:
+    """Shear ramping up to `pitches` pitches per frame (velocity known after the first frame)."""
+    tracker = Tracker(_det(REF, None))
+    position = REF.copy()
+    steps = np.linspace(0.3, pitches, 6) * PITCH
+    for k, step in enumerate(steps):
+        position = _bump(position, step)
+        state = tracker.step(_det(position, k))
+        assert state.valid.sum() >= 250
+        assert np.abs(state.current_px[state.valid] - position[state.valid]).max() < 1e-9
+
+
+def test_one_frame_shear_of_one_pitch_from_rest() -> None:
+    tracker = Tracker(_det(REF, None))
+    truth = _bump(REF, 1.0 * PITCH)
+    state = tracker.step(_det(truth))
+    assert state.valid.all()
+    assert np.abs(state.current_px - truth).max() < 1e-9
+
+
+def test_paper_nearest_can_share_a_detection_assignment_cannot() -> None:
+    midpoint = 0.5 * (REF[0] + REF[1])
+    points = np.vstack([midpoint, REF[2:]])
+    paper = Tracker(_det(REF, None), TrackerParams(method="nearest", gate_ratio=0.6)).step(_det(points))
+    assert paper.valid[0] and paper.valid[1]
+    assert np.array_equal(paper.current_px[0], paper.current_px[1])
+    robust = Tracker(_det(REF, None), TrackerParams(gate_ratio=0.6)).step(_det(points))
+    assert not (robust.valid[0] and robust.valid[1])
+    assert robust.valid[2:].all()
+    taken = robust.current_px[robust.valid]
+    assert len(np.unique(taken, axis=0)) == len(taken)
+
+
+def test_duplicates_and_coincident_detections_do_not_double_assign() -> None:
+    doubled = np.vstack([REF, REF + 0.01, REF[:10]])
+    tracker = Tracker(_det(REF, None))
+    state = tracker.step(_det(doubled))
+    assert state.valid.all()
+    assert np.abs(state.current_px - REF).max() <= 0.01 + 1e-12
+    assert len(np.unique(np.round(state.current_px, 6), axis=0)) == len(REF)
+
+
+def test_all_lost_then_reacquired() -> None:
+    tracker = Tracker(_det(REF, None))
+    shifted = REF + np.array([3.0, -2.0])
+    tracker.step(_det(shifted))
+    empty = tracker.step(Detections(np.zeros((0, 2)), np.zeros(0)))
+    assert not empty.valid.any()
+    assert np.array_equal(empty.current_px, shifted)
+    assert (empty.frames_since_seen == 1).all()
+    back = tracker.step(_det(shifted + 1.0))
+    assert back.valid.all()
+    assert np.allclose(back.current_px, shifted + 1.0)
+
+
+def test_ninety_percent_lost_keeps_the_rest_exact() -> None:
+    rng = np.random.default_rng(5)
+    seen = rng.random(len(REF)) < 0.1
+    tracker = Tracker(_det(REF, None))
+    truth = _bump(REF, 6.0)
+    state = tracker.step(_det(truth[seen]))
+    assert np.array_equal(state.valid, seen) or (state.valid <= seen).all()
+    assert state.valid.sum() >= 0.9 * seen.sum()
+    assert np.abs(state.current_px[state.valid] - truth[state.valid]).max() < 1e-9
+    assert np.array_equal(state.current_px[~seen], REF[~seen])
+    full = tracker.step(_det(truth))
+    assert full.valid.all()
+    assert np.abs(full.current_px - truth).max() < 1e-9
+
+
+def test_nan_and_inf_detections_are_ignored() -> None:
+    points = REF.copy()
+    points[:5] = np.nan
+    points[5:8, 0] = np.inf
+    state = Tracker(_det(REF, None)).step(_det(points))
+    assert np.all(np.isfinite(state.current_px))
+    assert not state.valid[:8].any()
+    assert state.valid[8:].all()
+
+
+def test_wrong_candidate_near_a_hidden_marker_is_rejected() -> None:
+    """A marker covered this frame, with a clutter blob of marker size 0.3 pitch away."""
+    points = REF.copy()
+    points[100] = REF[100] + np.array([0.3 * PITCH, 0.2 * PITCH])
+    state = Tracker(_det(REF, None)).step(_det(points))
+    assert not state.valid[100]
+    assert np.array_equal(state.current_px[100], REF[100])
+    assert state.valid.sum() == len(REF) - 1
+
+
+def test_oversized_blob_is_rejected_by_area() -> None:
+    dets = Detections(REF.copy(), np.full(len(REF), AREA))
+    dets.areas_px2[7] = 5.0 * AREA
+    state = Tracker(_det(REF, None)).step(dets)
+    assert not state.valid[7]
+    assert state.valid.sum() == len(REF) - 1
+
+
+def test_reference_reset_and_bad_input() -> None:
+    tracker = Tracker(_det(REF, None))
+    tracker.step(_det(REF + 2.0))
+    tracker.reset(_det(REF + 2.0, None))
+    assert np.array_equal(tracker.state.reference_px, REF + 2.0)
+    with pytest.raises(ValueError, match="non-finite"):
+        Tracker(Detections(np.array([[np.nan, 1.0]]), np.ones(1)))
+    with pytest.raises(ValueError, match="no markers"):
+        Tracker(Detections(np.zeros((0, 2)), np.zeros(0)))
+    with pytest.raises(ValueError, match="method"):
+        TrackerParams(method="kalman")  # type: ignore[arg-type]
+
+
+def test_neighbour_consistency_flags_a_swap_not_a_smooth_field() -> None:
+    smooth = _bump(REF, 12.0)
+    valid = np.ones(len(REF), dtype=bool)
+    assert not neighbour_consistency(REF, smooth, valid).any()
+    swapped = smooth.copy()
+    swapped[[40, 41]] = swapped[[41, 40]]
+    flags = neighbour_consistency(REF, swapped, valid)
+    assert flags[40] and flags[41]
+    assert flags.sum() == 2
+    with pytest.raises(ValueError, match="shapes"):
+        neighbour_consistency(REF, smooth[:5], valid)

@@ -1,0 +1,178 @@
+"""The wire codec: round trips of every type, zero-copy decoding and the errors for bad input."""
+from __future__ import annotations
+
+import dataclasses
+
+import msgpack
+import numpy as np
+import pytest
+
+import msgs
+from msgs import (CameraInfo, ContactSummary, DisplacementField, Image, MarkerArray, MessageError, NodeStatus,
+                  SlipState)
+
+
+def _examples() -> list[msgs.Message]:
+    rng = np.random.default_rng(0)
+    return [
+        Image(encoding="bgr8", data=rng.integers(0, 256, (4, 5, 3), dtype=np.uint8), stamp_ns=5, frame_id="cam"),
+        CameraInfo(width=640, height=480, K=np.array([[300.0, 0, 320], [0, 300, 240], [0, 0, 1]]),
+                   D=np.array([0.1, -0.01, 0.001, 0.0]), rms_px=0.3),
+        MarkerArray(ref_px=rng.random((6, 2), dtype=np.float32), cur_px=rng.random((6, 2), dtype=np.float32),
+                    valid=np.array([True, False] * 3), frames_since_seen=np.arange(6, dtype=np.int32),
+                    width=640, height=480),
+        DisplacementField(field=rng.random((30, 30, 3), dtype=np.float32), grid_x_px=np.linspace(0, 639, 30),
+                          grid_y_px=np.linspace(0, 479, 30), valid=False, n_markers_used=40, n_markers=42,
+                          method="rbf"),
+        ContactSummary(in_contact=True, area_px2=12.5, area_share=0.1, centre_x_px=3.0, divergence=-0.2),
+        SlipState(probability=0.75, slip=True, window_stamps_ns=np.arange(10, dtype=np.int64) * 33_000_000,
+                  model="convlstm"),
+        NodeStatus(state="warn", message="camera lost", pid=42, publishes=[["/slip", "SlipState"]],
+                   counters={"reopen": 2}),
+    ]
+
+
+def _equal(a: msgs.Message, b: msgs.Message) -> bool:
+    for f in dataclasses.fields(a):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(x, np.ndarray):
+            if x.dtype != y.dtype or not np.array_equal(x, y):
+                return False
+        elif x != y:
+            return False
+    return True
+
+
+def _frames(msg: msgs.Message) -> list[bytes]:
+    return [bytes(f) for f in msgs.encode(msg)]
+
+
+def _with_header(msg: msgs.Message, **changes: object) -> list[bytes]:
+    frames = _frames(msg)
+    header = msgpack.unpackb(frames[0])
+    header.update(changes)
+    return [msgpack.packb(header, use_bin_type=True), *frames[1:]]
+
+
+def test_every_registered_type_has_an_example() -> None:
+    assert sorted(m.TYPE for m in _examples()) == msgs.known_types()
+
+
+@pytest.mark.parametrize("msg", _examples(), ids=lambda m: m.TYPE)
+def test_round_trip_is_exact_and_zero_copy(msg: msgs.Message) -> None:
+    frames = _frames(msg)
+    out = msgs.decode(frames, "/t")
+    assert type(out) is type(msg) and _equal(out, msg)
+    for i, name in enumerate(msg.ARRAYS, start=1):
+        arr = getattr(out, name)
+        assert np.shares_memory(arr, np.frombuffer(frames[i], np.uint8)), f"{name} was copied"
+        assert not arr.flags.writeable
+
+
+def test_big_endian_arrays_decode_to_the_same_values() -> None:
+    stamps = (np.arange(10) * 1_000).astype(">i8")
+    out = msgs.decode(_frames(SlipState(window_stamps_ns=stamps)), "/slip")
+    assert out.window_stamps_ns.dtype == np.dtype(">i8")
+    assert np.array_equal(out.window_stamps_ns, np.arange(10) * 1_000)
+
+
+def test_non_contiguous_array_is_sent_in_c_order() -> None:
+    data = np.arange(24, dtype=np.uint8).reshape(4, 6)[:, ::2]
+    out = msgs.decode(_frames(Image(data=data)), "/image")
+    assert np.array_equal(out.data, data)
+
+
+def test_wrong_version_names_the_field() -> None:
+    with pytest.raises(MessageError) as err:
+        msgs.decode(_with_header(SlipState(), version=99), "/slip")
+    assert err.value.field == "version" and err.value.topic == "/slip" and err.value.type_name == "SlipState"
+    assert "99" in str(err.value)
+
+
+@pytest.mark.parametrize("cut", ["header", "array_frame", "array_bytes"])
+def test_truncated_message(cut: str) -> None:
+    frames = _frames(SlipState(window_stamps_ns=np.arange(10)))
+    if cut == "header":
+        frames = [frames[0][: len(frames[0]) // 2], frames[1]]
+    elif cut == "array_frame":
+        frames = frames[:1]
+    else:
+        frames[1] = frames[1][:-3]
+    with pytest.raises(MessageError) as err:
+        msgs.decode(frames, "/slip")
+    assert err.value.field in {"header", "arrays", "window_stamps_ns"}
+
+
+def test_unknown_field_is_named() -> None:
+    frames = _frames(ContactSummary())
+    header = msgpack.unpackb(frames[0])
+    header["fields"]["pressure"] = 1.0
+    with pytest.raises(MessageError, match="pressure") as err:
+        msgs.decode([msgpack.packb(header)], "/contact")
+    assert err.value.field == "pressure"
+
+
+def test_unknown_bytes_and_text_fields_together_do_not_crash() -> None:
+    header = msgpack.unpackb(_frames(ContactSummary())[0])
+    header["fields"].update({b"x": 1, "y": 2})
+    with pytest.raises(MessageError, match="unknown field"):
+        msgs.decode([msgpack.packb(header, use_bin_type=True)], "/contact")
+
+
+def test_nan_in_a_float_scalar_is_rejected() -> None:
+    header = msgpack.unpackb(_frames(SlipState())[0])
+    header["fields"]["probability"] = float("nan")
+    with pytest.raises(MessageError) as err:
+        msgs.decode([msgpack.packb(header), np.zeros(0, np.int64).tobytes()], "/slip")
+    assert err.value.field == "probability"
+
+
+@pytest.mark.parametrize("name, value", [("slip", 1), ("n_markers", True), ("probability", True)])
+def test_bool_and_int_are_not_interchangeable(name: str, value: object) -> None:
+    msg = DisplacementField() if name == "n_markers" else SlipState()
+    header = msgpack.unpackb(_frames(msg)[0])
+    header["fields"][name] = value
+    with pytest.raises(MessageError) as err:
+        msgs.decode([msgpack.packb(header), *_frames(msg)[1:]], "/t")
+    assert err.value.field == name
+
+
+def test_int_is_accepted_for_a_float_field() -> None:
+    header = msgpack.unpackb(_frames(SlipState())[0])
+    header["fields"]["probability"] = 1
+    out = msgs.decode([msgpack.packb(header), np.zeros(0, np.int64).tobytes()], "/slip")
+    assert out.probability == 1.0 and isinstance(out.probability, float)
+
+
+@pytest.mark.parametrize("dtype, shape", [("(2,", [1]), ("<U4", [1]), ("|O", [1]), ("<f4", [0, 2**63]),
+                                          ("<f4", [0, 2**40, 2**40]), ("<f4", [-1])])
+def test_absurd_array_specs_are_message_errors(dtype: str, shape: list) -> None:
+    frames = _frames(SlipState())
+    header = msgpack.unpackb(frames[0])
+    header["arrays"][0][1:] = [dtype, shape]
+    with pytest.raises(MessageError) as err:
+        msgs.decode([msgpack.packb(header), b""], "/slip")
+    assert err.value.field == "window_stamps_ns"
+
+
+def test_shape_relation_is_checked_after_decoding() -> None:
+    msg = MarkerArray(ref_px=np.zeros((3, 2)), cur_px=np.zeros((2, 2)), valid=np.zeros(3, bool),
+                      frames_since_seen=np.zeros(3, np.int32))
+    with pytest.raises(MessageError) as err:
+        msgs.decode(_frames(msg), "/markers")
+    assert err.value.field == "cur_px"
+
+
+def test_garbage_header_and_unknown_type() -> None:
+    with pytest.raises(MessageError, match="msgpack"):
+        msgs.decode([b"\xc1\xff\x00garbage"], "/t")
+    with pytest.raises(MessageError, match="unknown type"):
+        msgs.decode(_with_header(SlipState(), type="Slippage"), "/t")
+    with pytest.raises(MessageError, match="no frames"):
+        msgs.decode([], "/t")
+
+
+@pytest.mark.parametrize("cls", [type(m) for m in _examples() if m.ARRAYS], ids=lambda c: c.TYPE)
+def test_empty_arrays_round_trip(cls: type) -> None:
+    msg = cls(width=1, height=1) if cls is CameraInfo else cls()
+    assert _equal(msgs.decode(_frames(msg), "/t"), msg)

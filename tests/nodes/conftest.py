@@ -1,0 +1,147 @@
+"""Bus fixtures: an isolated bus per test (its own FV_BUS under a short /tmp folder and a
+forwarder in a thread), helpers that start `fv` subprocesses in their own process
+groups and always kill them, and a reader for the nodes' `NodeStatus`."""
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Callable, Iterator
+
+import pytest
+
+from msgs import NodeStatus
+from nodes.bus import TopicReader
+from nodes.endpoints import BUS_ENV, BusAddress, bus_address
+from nodes.forwarder import Forwarder
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+class Bus:
+    """One test's bus: its address, its folder, and the forwarder serving it."""
+
+    def __init__(self, folder: Path, address: BusAddress) -> None:
+        self.folder = folder
+        self.address = address
+        self.forwarder: Forwarder | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start_forwarder(self, **kwargs: object) -> Forwarder:
+        """Serve this bus from a thread of the test process (kwargs: Forwarder's tcp_url, keys)."""
+        self.forwarder = Forwarder(self.address, **kwargs)
+        self._thread = threading.Thread(target=self.forwarder.run, args=(self._stop,), daemon=True)
+        self._thread.start()
+        return self.forwarder
+
+    def stop_forwarder(self) -> None:
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join(2.0)
+            self.forwarder.close()
+            self._thread = None
+
+
+@pytest.fixture
+def bus_env(monkeypatch: pytest.MonkeyPatch) -> Iterator[Bus]:
+    """An isolated bus address (FV_BUS set for this test and its subprocesses), no forwarder."""
+    folder = Path(tempfile.mkdtemp(prefix="fvt", dir="/tmp"))  # IPC paths must stay short (< 107 bytes)
+    address = bus_address(f"ipc://{folder}/bus")
+    monkeypatch.setenv(BUS_ENV, address.url)
+    bus = Bus(folder, address)
+    yield bus
+    bus.stop_forwarder()
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.fixture
+def bus(bus_env: Bus) -> Bus:
+    """An isolated bus with a forwarder running in a thread."""
+    bus_env.start_forwarder()
+    return bus_env
+
+
+def kill_group(proc: subprocess.Popen, grace_s: float = 1.0) -> None:
+    """SIGTERM the process group `proc` leads, SIGKILL it after `grace_s`; reap `proc`."""
+    for sig, wait_s in ((signal.SIGTERM, grace_s), (signal.SIGKILL, 5.0)):
+        try:
+            os.killpg(proc.pid, sig)
+        except ProcessLookupError:
+            pass
+        try:
+            proc.wait(wait_s)
+            return
+        except subprocess.TimeoutExpired:
+            continue
+
+
+@pytest.fixture
+def spawn(bus_env: Bus) -> Iterator[Callable[..., subprocess.Popen]]:
+    """spawn(*fv_args, stdout=PIPE...) -> Popen of `python -m nodes.cli *fv_args` on the
+    test's bus, in its own process group; every one is killed at teardown."""
+    procs: list[subprocess.Popen] = []
+
+    def start(*args: str, **kwargs: object) -> subprocess.Popen:
+        kwargs.setdefault("stdout", subprocess.DEVNULL)
+        kwargs.setdefault("stderr", subprocess.DEVNULL)
+        proc = subprocess.Popen([sys.executable, "-m", "nodes.cli", *args], cwd=REPO, start_new_session=True,
+                                env=dict(os.environ, PYTHONUNBUFFERED="1"), **kwargs)
+        procs.append(proc)
+        return proc
+
+    yield start
+    for proc in procs:
+        kill_group(proc)
+
+
+def run_fv(*args: str, timeout_s: float = 10.0) -> subprocess.CompletedProcess:
+    """Run `fv *args` to completion on the current FV_BUS; output as text."""
+    return subprocess.run([sys.executable, "-m", "nodes.cli", *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=timeout_s)
+
+
+def wait_status(node: str, predicate: Callable[[NodeStatus], bool] = lambda st: True,
+                timeout_s: float = 5.0) -> NodeStatus:
+    """The first NodeStatus of `node` that satisfies `predicate`; AssertionError with the
+    last one seen after `timeout_s`."""
+    last = None
+    deadline = time.monotonic() + timeout_s
+    with TopicReader(["/status"]) as reader:
+        while (remaining := deadline - time.monotonic()) > 0:
+            item = reader.recv(remaining)
+            if item is not None and item.msg.node == node:
+                last = item.msg
+                if predicate(last):
+                    return last
+    raise AssertionError(f"no matching NodeStatus from {node!r} within {timeout_s} s; last: {last}")
+
+
+def pid_alive(pid: int) -> bool:
+    """True when `pid` exists and is not a zombie (read from /proc)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rpartition(")")[2].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def children_of(pid: int) -> list[int]:
+    """Pids whose parent is `pid` (from /proc/*/stat)."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    fields = f.read().rpartition(")")[2].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid:
+                out.append(int(entry))
+    return out

@@ -1,0 +1,198 @@
+"""The bus: cross-process delivery, exact topic matching, latching, CURVE on TCP, and the
+robot-code client (including the README snippet, verbatim)."""
+from __future__ import annotations
+
+import socket
+import threading
+import time
+import pytest
+import zmq
+
+import msgs
+from msgs import CameraInfo, SlipState
+from nodes.bus import PublisherSocket, TopicReader, envelope, parse_envelope
+from nodes.endpoints import CURVE_ENV, bus_address, make_keys
+from tests.nodes.conftest import Bus
+
+
+def _publish_until(stop: threading.Event, sock: PublisherSocket, items: list[tuple[str, object]],
+                   period_s: float = 0.02) -> threading.Thread:
+    """Publish `items` ((topic, message)) round-robin from a thread until `stop`."""
+    def loop() -> None:
+        while not stop.is_set():
+            for topic, msg in items:
+                sock.publish(topic, msg)
+            time.sleep(period_s)
+    thread = threading.Thread(target=loop, daemon=True)
+    thread.start()
+    return thread
+
+
+def test_envelope_round_trip_and_rejects_garbage() -> None:
+    assert parse_envelope(envelope("/slip", "det", True)) == ("/slip", "det", True)
+    assert parse_envelope(envelope("/slip", "", False)) == ("/slip", "", False)
+    for bad in (b"", b"X/slip\0n", b"-/slip", b"L"):
+        with pytest.raises(ValueError):
+            parse_envelope(bad)
+
+
+def test_cross_process_publish_subscribe(bus: Bus, spawn) -> None:
+    with TopicReader(["/chatter"]) as reader:
+        spawn("node", "talker", "-p", "rate_hz=50")
+        got = [reader.recv(timeout_s=5.0) for _ in range(5)]
+    assert all(g is not None for g in got), "talker messages did not arrive"
+    assert {g.msg.node for g in got} == {"talker"} and {g.topic for g in got} == {"/chatter"}
+    seqs = [g.msg.seq for g in got]
+    assert seqs == sorted(seqs) and len(set(seqs)) == 5
+    assert all(isinstance(g.msg, SlipState) for g in got)
+
+
+def test_exact_topic_matching(bus: Bus) -> None:
+    pub = PublisherSocket("pub", bus.address)
+    assert pub.wait_connected(2.0)
+    stop = threading.Event()
+    with TopicReader(["/slip"]) as reader:
+        thread = _publish_until(stop, pub, [("/slip_debug", SlipState(probability=0.1)),
+                                            ("/slip", SlipState(probability=0.9)), ("/sli", SlipState())])
+        try:
+            got = [reader.recv(timeout_s=2.0) for _ in range(20)]
+        finally:
+            stop.set()
+            thread.join()
+            pub.close()
+    assert all(g is not None for g in got)
+    assert {g.topic for g in got} == {"/slip"} and {g.msg.probability for g in got} == {0.9}
+
+
+def test_latched_message_reaches_late_joiner_once(bus: Bus) -> None:
+    pub = PublisherSocket("camera", bus.address)
+    assert pub.wait_connected(2.0)
+    pub.publish("/camera_info", CameraInfo(width=640, height=480), latched=True)
+    pub.publish("/image_note", SlipState())  # volatile: a late joiner never sees it
+    time.sleep(0.2)
+    pub.close()
+    with TopicReader(["/camera_info", "/image_note"]) as first:
+        item = first.recv(timeout_s=2.0)
+        assert item is not None and item.latched and item.msg.width == 640
+        with TopicReader(["/camera_info"]) as second:  # its join replays the latched message to both
+            assert second.recv(timeout_s=2.0).msg.width == 640
+            assert first.recv(timeout_s=0.3) is None, "a replay seen before must be dropped"
+
+
+def _free_port_base() -> int:
+    """A port p with p, p+1, p+2 free on 127.0.0.1."""
+    for _ in range(50):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            base = s.getsockname()[1]
+        if base > 65000:
+            continue
+        try:
+            for p in (base + 1, base + 2):
+                with socket.socket() as s:
+                    s.bind(("127.0.0.1", p))
+            return base
+        except OSError:
+            continue
+    raise RuntimeError("no three consecutive free ports")
+
+
+def test_tcp_needs_curve_keys(bus_env: Bus, monkeypatch: pytest.MonkeyPatch) -> None:
+    keys = bus_env.folder / "keys"
+    make_keys(keys)
+    stranger = bus_env.folder / "stranger"  # right server key, client key not authorised
+    make_keys(stranger)
+    (stranger / "server.key").write_bytes((keys / "server.key").read_bytes())
+    tcp = f"tcp://127.0.0.1:{_free_port_base()}"
+    bus_env.start_forwarder(tcp_url=tcp, keys=keys)
+    tcp_address = bus_address(tcp)
+    pub = PublisherSocket("camera", bus_env.address)  # local publisher over IPC
+    assert pub.wait_connected(2.0)
+
+    plain = zmq.Context.instance().socket(zmq.SUB)  # no CURVE at all
+    plain.linger = 0
+    plain.setsockopt(zmq.SUBSCRIBE, b"")
+    plain.connect(tcp_address.sub)
+    monkeypatch.setenv(CURVE_ENV, str(stranger))
+    unauthorised = TopicReader(["/slip"], tcp_address)
+    monkeypatch.setenv(CURVE_ENV, str(keys))
+    authorised = TopicReader(["/slip"], tcp_address)
+    stop = threading.Event()
+    thread = _publish_until(stop, pub, [("/slip", SlipState(probability=0.5))])
+    try:
+        got = authorised.recv(timeout_s=5.0)
+        assert got is not None and got.msg.probability == 0.5, "the client with the keys received nothing"
+        assert unauthorised.recv(timeout_s=0.5) is None
+        assert not plain.poll(200), "a client without CURVE keys received data"
+    finally:
+        stop.set()
+        thread.join()
+        for sock in (authorised, unauthorised, plain, pub):
+            sock.close()
+
+
+def test_tcp_forwarder_refuses_to_start_without_keys(bus_env: Bus) -> None:
+    with pytest.raises(ValueError, match="CURVE"):
+        bus_env.start_forwarder(tcp_url=f"tcp://127.0.0.1:{_free_port_base()}")
+
+
+def test_client_readme_snippet(bus: Bus, spawn) -> None:
+    spawn("node", "talker", "-p", "topic=/slip", "-p", "rate_hz=50")
+
+    class Gripper:
+        squeezes = 0
+
+        def squeeze(self) -> None:
+            self.squeezes += 1
+
+    gripper = Gripper()
+    seen = 0
+    # --- README snippet, verbatim ---
+    from nodes.client import subscribe
+
+    with subscribe("/slip", timeout_s=5.0) as states:
+        for state in states:          # SlipState messages, in order
+            if state.slip:
+                gripper.squeeze()
+            # --- end of snippet ---
+            seen += 1
+            if seen == 80:
+                break
+    assert gripper.squeezes > 0, "talker's slip flag follows a sine; 80 messages at 50 Hz hold a True"
+
+
+def test_client_timeout_callback_and_type_check(bus: Bus) -> None:
+    from nodes.client import listen, subscribe, wait_for_message
+
+    with subscribe("/slip", timeout_s=0.2) as states, pytest.raises(TimeoutError, match="/slip"):
+        next(iter(states))
+    pub = PublisherSocket("det", bus.address)
+    assert pub.wait_connected(2.0)
+    got: list[SlipState] = []
+    with listen("/slip", got.append, SlipState):
+        stop = threading.Event()
+        thread = _publish_until(stop, pub, [("/slip", SlipState(slip=True))])
+        deadline = time.monotonic() + 3.0
+        while len(got) < 3 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert wait_for_message("/slip", SlipState, timeout_s=2.0).slip
+        with subscribe("/slip", CameraInfo) as wrong, pytest.raises(TypeError, match="expected CameraInfo"):
+            wrong.recv(2.0)
+        stop.set()
+        thread.join()
+    pub.close()
+    assert len(got) >= 3 and all(s.slip for s in got)
+
+
+def test_malformed_frames_are_counted_by_a_reader(bus: Bus) -> None:
+    raw = zmq.Context.instance().socket(zmq.PUB)
+    raw.linger = 0
+    raw.connect(bus.address.pub)
+    with TopicReader(["/x"]) as reader:
+        time.sleep(0.2)
+        for frames in ([envelope("/x", "n", False), b"\xc1garbage"], [envelope("/x", "n", False)]):
+            raw.send_multipart(frames)
+        raw.send_multipart([envelope("/x", "n", False), *msgs.encode(SlipState(seq=7))])
+        item = reader.recv(timeout_s=2.0)
+        assert item is not None and item.msg.seq == 7 and reader.malformed == 2
+    raw.close()

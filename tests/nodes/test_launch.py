@@ -1,0 +1,148 @@
+"""Launch files: validation before anything starts (file, line and key in every error),
+args and includes, respawn, required nodes, and a clean stop on Ctrl-C."""
+from __future__ import annotations
+
+import io
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from nodes.forwarder import ping
+from nodes.launch_file import LaunchError, load_launch
+from nodes.launcher import Launch
+from tests.nodes.conftest import REPO, Bus, children_of, pid_alive, run_fv, wait_status
+
+GOOD_NODE = "  - kind: talker\n    name: t\n"
+
+
+def _write(folder: Path, name: str, text: str) -> Path:
+    path = folder / name
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.parametrize("text, line, key", [
+    ("nodes:\n  - kind: talkr\n", 2, "nodes[0].kind"),
+    ("nodes:\n  - kind: talker\n    params:\n      rate_hz: 5\n      speed: 3\n", 5, "params.speed"),
+    ("nodes:\n  - kind: talker\n    params:\n      rate_hz: fast\n", 4, "params.rate_hz"),
+    ("nodes:\n  - kind: talker\n    params: {rate_hz: 0}\n", 3, "params"),
+    ("nodes:\n  - kind: talker\n    params: {rate_hz: [1\n", 4, "bad YAML"),
+    ("nodes:\n  - kind: talker\n\tname: x\n", 3, "bad YAML"),
+    ("nodes:\n" + GOOD_NODE + "  - kind: listener\n    params:\n      topic: $(arg topic)\n", 6, "params.topic"),
+    ("args:\n  robot: {description: which}\nnodes:\n" + GOOD_NODE, 2, "args.robot"),
+    ("nodes:\n  - kind: talker\n    respawn: yes please\n", 3, "respawn"),
+    ("nodes:\n  - kind: talker\n    respawn_delay: -1\n", 3, "respawn_delay"),
+    ("nodes:\n  - kind: talker\n    colour: red\n", 3, "nodes[0].colour"),
+    ("nodes:\n" + GOOD_NODE + GOOD_NODE, 4, "name"),
+    ("nodes:\n  - kind: talker\n    kind: listener\n", 3, "duplicate key"),
+    ("nodez: []\n", 1, "nodez"),
+    ("include:\n  - file: missing.yaml\n", 2, "include[0].file"),
+])
+def test_bad_launch_file_names_file_line_and_key(tmp_path: Path, text: str, line: int, key: str) -> None:
+    path = _write(tmp_path, "bad.yaml", text)
+    with pytest.raises(LaunchError) as err:
+        load_launch(path)
+    message = str(err.value)
+    assert f"{path}:{line}:" in message and key in message, message
+
+
+def test_error_in_included_file_names_that_file(tmp_path: Path) -> None:
+    inner = _write(tmp_path, "inner.yaml", "args: {rate: 1.0}\nnodes:\n  - kind: talker\n    params:\n"
+                                           "      rate_hz: $(arg rate)\n")
+    outer = _write(tmp_path, "outer.yaml", "include:\n  - file: inner.yaml\n    args: {rate: slow}\n")
+    with pytest.raises(LaunchError) as err:
+        load_launch(outer)
+    assert f"{inner}:5:" in str(err.value) and "rate_hz" in str(err.value)
+
+
+def test_args_includes_and_overrides(tmp_path: Path) -> None:
+    _write(tmp_path, "inner.yaml", "args: {rate: 1.0, ns: ''}\nnodes:\n  - kind: talker\n    name: inner_talker\n"
+                                   "    namespace: $(arg ns)\n    params: {rate_hz: $(arg rate)}\n"
+                                   "    remap: {/chatter: $(arg ns)/chat}\n")
+    outer = _write(tmp_path, "outer.yaml",
+                   "args:\n  rate: 4\n  side: left\ninclude:\n  - file: inner.yaml\n"
+                   "    args: {rate: $(arg rate), ns: /$(arg side)}\n"
+                   "nodes:\n  - kind: listener\n    env: {OMP_NUM_THREADS: 1}\n    respawn: true\n"
+                   "    max_retries: 2\n    required: true\n")
+    specs = {s.name: s for s in load_launch(outer, {"rate": 7.5})}
+    talker, listener = specs["inner_talker"], specs["listener"]
+    assert talker.params == {"rate_hz": 7.5} and talker.namespace == "/left"
+    assert talker.remap == {"/chatter": "/left/chat"}
+    assert listener.env == {"OMP_NUM_THREADS": "1"} and listener.respawn and listener.max_retries == 2
+    assert listener.required and listener.respawn_delay_s == 1.0
+    assert talker.argv()[:4] == ["node", "talker", "--name", "inner_talker"]
+    with pytest.raises(LaunchError, match="'speed' given but not declared"):
+        load_launch(outer, {"speed": 1})
+
+
+def test_demo_launch_file_is_valid() -> None:
+    names = [s.name for s in load_launch(REPO / "launch" / "demo.yaml", {"rate_hz": 2})]
+    assert names == ["talker", "listener"]
+
+
+def test_bad_file_from_the_command_line_starts_nothing(bus_env: Bus, tmp_path: Path) -> None:
+    path = _write(tmp_path, "bad.yaml", "nodes:\n  - kind: talker\n    params: {rate_hz: fast}\n")
+    result = run_fv("launch", str(path))
+    assert result.returncode == 2 and f"{path}:3:" in result.stderr and "rate_hz" in result.stderr
+    assert ping(bus_env.address) is None and not list(bus_env.folder.iterdir()), "something was started"
+    assert run_fv("launch", str(REPO / "launch" / "demo.yaml"), "rate_hz:=").returncode == 2
+
+
+def _launch(folder: Path, text: str) -> tuple[Launch, io.StringIO]:
+    out = io.StringIO()
+    launch = Launch.from_file(_write(folder, "l.yaml", text), output=out)
+    return launch, out
+
+
+def test_killed_respawn_node_is_back_within_delay_plus_1s(bus_env: Bus, tmp_path: Path) -> None:
+    delay_s = 0.3
+    launch, out = _launch(tmp_path, f"nodes:\n  - kind: talker\n    params: {{rate_hz: 20}}\n"
+                                    f"    respawn: true\n    respawn_delay: {delay_s}\n")
+    launch.start()
+    try:
+        first = wait_status("talker", timeout_s=8.0).pid
+        assert first == launch.pid("talker")
+        signal_time = time.monotonic()
+        subprocess.run(["kill", "-9", str(first)], check=True)
+        while (pid := launch.pid("talker")) in (None, first) and time.monotonic() - signal_time < delay_s + 1.0:
+            time.sleep(0.01)
+        back_s = time.monotonic() - signal_time
+        assert pid not in (None, first) and back_s <= delay_s + 1.0, f"not back after {back_s:.2f} s"
+        assert wait_status("talker", lambda st: st.pid == pid, timeout_s=5.0)
+    finally:
+        launch.stop()
+    assert "respawn 1 in 0.3 s" in out.getvalue()
+    assert not pid_alive(first) and not pid_alive(pid)
+
+
+def test_required_node_death_stops_the_launch(bus_env: Bus, tmp_path: Path) -> None:
+    launch, out = _launch(tmp_path, "nodes:\n  - kind: talker\n    required: true\n  - kind: listener\n")
+    launch.start()
+    try:
+        wait_status("listener", timeout_s=8.0)
+        pids = [launch.pid("talker"), launch.pid("listener"), launch._forwarder.pid]
+        subprocess.run(["kill", "-9", str(pids[0])], check=True)
+        assert launch.wait(3.0), "the launch went on without its required node"
+    finally:
+        code = launch.stop()
+    assert code == 1 and "talker is required" in out.getvalue()
+    assert not any(pid_alive(p) for p in pids)
+
+
+def test_ctrl_c_stops_everything_within_2s(bus_env: Bus, spawn) -> None:
+    proc = spawn("launch", str(REPO / "launch" / "demo.yaml"), "rate_hz:=20", stdout=subprocess.PIPE, text=True)
+    wait_status("listener", lambda st: st.counters.get("received", 0) > 0, timeout_s=8.0)
+    family = children_of(proc.pid)
+    assert len(family) == 3, f"expected forwarder + 2 nodes, found {family}"
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    proc.wait(5.0)
+    stop_s = time.monotonic() - t0
+    leftover = [p for p in family if pid_alive(p)]
+    assert not leftover and stop_s < 2.0, f"stopped in {stop_s:.2f} s, left {leftover}"
+    output = proc.stdout.read()
+    assert "[listener] INFO: SlipState seq=" in output and "[listener] [listener]" not in output
+    assert ping(bus_env.address) is None

@@ -1,0 +1,123 @@
+"""The node runtime across processes: slow subscribers do not slow publishers, malformed
+messages are counted and never crash a node, params come from defaults, launch files
+and --param."""
+from __future__ import annotations
+
+import random
+import time
+
+import msgpack
+import numpy as np
+import zmq
+
+import msgs
+from msgs import DisplacementField, Image, MarkerArray, SlipState
+from nodes.bus import TopicReader, envelope
+from tests.nodes.conftest import Bus, run_fv, wait_status
+
+N_MALFORMED = 10_000
+
+
+def _rate_hz(reader: TopicReader, duration_s: float) -> float:
+    """Publish rate from the pub_ns stamps of the messages read for `duration_s`."""
+    stamps = []
+    end = time.monotonic() + duration_s
+    while time.monotonic() < end:
+        item = reader.recv(timeout_s=max(0.0, end - time.monotonic()))
+        if item is not None:
+            stamps.append(item.msg.pub_ns)
+    assert len(stamps) > 2, "the talker published nothing"
+    return (len(stamps) - 1) / ((stamps[-1] - stamps[0]) / 1e9)
+
+
+def test_slow_subscriber_does_not_slow_the_publisher(bus: Bus, spawn) -> None:
+    spawn("node", "listener", "--name", "slow", "-p", "sleep_s=1.0", "-p", "depth=5")
+    wait_status("slow")
+    with TopicReader(["/chatter"]) as reader:
+        spawn("node", "talker", "-p", "rate_hz=20")
+        assert reader.recv(timeout_s=5.0) is not None
+        rate = _rate_hz(reader, 2.5)
+    assert rate >= 0.9 * 20, f"talker fell to {rate:.1f} Hz with a slow subscriber"
+    st = wait_status("slow", lambda s: s.counters.get("received", 0) >= 1 and s.drops > 0, timeout_s=4.0)
+    assert st.counters["received"] <= 4, "the slow listener sleeps 1 s per message"
+
+
+def _malformed_messages(rng: random.Random, count: int) -> list[list[bytes]]:
+    """`count` messages for /fuzz that each must be rejected: random bytes, truncated
+    headers, missing / short / extra array frames, unknown fields, bad versions."""
+    rs = np.random.default_rng(rng.randrange(2**32))
+    samples = [
+        SlipState(probability=0.3, window_stamps_ns=np.arange(10)),
+        Image(data=rs.integers(0, 256, (8, 8), dtype=np.uint8)),
+        MarkerArray(ref_px=np.ones((4, 2), np.float32), cur_px=np.ones((4, 2), np.float32),
+                    valid=np.ones(4, bool), frames_since_seen=np.zeros(4, np.int32)),
+        DisplacementField(field=np.ones((3, 3, 3), np.float32), grid_x_px=np.arange(3.0), grid_y_px=np.arange(3.0)),
+    ]
+    out = []
+    for seq in range(count):
+        msg = rng.choice(samples)
+        msg.seq, msg.node = seq, "fuzzer"
+        frames = [bytes(f) for f in msgs.encode(msg)]
+        case = seq % 6
+        if case == 0:  # random bytes, random number of frames
+            frames = [rs.bytes(rng.randrange(0, 120)) for _ in range(rng.randrange(1, 4))]
+        elif case == 1:  # header cut short
+            frames[0] = frames[0][:rng.randrange(len(frames[0]))]
+        elif case == 2:  # an array frame missing, or an extra one
+            frames = frames[:-1] if rng.random() < 0.5 else frames + [b"\0" * 8]
+        elif case == 3:  # an array frame cut short
+            i = rng.randrange(1, len(frames))
+            frames[i] = frames[i][:rng.randrange(len(frames[i]))]
+        else:  # a header field changed to nonsense
+            header = msgpack.unpackb(frames[0])
+            key, value = rng.choice([("version", 2), ("fields", {"bogus": 1}), ("arrays", [["x", "<f4", [1]]]),
+                                     ("type", "Nope"), ("seq", "7"), ("stamp_ns", 1.5)])
+            header[key] = value if key != "fields" else {**header["fields"], **value}
+            frames[0] = msgpack.packb(header, use_bin_type=True)
+        out.append([envelope("/fuzz", "fuzzer", False), *frames])
+    out.append([envelope("/fuzz", "fuzzer", False), b""])  # envelope and an empty header
+    out.append([envelope("/fuzz", "fuzzer", False)])       # envelope alone
+    return out[-count:]
+
+
+def test_malformed_messages_are_counted_and_never_crash(bus: Bus, spawn) -> None:
+    node = spawn("node", "listener", "--name", "victim", "-p", "topic=/fuzz", "-p", f"depth={N_MALFORMED * 2}")
+    wait_status("victim")
+    raw = zmq.Context.instance().socket(zmq.PUB)
+    raw.linger = 1000
+    raw.sndhwm = N_MALFORMED * 2
+    raw.connect(bus.address.pub)
+    time.sleep(0.3)  # the node's subscription reaches the forwarder and this publisher
+    batch = 50
+    for i, frames in enumerate(_malformed_messages(random.Random(7), N_MALFORMED)):
+        raw.send_multipart(frames)
+        if i % batch == batch - 1:
+            time.sleep(0.01)  # ~5,000 messages/s: below every high-water mark on a busy 2-core machine
+    raw.send_multipart([envelope("/fuzz", "fuzzer", False), *msgs.encode(SlipState(seq=N_MALFORMED + 5))])
+    st = wait_status("victim", lambda s: s.malformed >= N_MALFORMED and s.counters.get("received") == 1,
+                     timeout_s=10.0)
+    raw.close()
+    assert node.poll() is None, "the node died"
+    assert st.malformed == N_MALFORMED and st.drops == 0 and st.errors == 0
+
+
+def test_params_defaults_launch_file_and_param_flag(bus: Bus, spawn, tmp_path) -> None:
+    spawn("node", "listener", "--name", "plain")
+    spawn("node", "listener", "--name", "flagged", "--params-json", '{"topic": "/from_json", "depth": 3}',
+          "-p", "topic=/from_flag")
+    launch_file = tmp_path / "l.yaml"
+    launch_file.write_text("args: {t: /from_arg_default}\n"
+                           "nodes:\n  - {kind: listener, name: launched, params: {topic: $(arg t)}}\n"
+                           "  - {kind: listener, name: launched2, params: {topic: /from_file}}\n")
+    spawn("launch", str(launch_file), "t:=/from_cmdline")
+    expected = {"plain": "/chatter", "flagged": "/from_flag", "launched": "/from_cmdline", "launched2": "/from_file"}
+    for name, topic in expected.items():
+        st = wait_status(name, timeout_s=8.0)
+        assert [t for t, _ in st.subscribes] == [topic], name
+
+
+def test_bad_param_fails_at_start_naming_the_key(bus: Bus) -> None:
+    result = run_fv("node", "talker", "-p", "rate_hz=fast")
+    assert result.returncode == 2 and "rate_hz" in result.stderr and "float" in result.stderr
+    result = run_fv("node", "talker", "-p", "speed=1")
+    assert result.returncode == 2 and "unknown param 'speed'" in result.stderr
