@@ -12,6 +12,7 @@ import importlib
 
 BENCHMARKS: dict[str, tuple[str, str]] = {
     "bag": ("nodes.bag.bench", "add_parser"),
+    "perception": ("nodes.bench_perception", "add_parser"),
 }
 
 

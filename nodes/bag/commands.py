@@ -1,0 +1,142 @@
+"""`fv bag record | play | info | recover | export`: the bag tools (ros2 bag verbs)."""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+from pathlib import Path
+
+SIZE_UNITS = {"": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30}
+
+
+def parse_size(text: str) -> int:
+    """Bytes from "1048576", "512K", "100M" or "2G" (binary units)."""
+    match = re.fullmatch(r"\s*(\d+(?:\.\d+)?)\s*([KMG]?)i?B?\s*", text, re.IGNORECASE)
+    if not match:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a size such as 1048576, 512K, 100M, 2G")
+    return int(float(match.group(1)) * SIZE_UNITS[match.group(2).upper()])
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    bag = sub.add_parser("bag", help="record, play, inspect, recover and export MCAP bags")
+    verbs = bag.add_subparsers(dest="verb", required=True, metavar="VERB")
+
+    p = verbs.add_parser("record", help="record topics into a bag folder until Ctrl-C")
+    p.add_argument("topics", nargs="*", help="topics to record")
+    p.add_argument("-a", "--all", action="store_true", help="record every topic")
+    p.add_argument("-e", "--regex", default="", help="record topics whose name contains a match")
+    p.add_argument("-x", "--exclude-regex", default="", help="leave out topics whose name contains a match")
+    p.add_argument("-o", "--output", default="", help="bag folder (default fv_bag_<date>-<time>)")
+    p.add_argument("-b", "--max-bag-size", type=parse_size, default=0, metavar="SIZE",
+                   help="start a new file at this size (e.g. 500M; 0 = never)")
+    p.add_argument("-d", "--max-bag-duration", type=float, default=0.0, metavar="S",
+                   help="start a new file after this many seconds (0 = never)")
+    p.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd", help="chunk compression")
+    p.add_argument("--chunk-size", type=parse_size, default="1M", help="chunk size (default 1M)")
+    p.add_argument("--flush-period", type=float, default=0.5, metavar="S",
+                   help="close and sync the open chunk at least this often (the most a crash loses)")
+    p.add_argument("--attach", action="append", default=[], metavar="FILE", help="store a file (launch file...)")
+    p.add_argument("--no-fsync", action="store_true", help="do not force data to the disk at each flush")
+    p.add_argument("--name", default="bag_record", help="node name")
+    p.set_defaults(func=_record)
+
+    p = verbs.add_parser("play", help="publish a bag with its recorded timing")
+    p.add_argument("bag", help="bag folder or .mcap file")
+    p.add_argument("-r", "--rate", type=float, default=1.0, help="speed factor (default 1)")
+    p.add_argument("-l", "--loop", action="store_true", help="start over at the end")
+    p.add_argument("--start-offset", type=float, default=0.0, metavar="S", help="skip the first S seconds")
+    p.add_argument("--duration", type=float, default=0.0, metavar="S", help="play only S seconds (0 = all)")
+    p.add_argument("--topics", nargs="+", default=[], help="recorded topics to play (default all)")
+    p.add_argument("--remap", action="append", default=[], metavar="FROM:=TO", help="rename a topic")
+    p.add_argument("-p", "--start-paused", action="store_true", help="wait for space/enter or SIGUSR1")
+    p.add_argument("--fast", action="store_true", help="as fast as possible (batch processing)")
+    p.add_argument("--no-wait-for-subscribers", action="store_true",
+                   help="start at once instead of waiting for a subscriber on each topic")
+    p.add_argument("--wait-timeout", type=float, default=5.0, metavar="S", help="longest wait for subscribers")
+    p.add_argument("--sync-topic", default="", help="flow control: wait for this topic to answer each frame")
+    p.add_argument("--sync-on", default="", help="recorded topic whose messages wait (default the first Image)")
+    p.add_argument("--sync-window", type=int, default=1, help="frames in flight before waiting")
+    p.add_argument("--sync-timeout", type=float, default=2.0, metavar="S", help="give up on one answer after S")
+    p.add_argument("--name", default="bag_play", help="node name")
+    p.set_defaults(func=_play)
+
+    p = verbs.add_parser("info", help="topics, counts, rates, size, attachments and metadata of a bag")
+    p.add_argument("bag", help="bag folder or .mcap file")
+    p.add_argument("--json", action="store_true", help="JSON output")
+    p.add_argument("--gaps", action="store_true", help="also read every message and count sequence gaps")
+    p.set_defaults(func=_info)
+
+    p = verbs.add_parser("recover", help="make a bag cut off by a crash valid and indexed again")
+    p.add_argument("file", type=Path, help="the damaged .mcap file")
+    p.add_argument("-o", "--output", type=Path,
+                   help="where to write (default: in place, the original kept as FILE.broken)")
+    p.add_argument("--json", action="store_true", help="JSON report")
+    p.set_defaults(func=_recover)
+
+    p = verbs.add_parser("export", help="a topic to video (mp4/avi), PNG frames, CSV or NPZ")
+    p.add_argument("bag", help="bag folder or .mcap file")
+    p.add_argument("--topic", required=True, help="recorded topic to export")
+    p.add_argument("-o", "--output", type=Path, required=True,
+                   help="output: x.mp4 / x.avi (Image), a folder for PNG (Image), x.csv or x.npz (any type)")
+    p.add_argument("--format", choices=["mp4", "avi", "png", "csv", "npz"],
+                   help="default: from the output's suffix (no suffix: png)")
+    p.add_argument("--fps", type=float, default=0.0, help="video frame rate (default: the recorded rate)")
+    p.set_defaults(func=_export)
+
+
+def _require_forwarder() -> None:
+    from nodes.endpoints import bus_address
+    from nodes.forwarder import ping
+    address = bus_address()
+    if ping(address) is None:
+        raise RuntimeError(f"no forwarder answers on {address.url}: start `fv forwarder` (or `fv launch`)")
+
+
+def _record(args: argparse.Namespace) -> int:
+    from nodes.bag.recorder import BagRecord
+    params = {"output": args.output, "topics": args.topics, "all_topics": args.all, "regex": args.regex,
+              "exclude_regex": args.exclude_regex, "compression": args.compression,
+              "chunk_size_b": args.chunk_size, "flush_period_s": args.flush_period,
+              "max_bag_size_b": args.max_bag_size, "max_bag_duration_s": args.max_bag_duration,
+              "attach": args.attach, "fsync": not args.no_fsync}
+    node = BagRecord(args.name, params)
+    _require_forwarder()
+    node.spin()
+    return 1 if node.state == "error" else 0
+
+
+def _play(args: argparse.Namespace) -> int:
+    from nodes.bag.player import BagPlay
+    from nodes.bag.reader import BagReader
+    from nodes.core_commands import parse_remaps
+    BagReader(args.bag)  # a bad bag is reported before the bus is checked
+    params = {"path": args.bag, "rate": args.rate, "loop": args.loop, "start_offset_s": args.start_offset,
+              "duration_s": args.duration, "topics": args.topics, "fast": args.fast,
+              "start_paused": args.start_paused, "wait_for_subscribers": not args.no_wait_for_subscribers,
+              "subscriber_timeout_s": args.wait_timeout, "sync_topic": args.sync_topic, "sync_on": args.sync_on,
+              "sync_window": args.sync_window, "sync_timeout_s": args.sync_timeout, "keyboard": True}
+    node = BagPlay(args.name, params, remap=parse_remaps(args.remap))
+    _require_forwarder()
+    node.spin()
+    return 1 if getattr(node, "error", None) else 0
+
+
+def _info(args: argparse.Namespace) -> int:
+    from nodes.bag.info import bag_info, format_info
+    info = bag_info(args.bag, gaps=args.gaps)
+    print(json.dumps(info, indent=2) if args.json else format_info(info))
+    return 0
+
+
+def _recover(args: argparse.Namespace) -> int:
+    from nodes.bag.recover import recover_in_place, recover
+    report = recover(args.file, args.output) if args.output else recover_in_place(args.file)
+    print(json.dumps(report.as_dict(), indent=2) if args.json else report.summary_line())
+    return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    from nodes.bag.export import export
+    count, out = export(args.bag, args.topic, args.output, args.format, args.fps)
+    print(f"exported {count} messages of {args.topic} to {out}")
+    return 0

@@ -1,0 +1,138 @@
+"""`fv bag export`: one topic of a bag to a video, PNG frames, CSV or NPZ.
+
+- mp4 (mp4v) / avi (MJPG) / png: `Image` topics; mono8 and rgb8 frames are converted
+  to BGR for OpenCV. PNG files are named ``<index>_<stamp_ns>.png``.
+- csv: one row per message: log_time_ns, the header fields and every scalar field
+  (lists and maps as JSON); array fields are left out (use npz).
+- npz: every column of the CSV as an array of length N, plus each array field stacked
+  to shape (N, ...) when all messages agree on its shape, else concatenated along axis 0
+  with ``<name>_offsets`` (N + 1 row offsets: message i is rows offsets[i]:offsets[i+1]).
+"""
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from msgs import Image, Message
+from msgs.message import HEADER_FIELDS
+from nodes.bag.reader import BagError, BagReader
+
+FORMATS = ("mp4", "avi", "png", "csv", "npz")
+FOURCC = {"mp4": "mp4v", "avi": "MJPG"}
+
+
+def _bgr(img: Image) -> np.ndarray:
+    import cv2
+    if img.encoding == "mono8":
+        return cv2.cvtColor(img.data, cv2.COLOR_GRAY2BGR)
+    if img.encoding == "rgb8":
+        return cv2.cvtColor(img.data, cv2.COLOR_RGB2BGR)
+    return np.ascontiguousarray(img.data)
+
+
+def _row(msg: Message, log_time_ns: int) -> dict[str, Any]:
+    row: dict[str, Any] = {"log_time_ns": log_time_ns}
+    row.update({name: getattr(msg, name) for name in HEADER_FIELDS})
+    for name, value in msg.scalar_fields().items():
+        row[name] = json.dumps(value) if isinstance(value, (list, dict)) else value
+    return row
+
+
+def _video(messages: Iterator[tuple[str, Message, int]], output: Path, fmt: str, fps: float) -> int:
+    import cv2
+    writer = None
+    count = 0
+    try:
+        for _topic, msg, _t in messages:
+            frame = _bgr(msg)
+            if writer is None:
+                size = (frame.shape[1], frame.shape[0])
+                writer = cv2.VideoWriter(str(output), cv2.VideoWriter_fourcc(*FOURCC[fmt]), fps, size)
+                if not writer.isOpened():
+                    raise RuntimeError(f"OpenCV cannot write {fmt} video to {output}")
+            elif (frame.shape[1], frame.shape[0]) != size:
+                raise ValueError(f"frame {count} is {frame.shape[1]}x{frame.shape[0]} px, "
+                                 f"the video {size[0]}x{size[1]} px")
+            writer.write(frame)
+            count += 1
+    finally:
+        if writer is not None:
+            writer.release()
+    return count
+
+
+def _png(messages: Iterator[tuple[str, Message, int]], output: Path) -> int:
+    import cv2
+    output.mkdir(parents=True, exist_ok=True)
+    count = 0
+    for _topic, msg, _t in messages:
+        path = output / f"{count:06d}_{msg.stamp_ns}.png"
+        if not cv2.imwrite(str(path), _bgr(msg)):
+            raise RuntimeError(f"OpenCV cannot write {path}")
+        count += 1
+    return count
+
+
+def _csv(messages: Iterator[tuple[str, Message, int]], output: Path) -> int:
+    count = 0
+    with open(output, "w", newline="") as f:
+        writer = None
+        for _topic, msg, t in messages:
+            row = _row(msg, t)
+            if writer is None:
+                writer = csv.DictWriter(f, fieldnames=list(row))
+                writer.writeheader()
+            writer.writerow(row)
+            count += 1
+    return count
+
+
+def _npz(messages: Iterator[tuple[str, Message, int]], output: Path) -> int:
+    columns: dict[str, list] = {}
+    arrays: dict[str, list[np.ndarray]] = {}
+    for _topic, msg, t in messages:
+        for name, value in _row(msg, t).items():
+            columns.setdefault(name, []).append(value)
+        for name in msg.ARRAYS:
+            arrays.setdefault(name, []).append(np.asarray(getattr(msg, name)))
+    out: dict[str, np.ndarray] = {name: np.asarray(values) for name, values in columns.items()}
+    for name, items in arrays.items():
+        if len({a.shape for a in items}) == 1:
+            out[name] = np.stack(items)
+        elif len({a.shape[1:] for a in items}) == 1:
+            out[name] = np.concatenate(items)
+            out[f"{name}_offsets"] = np.cumsum([0] + [len(a) for a in items])
+        else:
+            raise ValueError(f"array {name!r} changes shape beyond its first dimension: cannot export it as npz")
+    np.savez_compressed(output, **out)
+    return len(columns.get("log_time_ns", []))
+
+
+def export(path: Path | str, topic: str, output: Path, fmt: str | None = None, fps: float = 0.0) -> tuple[int, Path]:
+    """Export `topic` of the bag at `path` to `output`; returns (messages written, output).
+    fmt: one of FORMATS (None: from the output's suffix, a folder means png).
+    fps: video frame rate (0: the topic's recorded mean rate)."""
+    bag = BagReader(path)
+    topics = bag.topics()
+    if topic not in topics:
+        raise BagError(path, f"has no topic {topic!r}; topics: {sorted(topics)}")
+    fmt = fmt or (output.suffix.lstrip(".").lower() or "png")
+    if fmt not in FORMATS:
+        raise ValueError(f"export format {fmt!r} is not one of {list(FORMATS)} (from --format or the output suffix)")
+    type_name = topics[topic].type_name
+    if fmt in ("mp4", "avi", "png") and type_name != Image.TYPE:
+        raise ValueError(f"{topic} holds {type_name}, not Image: export it as csv or npz")
+    messages = bag.read([topic])
+    if fmt in FOURCC:
+        count = topics[topic].count
+        rate = fps or ((count - 1) / bag.duration_s if bag.duration_s > 0 and count > 1 else 30.0)
+        return _video(messages, output, fmt, rate), output
+    if fmt == "png":
+        return _png(messages, output), output
+    if fmt == "csv":
+        return _csv(messages, output), output
+    return _npz(messages, output), output

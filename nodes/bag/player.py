@@ -1,0 +1,229 @@
+"""The `bag_play` node (also `fv bag play`): a bag back onto the bus.
+
+Messages go out as recorded, byte for byte (`PublisherSocket.publish_raw`, nothing
+re-encoded): header seq, stamp_ns, pub_ns and node are the recorded ones, and the
+envelope names the recorded publisher, so subscribers see the original publishers'
+sequence numbers (a skipped stretch counts as a gap, a loop as a publisher restart).
+Latched topics are sent latched. Remaps (launch `remap`, `--remap a:=b`) rename topics.
+
+Timing follows the recorded log (receive) times scaled by `rate`; `fast` drops the
+timing for batch processing, and `sync_topic` adds flow control: after each message
+on `sync_on` the player waits until the pipeline answers on `sync_topic` with a
+message stamped at or after it, so a slow consumer never loses a frame. Before the
+first message the player waits until every played volatile topic has a subscriber.
+"""
+from __future__ import annotations
+
+import collections
+import os
+import select
+import signal
+import sys
+import termios
+import threading
+import time
+import tty
+from dataclasses import dataclass, field
+
+import msgs
+from msgs import Image
+from nodes.bag.clock import PlayClock
+from nodes.bag.codec import split_payload
+from nodes.bag.reader import BagError, BagMessage, BagReader
+from nodes.bus import PublisherSocket, TopicReader
+from nodes.node import Node
+
+SUBSCRIBER_POLL_S = 0.02
+KEY_POLL_S = 0.2
+
+
+@dataclass
+class BagPlayParams:
+    """How to play a bag.
+
+    path: bag folder or .mcap file. rate: speed factor (1 = recorded timing).
+    loop: start over at the end. start_offset_s: skip this much of the bag (the last
+    latched message of each latched topic before it is still sent first).
+    duration_s: play this much of the bag (0 = to the end). topics: recorded topics to
+    play ([] = all). fast: as fast as possible, no timing (batch processing).
+    start_paused: wait for space/enter (terminal) or SIGUSR1 before the first message.
+    wait_for_subscribers: before the first message, wait up to subscriber_timeout_s
+    until each played volatile topic has a subscriber.
+    sync_topic: flow control, wait for an answer on this topic after each `sync_on`
+    message ("" = off); sync_on: recorded topic that waits ("" = the first Image
+    topic); sync_window: `sync_on` messages allowed in flight unanswered;
+    sync_timeout_s: give up waiting for one answer after this long (counted).
+    keyboard: space/enter on the terminal toggles pause (when stdin is a terminal).
+    """
+
+    path: str = ""
+    rate: float = 1.0
+    loop: bool = False
+    start_offset_s: float = 0.0
+    duration_s: float = 0.0
+    topics: list[str] = field(default_factory=list)
+    fast: bool = False
+    start_paused: bool = False
+    wait_for_subscribers: bool = True
+    subscriber_timeout_s: float = 5.0
+    sync_topic: str = ""
+    sync_on: str = ""
+    sync_window: int = 1
+    sync_timeout_s: float = 2.0
+    keyboard: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.path:
+            raise ValueError("path: give the bag to play")
+        if self.rate <= 0:
+            raise ValueError(f"rate {self.rate} must be > 0")
+        if self.start_offset_s < 0 or self.duration_s < 0 or self.subscriber_timeout_s < 0:
+            raise ValueError("start_offset_s, duration_s and subscriber_timeout_s must be >= 0")
+        if self.sync_window < 1 or self.sync_timeout_s <= 0:
+            raise ValueError("sync_window must be >= 1 and sync_timeout_s > 0")
+
+
+class BagPlay(Node):
+    """Plays `path` once (or forever with `loop`) and stops when done."""
+
+    Params = BagPlayParams
+
+    def setup(self) -> None:
+        p = self.params
+        self.bag = BagReader(p.path)
+        known = self.bag.topics()
+        for topic in p.topics + ([p.sync_on] if p.sync_on else []):
+            if topic not in known:
+                raise BagError(p.path, f"has no topic {topic!r}; topics: {sorted(known)}")
+        self.played_topics = p.topics or list(known)
+        self.out_topic = {t: self.resolve(t) for t in self.played_topics}
+        images = [t for t in self.played_topics if known[t].type_name == Image.TYPE]
+        self.sync_on = p.sync_on or (images[0] if images else "")
+        self.clock = PlayClock(p.rate, paused=p.start_paused)
+        self.error: str | None = None
+        self.counters.update(played=0, frames=0, sync_timeouts=0, loops=0)
+        self._pending: collections.deque[int] = collections.deque()
+        self._pub = PublisherSocket(self.name, self.address, self.ctx)
+        self._sync = TopicReader([p.sync_topic], self.address, self.ctx) if p.sync_topic else None
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGUSR1, lambda *_: self._toggle_pause())
+        if p.keyboard and sys.stdin.isatty():
+            threading.Thread(target=self._read_keys, name=f"{self.name}-keys", daemon=True).start()
+        self._thread = threading.Thread(target=self._run_play, name=f"{self.name}-play", daemon=True)
+        self._thread.start()
+
+    # -- control ----------------------------------------------------------------------
+    def _toggle_pause(self) -> None:
+        self.log.info("%s", "paused (space/enter or SIGUSR1 resumes)" if self.clock.toggle_pause() else "playing")
+
+    def _read_keys(self) -> None:
+        """Space or enter toggles pause; the terminal is put back as it was."""
+        fd = sys.stdin.fileno()
+        saved = termios.tcgetattr(fd)
+        try:
+            tty.setcbreak(fd)
+            while not self.stopped:
+                if select.select([fd], [], [], KEY_POLL_S)[0] and os.read(fd, 1) in (b" ", b"\n", b"\r"):
+                    self._toggle_pause()
+        finally:
+            termios.tcsetattr(fd, termios.TCSADRAIN, saved)
+
+    # -- playing ----------------------------------------------------------------------
+    def _run_play(self) -> None:
+        try:
+            self._pub.wait_connected(2.0)
+            if self.params.wait_for_subscribers:
+                self._wait_for_subscribers()
+            if self.clock.paused:
+                self.log.info("paused before the first message: space/enter or `kill -USR1 %d` starts", os.getpid())
+            started = time.monotonic()
+            while not self.stopped:
+                self._play_once()
+                if not self.params.loop:
+                    break
+                self.counters["loops"] += 1
+            self._await_sync(1)
+            self.log.info("%s", self.summary_line(time.monotonic() - started))
+        except BagError as exc:
+            self.error = str(exc)
+            self.state, self.message = "error", self.error
+            self.log.error("%s", exc)
+        finally:
+            self.stop()
+
+    def _wait_for_subscribers(self) -> None:
+        latched = {t for t, info in self.bag.topics().items() if info.latched}
+        missing = {self.out_topic[t] for t in self.played_topics if t not in latched}
+        deadline = time.monotonic() + self.params.subscriber_timeout_s
+        while missing and time.monotonic() < deadline and not self.stopped:
+            missing = {t for t in missing if not self._pub.has_subscribers(t)}
+            time.sleep(SUBSCRIBER_POLL_S)
+        if missing:
+            self.warn(f"no subscriber on {sorted(missing)} after {self.params.subscriber_timeout_s} s; playing anyway")
+
+    def _play_once(self) -> None:
+        """One pass over the selected stretch of the bag."""
+        p = self.params
+        start_ns = self.bag.start_ns + int(p.start_offset_s * 1e9)
+        end_ns = start_ns + int(p.duration_s * 1e9) if p.duration_s else None
+        latched = [t for t in self.played_topics if self.bag.topics()[t].latched]
+        if p.start_offset_s and latched:
+            last: dict[tuple[str, str], BagMessage] = {}
+            for m in self.bag.messages(latched, end_ns=start_ns):
+                last[(m.topic, m.node)] = m
+            for m in last.values():
+                self._send(m)
+        first = True
+        for m in self.bag.messages(self.played_topics, start_ns=start_ns, end_ns=end_ns):
+            if first:
+                self.clock.start(m.log_time_ns)
+                first = False
+            if not self.clock.wait(None if p.fast else m.log_time_ns, lambda: self.stopped):
+                return
+            self._send(m)
+        if first:
+            self.warn(f"nothing to play in {p.path} from {p.start_offset_s} s for topics {self.played_topics}")
+
+    def _send(self, m: BagMessage) -> None:
+        try:
+            header, frames = split_payload(m.payload, m.topic)
+        except msgs.MessageError as exc:
+            raise BagError(self.params.path, f"message at log time {m.log_time_ns} ns: {exc}") from None
+        self._pub.publish_raw(self.out_topic[m.topic], m.node, m.latched, frames)
+        self.counters["played"] += 1
+        if self.sync_on and m.topic != self.sync_on:
+            return
+        self.counters["frames"] += 1
+        if self._sync is not None:
+            self._pending.append(header["stamp_ns"])
+            self._await_sync(self.params.sync_window)
+
+    def _await_sync(self, limit: int) -> None:
+        """Wait until fewer than `limit` sent messages lack an answer on sync_topic."""
+        if self._sync is None:
+            return
+        while len(self._pending) >= limit and not self.stopped:
+            raw = self._sync.recv_raw(self.params.sync_timeout_s)
+            if raw is None:
+                self._pending.popleft()
+                self.counters["sync_timeouts"] += 1
+                self.warn(f"no answer on {self.params.sync_topic} within {self.params.sync_timeout_s} s (counted)")
+                continue
+            stamp = msgs.decode_header(raw[3][0], raw[0])["stamp_ns"]
+            while self._pending and self._pending[0] <= stamp:
+                self._pending.popleft()
+
+    def summary_line(self, elapsed_s: float) -> str:
+        c = self.counters
+        what = f"on {self.sync_on}" if self.sync_on else "messages"
+        sync = f", sync timeouts {c['sync_timeouts']}" if self._sync is not None else ""
+        return (f"played {c['played']} messages ({c['frames']} {what}) in {elapsed_s:.2f} s: "
+                f"{c['frames'] / max(elapsed_s, 1e-9):.1f} frames/s{sync}")
+
+    def teardown(self) -> None:
+        thread = getattr(self, "_thread", None)
+        if thread is not None:
+            thread.join()
+        for sock in (getattr(self, "_sync", None), getattr(self, "_pub", None)):
+            if sock is not None:
+                sock.close()

@@ -1,0 +1,249 @@
+"""Read bags from Python: typed messages for notebooks and dataset building.
+
+>>> for topic, msg, log_time_ns in read_bag("run1", topics=["/field", "/slip"]):
+...     ...
+>>> bag = BagReader("run1")          # a bag folder or one .mcap file
+>>> bag.topics()["/camera/image"].count, bag.attachments(), bag.metadata()
+
+Anything that is not a finished MCAP bag written by `fv bag record` raises `BagError`
+naming the file and what is wrong (a crashed recording: run `fv bag recover FILE`).
+"""
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+from mcap.exceptions import McapError
+from mcap.reader import SeekingReader, make_reader
+from mcap.records import Channel
+from mcap.stream_reader import CRCValidationError
+from mcap.summary import Summary
+from zstandard import ZstdError
+
+import msgs
+from msgs import Message, MessageError
+from nodes.bag.codec import MESSAGE_ENCODING, META_LATCHED, META_NODE, split_payload
+from nodes.bag.writer import bag_file_index
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+# what the mcap package, zstandard, lz4 (RuntimeError) and struct raise on damaged bytes
+READ_ERRORS = (McapError, CRCValidationError, ZstdError, struct.error, OSError, ValueError, RuntimeError)
+
+
+class BagError(ValueError):
+    """A bag that cannot be read: names the file and what is wrong."""
+
+    def __init__(self, path: Path | str, reason: str) -> None:
+        self.path = Path(path)
+        self.reason = reason
+        super().__init__(f"bag {path}: {reason}")
+
+
+@dataclass
+class TopicInfo:
+    """One topic of a bag: message type, message count, latched, publishing nodes."""
+
+    topic: str
+    type_name: str
+    count: int = 0
+    latched: bool = False
+    nodes: list[str] = field(default_factory=list)
+
+
+@dataclass
+class BagMessage:
+    """One recorded message, undecoded: `payload` is the frames as they were received."""
+
+    topic: str
+    node: str
+    latched: bool
+    log_time_ns: int
+    publish_time_ns: int
+    sequence: int
+    payload: bytes
+
+    def frames(self) -> list[memoryview]:
+        """The bus frames [header, arrays...] as views of the payload (no copy)."""
+        return split_payload(self.payload, self.topic)[1]
+
+    def decode(self) -> Message:
+        """The typed message (arrays are read-only views of the payload)."""
+        return msgs.decode(self.frames(), self.topic)
+
+
+@dataclass
+class Attachment:
+    """A file stored in a bag (launch file, calibration...)."""
+
+    name: str
+    media_type: str
+    data: bytes
+    log_time_ns: int
+    file: Path
+
+
+def bag_files(path: Path | str) -> list[Path]:
+    """The MCAP files of a bag: `path` itself, or the ``*.mcap`` files of a bag folder in
+    split order."""
+    path = Path(path)
+    if path.is_file():
+        return [path]
+    if not path.exists():
+        raise BagError(path, "no such file or folder")
+    files = sorted(path.glob("*.mcap"), key=lambda p: (bag_file_index(p) is None, bag_file_index(p) or 0, p.name))
+    if not files:
+        raise BagError(path, "folder holds no .mcap file")
+    return files
+
+
+def check_magic(path: Path) -> None:
+    """BagError unless `path` starts with the MCAP magic."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(MCAP_MAGIC))
+    except OSError as exc:
+        raise BagError(path, f"cannot open ({exc.strerror})") from None
+    if head != MCAP_MAGIC:
+        raise BagError(path, f"not an MCAP file (starts with {head[:8]!r})")
+
+
+class _File:
+    """One MCAP file of a bag with its summary (channels, schemas, statistics, indexes)."""
+
+    def __init__(self, path: Path) -> None:
+        check_magic(path)
+        self.path = path
+        self.size_b = path.stat().st_size
+        with open(path, "rb") as f:
+            try:
+                summary = make_reader(f).get_summary()
+            except READ_ERRORS as exc:
+                raise BagError(path, f"unfinished or damaged MCAP ({type(exc).__name__}: {str(exc) or 'cut short'}); "
+                                     f"a crashed recording? run `fv bag recover {path}`") from None
+        if summary is None or summary.statistics is None:
+            raise BagError(path, f"MCAP without summary; run `fv bag recover {path}` to index it")
+        self.summary: Summary = summary
+        for channel in summary.channels.values():
+            if channel.message_encoding != MESSAGE_ENCODING:
+                raise BagError(path, f"topic {channel.topic!r} has message encoding {channel.message_encoding!r}, "
+                                     f"not {MESSAGE_ENCODING!r} (not recorded by `fv bag record`)")
+
+    def messages(self, topics: list[str] | None, start_ns: int | None, end_ns: int | None) -> Iterator[BagMessage]:
+        with open(self.path, "rb") as f:
+            reader = SeekingReader(f, validate_crcs=True)
+            it = reader.iter_messages(topics=topics, starting_at=start_ns, ending_before=end_ns, log_time_order=True)
+            while True:
+                try:
+                    _schema, channel, rec = next(it)
+                except StopIteration:
+                    return
+                except READ_ERRORS as exc:
+                    raise BagError(self.path, f"damaged data ({type(exc).__name__}: {exc}); "
+                                              f"`fv bag recover {self.path}` keeps the readable part") from None
+                yield BagMessage(channel.topic, channel.metadata.get(META_NODE, ""),
+                                 _latched(channel), rec.log_time, rec.publish_time, rec.sequence, rec.data)
+
+
+def _latched(channel: Channel) -> bool:
+    return channel.metadata.get(META_LATCHED) == "true"
+
+
+class BagReader:
+    """A finished bag (folder of split files, or one .mcap file), checked on opening."""
+
+    def __init__(self, path: Path | str) -> None:
+        self.path = Path(path)
+        self._files = [_File(p) for p in bag_files(self.path)]
+
+    @property
+    def files(self) -> list[Path]:
+        return [f.path for f in self._files]
+
+    @property
+    def size_b(self) -> int:
+        return sum(f.size_b for f in self._files)
+
+    @property
+    def message_count(self) -> int:
+        return sum(f.summary.statistics.message_count for f in self._files)
+
+    @property
+    def start_ns(self) -> int:
+        """Log time of the first message (0 for an empty bag)."""
+        times = [f.summary.statistics.message_start_time for f in self._files if f.summary.statistics.message_count]
+        return min(times, default=0)
+
+    @property
+    def end_ns(self) -> int:
+        times = [f.summary.statistics.message_end_time for f in self._files if f.summary.statistics.message_count]
+        return max(times, default=0)
+
+    @property
+    def duration_s(self) -> float:
+        return (self.end_ns - self.start_ns) / 1e9
+
+    def chunk_stats(self) -> dict[str, Any]:
+        """Chunk count, compressions used and compressed / uncompressed bytes."""
+        chunks = [c for f in self._files for c in f.summary.chunk_indexes]
+        return {"chunks": len(chunks), "compression": sorted({c.compression or "none" for c in chunks}),
+                "compressed_b": sum(c.compressed_size for c in chunks),
+                "uncompressed_b": sum(c.uncompressed_size for c in chunks)}
+
+    def topics(self) -> dict[str, TopicInfo]:
+        """Topic -> TopicInfo, in order of first appearance."""
+        out: dict[str, TopicInfo] = {}
+        for f in self._files:
+            counts = f.summary.statistics.channel_message_counts
+            for cid, channel in f.summary.channels.items():
+                schema = f.summary.schemas.get(channel.schema_id)
+                info = out.setdefault(channel.topic, TopicInfo(channel.topic, schema.name if schema else "?"))
+                info.count += counts.get(cid, 0)
+                info.latched = info.latched or _latched(channel)
+                node = channel.metadata.get(META_NODE, "")
+                if node not in info.nodes:
+                    info.nodes.append(node)
+        return out
+
+    def attachments(self) -> list[Attachment]:
+        """All attachments of every file (a split bag repeats the sticky ones per file)."""
+        out = []
+        for f in self._files:
+            with open(f.path, "rb") as stream:
+                for att in make_reader(stream).iter_attachments():
+                    out.append(Attachment(att.name, att.media_type, att.data, att.log_time, f.path))
+        return out
+
+    def metadata(self) -> dict[str, dict[str, str]]:
+        """Metadata records by name (later files and records override earlier ones)."""
+        out: dict[str, dict[str, str]] = {}
+        for f in self._files:
+            with open(f.path, "rb") as stream:
+                for rec in make_reader(stream).iter_metadata():
+                    out.setdefault(rec.name, {}).update(rec.metadata)
+        return out
+
+    def messages(self, topics: list[str] | None = None, start_ns: int | None = None,
+                 end_ns: int | None = None) -> Iterator[BagMessage]:
+        """Undecoded messages in log-time order; `topics` None = all; log time in
+        [start_ns, end_ns)."""
+        known = self.topics()
+        for topic in topics or ():
+            if topic not in known:
+                raise BagError(self.path, f"has no topic {topic!r}; topics: {sorted(known)}")
+        for f in self._files:
+            yield from f.messages(topics, start_ns, end_ns)
+
+    def read(self, topics: list[str] | None = None) -> Iterator[tuple[str, Message, int]]:
+        """(topic, typed message, log_time_ns) in log-time order."""
+        for m in self.messages(topics):
+            try:
+                yield m.topic, m.decode(), m.log_time_ns
+            except MessageError as exc:
+                raise BagError(self.path, f"message at log time {m.log_time_ns} ns: {exc}") from None
+
+
+def read_bag(path: Path | str, topics: list[str] | None = None) -> Iterator[tuple[str, Message, int]]:
+    """(topic, typed message, log_time_ns) of every message of the bag at `path`."""
+    return BagReader(path).read(topics)

@@ -1,0 +1,224 @@
+"""The `bag_record` node (also `fv bag record`): bus topics into an MCAP bag.
+
+One thread receives raw frames (`TopicReader.recv_raw`, nothing decoded but the small
+header) and hands them to `BagWriter` with log_time = receive time. Every
+`flush_period_s` the open chunk is closed and synced, so a crash or `kill -9` loses at
+most that period of data. Latched `CameraInfo` messages are also stored as a YAML
+attachment ``calibration/<topic>.yaml``; files named in `attach` (the launch file...)
+are attached at the start of every split file. On stop the receive queue is drained,
+totals go into a ``fv_recording_end`` metadata record and one summary line is logged.
+"""
+from __future__ import annotations
+
+import json
+import mimetypes
+import re
+import shlex
+import socket
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+import msgs
+from msgs import CameraInfo, MessageError
+from nodes.bag.writer import COMPRESSIONS, DEFAULT_CHUNK_B, BagWriter
+from nodes.bus import ALL_TOPICS, SeqTracker, TopicReader
+from nodes.node import Node
+
+DRAIN_IDLE_S = 0.1  # on stop, keep receiving until the queue stays empty this long...
+DRAIN_MAX_S = 2.0   # ...or this long at most
+RECORDING_META = "fv_recording"
+RECORDING_END_META = "fv_recording_end"
+
+
+@dataclass
+class BagRecordParams:
+    """What to record and how.
+
+    output: bag folder ("" = ``fv_bag_YYYYmmdd-HHMMSS`` in the working directory).
+    topics / all_topics / regex: record these topics, every topic, or the topics whose
+    name contains a match of `regex`; exclude_regex removes matching topics from any of them.
+    compression: chunk compression, "zstd", "lz4" or "none". chunk_size_b: chunk size
+    in bytes; flush_period_s: the open chunk is closed and synced at least this often.
+    max_bag_size_b / max_bag_duration_s: split into a new file at this size / span (0 = off).
+    attach: files stored as attachments (launch file, calibration...).
+    fsync: force data to the disk at each flush (survives a power cut, not only a crash).
+    queue_depth: messages the receive queue holds while the writer is busy.
+    """
+
+    output: str = ""
+    topics: list[str] = field(default_factory=list)
+    all_topics: bool = False
+    regex: str = ""
+    exclude_regex: str = ""
+    compression: str = "zstd"
+    chunk_size_b: int = DEFAULT_CHUNK_B
+    flush_period_s: float = 0.5
+    max_bag_size_b: int = 0
+    max_bag_duration_s: float = 0.0
+    attach: list[str] = field(default_factory=list)
+    fsync: bool = True
+    queue_depth: int = 10_000
+
+    def __post_init__(self) -> None:
+        if not (self.topics or self.all_topics or self.regex):
+            raise ValueError("nothing to record: give topics, all_topics (-a) or regex (-e)")
+        for name in ("regex", "exclude_regex"):
+            try:
+                re.compile(getattr(self, name))
+            except re.error as exc:
+                raise ValueError(f"{name} {getattr(self, name)!r} is not a regular expression: {exc}") from None
+        if self.compression not in COMPRESSIONS:
+            raise ValueError(f"compression {self.compression!r} is not one of {sorted(COMPRESSIONS)}")
+        if self.chunk_size_b <= 0 or self.flush_period_s <= 0 or self.queue_depth <= 0:
+            raise ValueError("chunk_size_b, flush_period_s and queue_depth must be > 0")
+        if self.max_bag_size_b < 0 or self.max_bag_duration_s < 0:
+            raise ValueError("max_bag_size_b and max_bag_duration_s must be >= 0 (0 = no split)")
+        for path in self.attach:
+            if not Path(path).is_file():
+                raise ValueError(f"attach: file {path!r} not found")
+
+
+def software_version() -> str:
+    try:
+        return f"fingervision {version('fingervision')}"
+    except PackageNotFoundError:
+        return "fingervision (not installed)"
+
+
+def calibration_yaml(info: CameraInfo, topic: str) -> bytes:
+    """A CameraInfo as the YAML calibration attachment (K, D in px, fisheye model)."""
+    return yaml.safe_dump({"topic": topic, "frame_id": info.frame_id, "model": info.model, "width": info.width,
+                           "height": info.height, "K": info.K.tolist(), "D": info.D.tolist(),
+                           "rms_px": info.rms_px}, sort_keys=False).encode()
+
+
+class BagRecord(Node):
+    """Records the selected topics into a bag folder until stopped (SIGINT/SIGTERM)."""
+
+    Params = BagRecordParams
+
+    def setup(self) -> None:
+        p = self.params
+        self._include = re.compile(p.regex) if p.regex else None
+        self._exclude = re.compile(p.exclude_regex) if p.exclude_regex else None
+        self._only = {self.resolve(t) for t in p.topics}
+        output = Path(p.output or time.strftime("fv_bag_%Y%m%d-%H%M%S"))
+        self.writer = BagWriter(output, compression=p.compression, chunk_size_b=p.chunk_size_b,
+                                max_bag_size_b=p.max_bag_size_b, max_bag_duration_s=p.max_bag_duration_s,
+                                fsync=p.fsync, metadata={RECORDING_META: self._recording_metadata()})
+        for path in p.attach:
+            media = "application/yaml" if path.endswith((".yaml", ".yml")) else (
+                mimetypes.guess_type(path)[0] or "application/octet-stream")
+            self.writer.attach(Path(path).name, Path(path).read_bytes(), media)
+        self._calibrations: dict[str, bytes] = {}
+        self._gaps: dict[str, SeqTracker] = {}
+        wanted = [ALL_TOPICS] if (p.all_topics or p.regex) else sorted(self._only)
+        self._reader = TopicReader(wanted, self.address, self.ctx, hwm=p.queue_depth)
+        self._thread = threading.Thread(target=self._run_recording, name=f"{self.name}-record", daemon=True)
+        self._thread.start()
+        self.log.info("recording %s into %s", self._selection(), output)
+
+    def _selection(self) -> str:
+        """The topic selection in words, e.g. "/a /b regex '^/cam' except regex 'debug'"."""
+        p = self.params
+        words = ["(all)"] if p.all_topics else sorted(self._only) + ([f"regex {p.regex!r}"] if p.regex else [])
+        return " ".join(words + ([f"except regex {p.exclude_regex!r}"] if p.exclude_regex else []))
+
+    def _recording_metadata(self) -> dict[str, str]:
+        """Host, start time, software version, command line, bus and topic selection."""
+        now_ns = time.time_ns()
+        return {"host": socket.gethostname(), "start_time_ns": str(now_ns),
+                "start_time": time.strftime("%Y-%m-%dT%H:%M:%S%z", time.localtime(now_ns / 1e9)),
+                "software": software_version(), "command_line": shlex.join(sys.argv), "node": self.name,
+                "bus": self.address.url, "topics": self._selection()}
+
+    def _selected(self, topic: str) -> bool:
+        if self._exclude is not None and self._exclude.search(topic):
+            return False
+        return (self.params.all_topics or topic in self._only
+                or bool(self._include is not None and self._include.search(topic)))
+
+    def _record(self, topic: str, node: str, latched: bool, frames: list[Any], log_time_ns: int) -> None:
+        if not self._selected(topic):
+            return
+        header = msgs.decode_header(frames[0], topic)
+        self.writer.write(topic, node, latched, frames, log_time_ns, header)
+        self._gaps.setdefault(topic, SeqTracker()).accept(topic, node, header["seq"], latched)
+        if header["type"] == CameraInfo.TYPE:
+            self._attach_calibration(topic, frames)
+
+    def _attach_calibration(self, topic: str, frames: list[Any]) -> None:
+        try:
+            text = calibration_yaml(msgs.decode(frames, topic), topic)
+        except MessageError as exc:
+            self.warn(f"calibration on {topic} not attached: {exc}")
+            return
+        if self._calibrations.get(topic) != text:
+            self._calibrations[topic] = text
+            self.writer.attach(f"calibration/{topic.strip('/').replace('/', '_')}.yaml", text, "application/yaml")
+
+    def _run_recording(self) -> None:
+        """The recording thread: receive, write, flush every period, drain and close."""
+        period = self.params.flush_period_s
+        try:
+            next_flush = time.monotonic() + period
+            while not self.stopped:
+                raw = self._reader.recv_raw(max(0.0, next_flush - time.monotonic()))
+                if raw is not None:
+                    self._record(*raw, time.time_ns())
+                if time.monotonic() >= next_flush:
+                    self.writer.flush()
+                    self._update_counters()
+                    next_flush = time.monotonic() + period
+            drain_until = time.monotonic() + DRAIN_MAX_S
+            while time.monotonic() < drain_until and (raw := self._reader.recv_raw(DRAIN_IDLE_S)) is not None:
+                self._record(*raw, time.time_ns())
+        except Exception as exc:  # disk full, permissions...: stop the node, keep what was written
+            self.state, self.message = "error", f"recording failed: {type(exc).__name__}: {exc}"
+            self.log.error("%s", self.message)
+            self.stop()
+        finally:
+            self._finish()
+
+    def _update_counters(self) -> None:
+        self.counters.update(recorded=sum(s.count for s in self.writer.stats.values()), gaps=self.total_gaps,
+                             malformed=self._reader.malformed, bytes=self.writer.size_b,
+                             files=len(self.writer.files))
+
+    @property
+    def total_gaps(self) -> int:
+        return sum(t.gaps for t in self._gaps.values())
+
+    def _finish(self) -> None:
+        self._reader.close()
+        stats = self.writer.stats
+        self.writer.add_metadata(RECORDING_END_META, {
+            "end_time_ns": str(time.time_ns()), "messages": str(sum(s.count for s in stats.values())),
+            "gaps": str(self.total_gaps), "malformed": str(self._reader.malformed),
+            "per_topic": json.dumps({t: {"count": s.count, "gaps": self._gaps[t].gaps} for t, s in stats.items()})})
+        self.writer.close()
+        self._update_counters()
+        self.log.info("%s", self.summary_line())
+
+    def summary_line(self) -> str:
+        """One line: messages (rate, gaps) per topic, size, duration, files."""
+        stats = self.writer.stats
+        first = min((s.first_ns for s in stats.values()), default=0)
+        last = max((s.last_ns for s in stats.values()), default=0)
+        span_s = max((last - first) / 1e9, 1e-9)
+        topics = ", ".join(f"{t} {s.count}" + (f" ({self._gaps[t].gaps} missing)" if self._gaps[t].gaps else "")
+                           for t, s in sorted(stats.items()))
+        return (f"recorded {sum(s.count for s in stats.values())} messages in {span_s if stats else 0:.1f} s "
+                f"to {self.writer.output} ({len(self.writer.files)} file(s), {self.writer.size_b / 1e6:.1f} MB): "
+                f"{topics or 'nothing'}; missing by seq {self.total_gaps}, malformed {self._reader.malformed}")
+
+    def teardown(self) -> None:
+        if getattr(self, "_thread", None) is not None:
+            self._thread.join()

@@ -1,0 +1,245 @@
+"""Bags without a bus: payload codec, writer and reader, recovery of cut files, info,
+export and the errors for files that are not bags."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+import msgs
+from msgs import CameraInfo, DisplacementField, Image, MarkerArray, MessageError, SlipState
+from nodes.bag.codec import MESSAGE_ENCODING, join_frames, split_payload
+from nodes.bag.export import export
+from nodes.bag.info import bag_info
+from nodes.bag.reader import BagError, BagReader, read_bag
+from nodes.bag.recover import recover, recover_in_place
+from nodes.bag.writer import BagWriter
+from nodes.cli import main
+
+T0_NS = 1_700_000_000_000_000_000
+
+
+def frames_of(msg: msgs.Message, seq: int, node: str, pub_ns: int) -> list:
+    """Bus frames of `msg` as a publisher would stamp them."""
+    msg.seq, msg.node, msg.pub_ns = seq, node, pub_ns
+    return msgs.encode(msg)
+
+
+def sample_messages(n: int, rng: np.random.Generator, size: tuple[int, int] = (24, 32),
+                    dt_ns: list[int] | None = None) -> list[tuple[str, bool, msgs.Message, int]]:
+    """(topic, latched, message, log_time_ns): a latched CameraInfo, then `n` frames
+    each followed by a field and a slip state; frame i is logged at sum(dt_ns[:i])."""
+    h, w = size
+    out: list[tuple[str, bool, msgs.Message, int]] = [
+        ("/camera/info", True, CameraInfo(stamp_ns=T0_NS, width=w, height=h, K=np.eye(3) * 2, D=np.arange(4.0)), T0_NS)]
+    t = T0_NS + 1_000_000
+    for i in range(n):
+        t += dt_ns[i] if dt_ns else 10_000_000
+        data = rng.integers(0, 255, (h, w), dtype=np.uint8)
+        field = rng.normal(0, 1, (5, 6, 3)).astype(np.float32)
+        out += [("/camera/image", False, Image(stamp_ns=t - 500, data=data), t),
+                ("/field", False, DisplacementField(stamp_ns=t - 500, field=field, grid_x_px=np.arange(6.0),
+                                                    grid_y_px=np.arange(5.0)), t + 1000),
+                ("/slip", False, SlipState(stamp_ns=t - 500, probability=i / n,
+                                           window_stamps_ns=np.arange(3)), t + 2000)]
+    return out
+
+
+def write_bag(folder: Path, messages: list[tuple[str, bool, msgs.Message, int]], **kwargs) -> BagWriter:
+    """Write `messages` through BagWriter as if received at their log times; seq counts
+    per topic, node "cam" (info, image) or "proc" (others), pub_ns = log time - 100 ns."""
+    writer = BagWriter(folder, metadata={"fv_recording": {"host": "test"}}, fsync=False, **kwargs)
+    writer.attach("launch.yaml", b"nodes: []\n", "application/yaml")
+    seqs: dict[str, int] = {}
+    for topic, latched, msg, t in messages:
+        seq = seqs[topic] = seqs.get(topic, -1) + 1
+        node = "cam" if topic.startswith("/camera") else "proc"
+        writer.write(topic, node, latched, frames_of(msg, seq, node, t - 100), t)
+    writer.close()
+    return writer
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(7)
+
+
+@pytest.fixture
+def bag(tmp_path: Path, rng: np.random.Generator) -> tuple[Path, list]:
+    messages = sample_messages(40, rng)
+    write_bag(tmp_path / "run", messages, chunk_size_b=8_000)
+    return tmp_path / "run", messages
+
+
+def test_payload_splits_back_into_the_frames_without_copy(rng: np.random.Generator) -> None:
+    image = Image(data=rng.integers(0, 255, (7, 9, 3), dtype=np.uint8), encoding="bgr8")
+    for msg in (image,
+                MarkerArray(ref_px=np.ones((4, 2), np.float32), cur_px=np.zeros((4, 2), np.float32),
+                            valid=np.ones(4, bool), frames_since_seen=np.zeros(4, np.int32)),
+                SlipState(probability=0.25, frame_id="x" * 1500)):  # header longer than one probe
+        frames = msgs.encode(msg)
+        payload = join_frames(frames)
+        header, parts = split_payload(payload, "/t")
+        assert header["type"] == msg.TYPE
+        assert [bytes(p) for p in parts] == [bytes(f) for f in frames]
+        decoded = msgs.decode(parts, "/t")
+        assert decoded.scalar_fields() == msg.scalar_fields()
+        for name in msg.ARRAYS:
+            np.testing.assert_array_equal(getattr(decoded, name), getattr(msg, name))
+    with pytest.raises(MessageError, match="'/t', type 'Image', field 'arrays'"):
+        split_payload(join_frames(msgs.encode(image))[:-1], "/t")
+    with pytest.raises(MessageError, match="header"):
+        split_payload(b"\xc1garbage", "/t")
+
+
+def test_writer_and_reader_round_trip(bag: tuple[Path, list]) -> None:
+    path, messages = bag
+    reader = BagReader(path)
+    topics = reader.topics()
+    assert {t: (i.type_name, i.count, i.latched, i.nodes) for t, i in topics.items()} == {
+        "/camera/info": ("CameraInfo", 1, True, ["cam"]), "/camera/image": ("Image", 40, False, ["cam"]),
+        "/field": ("DisplacementField", 40, False, ["proc"]), "/slip": ("SlipState", 40, False, ["proc"])}
+    got = list(read_bag(path))
+    assert [(t, m.TYPE, lt) for t, m, lt in got] == [(t, m.TYPE, lt) for t, _, m, lt in messages]
+    for (_, msg, _), (_, _, want, _) in zip(got, messages):
+        assert msg.stamp_ns == want.stamp_ns and msg.seq == want.seq and msg.pub_ns == want.pub_ns
+        for name in msg.ARRAYS:
+            np.testing.assert_array_equal(getattr(msg, name), getattr(want, name))
+    raw = list(reader.messages(["/slip"]))
+    assert [m.sequence for m in raw] == list(range(40))
+    assert all(m.publish_time_ns == m.log_time_ns - 100 for m in raw)
+    assert [a.name for a in reader.attachments()] == ["launch.yaml"]
+    assert reader.metadata() == {"fv_recording": {"host": "test"}}
+    assert reader.chunk_stats()["chunks"] > 5 and reader.chunk_stats()["compression"] == ["zstd"]
+    with open(reader.files[0], "rb") as f:
+        from mcap.reader import make_reader
+        summary = make_reader(f).get_summary()
+    schema = next(s for s in summary.schemas.values() if s.name == "Image")
+    assert schema.encoding == MESSAGE_ENCODING and json.loads(schema.data)["version"] == Image.VERSION
+    assert all(c.message_encoding == MESSAGE_ENCODING for c in summary.channels.values())
+
+
+def test_split_by_size_and_duration_repeats_attachments(tmp_path: Path, rng: np.random.Generator) -> None:
+    messages = sample_messages(60, rng)
+    by_size = write_bag(tmp_path / "s", messages, chunk_size_b=4_000, max_bag_size_b=20_000, compression="lz4")
+    by_time = write_bag(tmp_path / "d", messages, max_bag_duration_s=0.2, compression="none")
+    assert len(by_size.files) > 2 and len(by_time.files) == 4  # 0.601 s: 3 full files of 0.2 s + 1
+    for writer in (by_size, by_time):
+        reader = BagReader(writer.output)
+        assert [(m.topic, m.log_time_ns) for m in reader.messages()] == [(t, lt) for t, _, _, lt in messages]
+        assert [a.file for a in reader.attachments()] == reader.files
+        assert reader.topics()["/field"].count == 60
+
+
+def test_latched_and_topic_filter_and_unknown_topic(bag: tuple[Path, list]) -> None:
+    path, _ = bag
+    assert [t for t, _, _ in read_bag(path, ["/camera/info", "/slip"])][:2] == ["/camera/info", "/slip"]
+    with pytest.raises(BagError, match="no topic '/nope'"):
+        list(read_bag(path, ["/nope"]))
+
+
+def bag_chunks(path: Path) -> list:
+    from mcap.reader import make_reader
+    with open(path, "rb") as f:
+        return sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+
+
+def test_recover_keeps_every_complete_chunk(bag: tuple[Path, list], tmp_path: Path) -> None:
+    path, messages = bag
+    file = BagReader(path).files[0]
+    data = file.read_bytes()
+    chunks = bag_chunks(file)
+    for k in (1, len(chunks) // 2, len(chunks) - 1):
+        cut = tmp_path / f"cut{k}.mcap"
+        cut.write_bytes(data[:chunks[k].chunk_start_offset + chunks[k].chunk_length // 2])
+        with pytest.raises(BagError, match="fv bag recover"):
+            BagReader(cut)
+        report = recover(cut, tmp_path / f"fixed{k}.mcap")
+        expected = [lt for _, _, _, lt in messages if lt <= chunks[k - 1].message_end_time]
+        got = [m.log_time_ns for m in BagReader(tmp_path / f"fixed{k}.mcap").messages()]
+        assert got == expected and report.messages == len(expected) and report.chunks == k
+        assert not report.complete and report.lost_b == cut.stat().st_size - chunks[k].chunk_start_offset
+        assert report.attachments == 1 and report.metadata == 1
+    whole = recover(file, tmp_path / "whole.mcap")
+    assert whole.complete and whole.messages == len(messages) and whole.lost_b == 0
+
+
+def test_recover_in_place_keeps_the_original(bag: tuple[Path, list], capsys: pytest.CaptureFixture) -> None:
+    path, messages = bag
+    file = BagReader(path).files[0]
+    data = file.read_bytes()
+    file.write_bytes(data[:len(data) * 2 // 3])
+    assert main(["bag", "recover", str(file), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert 0 < report["messages"] < len(messages) and report["lost_b"] > 0
+    assert file.with_name(file.name + ".broken").read_bytes() == data[:len(data) * 2 // 3]
+    assert BagReader(path).message_count == report["messages"]
+    with pytest.raises(ValueError, match="already exists"):
+        recover_in_place(file)
+
+
+@pytest.mark.parametrize("content", [b"", b"not a bag at all" * 10, b"\x89MCAP0\r\n" + b"\x00" * 40])
+def test_bad_files_give_one_line_errors(tmp_path: Path, content: bytes, capsys: pytest.CaptureFixture) -> None:
+    path = tmp_path / "bad.mcap"
+    path.write_bytes(content)
+    with pytest.raises(BagError, match=f"bag {path}: "):
+        BagReader(path)
+    export_argv = ["bag", "export", str(path), "--topic", "/x", "-o", str(tmp_path / "o.csv")]
+    for argv in (["bag", "info", str(path)], export_argv):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and str(path) in err and "Traceback" not in err
+    assert main(["bag", "info", str(tmp_path / "missing")]) == 2
+    assert "no such file" in capsys.readouterr().err
+
+
+def test_damaged_chunk_is_a_bag_error_when_reading(bag: tuple[Path, list], tmp_path: Path) -> None:
+    path, _ = bag
+    file = BagReader(path).files[0]
+    data = bytearray(file.read_bytes())
+    chunk = bag_chunks(file)[2]
+    data[chunk.chunk_start_offset + chunk.chunk_length - 40] ^= 0xFF
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+    with pytest.raises(BagError, match="damaged data"):
+        list(read_bag(damaged))
+
+
+def test_info_json(bag: tuple[Path, list], capsys: pytest.CaptureFixture) -> None:
+    path, _ = bag
+    assert main(["bag", "info", str(path), "--json", "--gaps"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    image = next(t for t in info["topics"] if t["topic"] == "/camera/image")
+    assert image["count"] == 40 and image["gaps"] == 0 and image["type"] == "Image"
+    assert image["rate_hz"] == pytest.approx(39 / info["duration_s"])
+    assert info["attachments"][0]["name"] == "launch.yaml" and info["metadata"]["fv_recording"]["host"] == "test"
+    assert main(["bag", "info", str(path)]) == 0
+    text = capsys.readouterr().out
+    assert "/camera/image" in text and "launch.yaml" in text
+    assert bag_info(path)["messages"] == 121
+
+
+def test_export_video_png_csv_npz(bag: tuple[Path, list], tmp_path: Path) -> None:
+    path, messages = bag
+    images = [m for t, _, m, _ in messages if t == "/camera/image"]
+    for suffix in ("mp4", "avi"):
+        count, out = export(path, "/camera/image", tmp_path / f"v.{suffix}")
+        cap = cv2.VideoCapture(str(out))
+        assert count == 40 and int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 40
+        assert int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)) == 32
+        cap.release()
+    count, out = export(path, "/camera/image", tmp_path / "png")
+    files = sorted(out.iterdir())
+    assert count == 40 and len(files) == 40
+    np.testing.assert_array_equal(cv2.imread(str(files[3]), cv2.IMREAD_GRAYSCALE), images[3].data)
+    assert export(path, "/slip", tmp_path / "slip.csv")[0] == 40
+    rows = (tmp_path / "slip.csv").read_text().splitlines()
+    assert rows[0].startswith("log_time_ns,seq,stamp_ns") and "probability" in rows[0] and len(rows) == 41
+    export(path, "/field", tmp_path / "field.npz")
+    npz = np.load(tmp_path / "field.npz")
+    assert npz["field"].shape == (40, 5, 6, 3) and list(npz["seq"]) == list(range(40))
+    with pytest.raises(ValueError, match="not Image"):
+        export(path, "/field", tmp_path / "f.mp4")

@@ -1,0 +1,278 @@
+"""Bags on a live bus: record, kill -9 and recover, play with timing, round trip,
+flow-controlled fast replay, pause, the replay launch file and `fv bench bag`.
+
+Each test has its own forwarder on a private IPC path; every process started is killed
+by a finalizer.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+import pytest
+import yaml
+
+import msgs
+from msgs import CameraInfo, Image, SlipState
+from nodes.bag.reader import BagError, BagReader
+from nodes.bag.recorder import BagRecord
+from nodes.bag.player import BagPlay
+from nodes.bag.recover import recover
+from nodes.bus import PublisherSocket, TopicReader
+from nodes.endpoints import BUS_ENV, BusAddress, bus_address
+from nodes.forwarder import ensure_forwarder
+from tests.nodes.test_bag import sample_messages, write_bag
+
+REPO = Path(__file__).resolve().parents[2]
+Spawn = Callable[..., subprocess.Popen]
+
+
+def stop(proc: subprocess.Popen, sig: int = signal.SIGINT, timeout_s: float = 20.0) -> int:
+    if proc.poll() is None:
+        proc.send_signal(sig)
+        try:
+            proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return proc.returncode
+
+
+@pytest.fixture
+def bus(monkeypatch: pytest.MonkeyPatch) -> Iterator[BusAddress]:
+    """A private forwarder; FV_BUS points at it for this test and its subprocesses."""
+    folder = tempfile.mkdtemp(prefix="fvbag", dir="/tmp")
+    address = bus_address(f"ipc://{folder}/bus")
+    monkeypatch.setenv(BUS_ENV, address.url)
+    forwarder = ensure_forwarder(address)
+    yield address
+    stop(forwarder, signal.SIGTERM)
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.fixture
+def spawn(bus: BusAddress) -> Iterator[Spawn]:
+    """spawn(*fv_args) starts `python -m nodes.cli ...` on the test's bus (stderr kept)."""
+    procs: list[subprocess.Popen] = []
+
+    def start(*args: str) -> subprocess.Popen:
+        proc = subprocess.Popen([sys.executable, "-m", "nodes.cli", *args], cwd=REPO, stdin=subprocess.DEVNULL,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        procs.append(proc)
+        return proc
+
+    yield start
+    for proc in procs:
+        stop(proc, signal.SIGKILL)
+
+
+def wait_subscribed(pub: PublisherSocket, topics: list[str], timeout_s: float = 20.0) -> None:
+    pub.wait_connected(timeout_s)
+    deadline = time.monotonic() + timeout_s
+    while not all(pub.has_subscribers(t) for t in topics):
+        assert time.monotonic() < deadline, f"nobody subscribed to {topics}"
+        time.sleep(0.02)
+
+
+def in_thread(node) -> threading.Thread:
+    thread = threading.Thread(target=node.spin, kwargs={"install_signals": False}, daemon=True)
+    thread.start()
+    return thread
+
+
+def test_kill_9_then_recover_keeps_every_completed_chunk(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
+    flush_s = 0.2
+    rec = spawn("bag", "record", "/camera/image", "/slip", "-o", str(tmp_path / "crash"), "--chunk-size", "64K",
+                "--flush-period", str(flush_s))
+    pub = PublisherSocket("cam", bus)
+    rng = np.random.default_rng(3)
+    sent: list[tuple[float, np.ndarray]] = []  # (monotonic publish time, image) by seq
+    try:
+        wait_subscribed(pub, ["/camera/image", "/slip"])
+        kill_at = time.monotonic() + 1.5
+        killed = None
+        while time.monotonic() < kill_at + 0.3:
+            data = rng.integers(0, 255, (120, 160), dtype=np.uint8)
+            sent.append((time.monotonic(), data))
+            pub.publish("/camera/image", Image(stamp_ns=len(sent), data=data))
+            pub.publish("/slip", SlipState(stamp_ns=len(sent)))
+            if killed is None and time.monotonic() >= kill_at:
+                rec.kill()
+                killed = time.monotonic()
+            time.sleep(0.005)
+    finally:
+        pub.close()
+    rec.wait(5)
+    file = tmp_path / "crash" / "crash_0.mcap"
+    with pytest.raises(BagError, match="recover"):
+        BagReader(file)
+    report = recover(file, tmp_path / "fixed.mcap")
+    bag = BagReader(tmp_path / "fixed.mcap")
+    images = [m for m in bag.messages(["/camera/image"])]
+    seqs = [m.sequence for m in images]
+    assert seqs == list(range(len(seqs)))  # a gap-free prefix of what was published
+    assert [m.sequence for m in bag.messages(["/slip"])] == list(range(bag.topics()["/slip"].count))
+    surely_flushed = sum(t < killed - flush_s - 0.1 for t, _ in sent)
+    sent_before_kill = sum(t < killed for t, _ in sent)
+    assert surely_flushed <= len(seqs) <= sent_before_kill
+    assert report.messages == bag.message_count and not report.complete  # lost_b may be 0: a cut between chunks
+    for m in images[::25]:
+        np.testing.assert_array_equal(m.decode().data, sent[m.sequence][1])
+
+
+def test_record_play_record_round_trip_with_recorded_timing(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
+    rng = np.random.default_rng(5)
+    dt_ns = list(rng.integers(4_000_000, 25_000_000, 100))
+    original = write_bag(tmp_path / "one", sample_messages(100, rng, (120, 160), dt_ns))
+    rec = spawn("bag", "record", "-a", "-x", "^/status$", "-o", str(tmp_path / "two"))
+    play = spawn("bag", "play", str(original.output), "--wait-timeout", "20")
+    assert play.wait(60) == 0, play.stderr.read()
+    assert "frames/s" in play.stderr.read()
+    assert stop(rec) == 0
+    one, two = BagReader(original.output), BagReader(tmp_path / "two")
+    a, b = list(one.messages()), list(two.messages())
+    key = lambda m: (m.topic, m.sequence)  # noqa: E731
+    assert sorted((key(m), m.payload, m.publish_time_ns, m.node, m.latched) for m in a) == \
+           sorted((key(m), m.payload, m.publish_time_ns, m.node, m.latched) for m in b)
+    assert {t: i.latched for t, i in two.topics().items()}["/camera/info"]
+    for topic in ("/camera/image", "/slip"):
+        rec_t = np.diff([m.log_time_ns for m in a if m.topic == topic]) / 1e6
+        play_t = np.diff([m.log_time_ns for m in b if m.topic == topic]) / 1e6
+        assert np.median(np.abs(play_t - rec_t)) < 1.0, f"{topic}: intervals off by {np.abs(play_t - rec_t)}"
+
+
+def test_fast_play_with_sync_never_overruns_a_slow_consumer(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
+    n, work_s = 60, 0.01
+    write_bag(tmp_path / "b", sample_messages(n, np.random.default_rng(1)))
+    seen: list[int] = []
+    done = threading.Event()
+
+    def slow_consumer() -> None:  # a depth-2 subscriber answering each frame on /slip after 10 ms
+        pub = PublisherSocket("slow", bus)
+        with TopicReader(["/camera/image"], bus, hwm=2) as reader:
+            while not done.is_set():
+                raw = reader.recv_raw(0.1)
+                if raw is not None:
+                    header = msgs.decode_header(raw[3][0])
+                    seen.append(header["seq"])
+                    time.sleep(work_s)
+                    pub.publish("/slip", SlipState(stamp_ns=header["stamp_ns"]))
+        pub.close()
+
+    consumer = threading.Thread(target=slow_consumer, daemon=True)
+    consumer.start()
+    try:
+        play = spawn("bag", "play", str(tmp_path / "b"), "--fast", "--topics", "/camera/image", "--sync-topic",
+                     "/slip", "--wait-timeout", "20")
+        assert play.wait(60) == 0
+    finally:
+        done.set()
+        consumer.join(5)
+    log = play.stderr.read()
+    assert seen == list(range(n)), log
+    assert "sync timeouts 0" in log
+    fps = float(log.split(" frames/s")[0].rsplit(": ", 1)[1])
+    assert 10 < fps < 1 / work_s * 1.1  # paced by the consumer, not by the bag's 100 Hz
+
+
+def test_play_offset_duration_topics_remap_and_latched_first(bus: BusAddress, tmp_path: Path) -> None:
+    messages = sample_messages(50, np.random.default_rng(2))  # frames every 10 ms
+    write_bag(tmp_path / "b", messages)
+    with TopicReader(["/cam2", "/camera/info", "/slip"], bus) as reader:
+        node = BagPlay("play", {"path": str(tmp_path / "b"), "fast": True, "start_offset_s": 0.2,
+                                "duration_s": 0.1, "topics": ["/camera/image", "/camera/info"]},
+                       remap={"/camera/image": "/cam2"}, address=bus)
+        thread = in_thread(node)
+        got = []
+        while (item := reader.recv(2.0)) is not None:
+            got.append((item.topic, item.msg.seq, item.latched))
+        thread.join(5)
+    start = messages[0][3]
+    want = [i for i, (t, _, _, lt) in enumerate(m for m in messages if m[0] == "/camera/image")
+            if start + 0.2e9 <= lt < start + 0.3e9]
+    assert got == [("/camera/info", 0, True)] + [("/cam2", i, False) for i in want]
+    assert len(want) == 10 and node.counters["played"] == 11
+
+
+def test_start_paused_until_sigusr1(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
+    write_bag(tmp_path / "b", sample_messages(20, np.random.default_rng(4)))
+    with TopicReader(["/slip"], bus) as reader:
+        play = spawn("bag", "play", str(tmp_path / "b"), "--topics", "/slip", "--start-paused", "--wait-timeout", "20")
+        while "paused" not in play.stderr.readline():
+            assert play.poll() is None
+        assert reader.recv(0.8) is None
+        play.send_signal(signal.SIGUSR1)
+        got = [reader.recv(2.0) for _ in range(20)]
+    assert [r.msg.seq for r in got] == list(range(20))
+    assert play.wait(10) == 0
+
+
+def test_record_node_selection_split_attachments(bus: BusAddress, tmp_path: Path) -> None:
+    launch = tmp_path / "session.yaml"
+    launch.write_text("nodes: []\n")
+    node = BagRecord("rec", {"output": str(tmp_path / "sel"), "regex": "^/(a|cam)", "exclude_regex": "skip",
+                             "max_bag_duration_s": 0.3, "attach": [str(launch)], "compression": "lz4"}, address=bus)
+    thread = in_thread(node)
+    pub = PublisherSocket("src", bus)
+    try:
+        wait_subscribed(pub, ["/a"])
+        info = CameraInfo(width=160, height=120, K=np.eye(3) * 100.0, D=np.zeros(4))
+        pub.publish("/camera/info", info, latched=True)
+        for i in range(80):
+            for topic in ("/a", "/a/skip", "/b"):
+                pub.publish(topic, SlipState(stamp_ns=i))
+            time.sleep(0.01)
+    finally:
+        pub.close()
+    node.stop()
+    thread.join(10)
+    bag = BagReader(tmp_path / "sel")
+    assert {t: i.count for t, i in bag.topics().items()} == {"/camera/info": 1, "/a": 80}
+    assert len(bag.files) >= 3 and [m.sequence for m in bag.messages(["/a"])] == list(range(80))
+    names = {a.name for a in bag.attachments()}
+    assert names == {"session.yaml", "calibration/camera_info.yaml"}
+    calib = yaml.safe_load(next(a.data for a in bag.attachments() if a.name.startswith("calibration")))
+    assert calib["K"][0][0] == 100.0 and calib["width"] == 160
+    meta = bag.metadata()
+    assert {"host", "start_time", "software", "command_line", "bus", "topics"} <= set(meta["fv_recording"])
+    assert json.loads(meta["fv_recording_end"]["per_topic"])["/a"] == {"count": 80, "gaps": 0}
+    assert "missing by seq 0" in node.summary_line() and "/a 80" in node.summary_line()
+
+
+def test_replay_launch_plays_the_camera_topics(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
+    """The bag part of launch/replay.yaml (the pipeline nodes land later)."""
+    doc = yaml.safe_load((REPO / "launch" / "replay.yaml").read_text())
+    kinds = [n["kind"] for n in doc["nodes"]]
+    assert kinds[0] == "bag_play" and {"tracker", "interpolator", "slip_detector"} <= set(kinds)
+    only_bag = tmp_path / "replay_bag.yaml"
+    only_bag.write_text(yaml.safe_dump({"args": doc["args"], "nodes": doc["nodes"][:1]}))
+    messages = sample_messages(30, np.random.default_rng(6))
+    write_bag(tmp_path / "b", messages)
+    with TopicReader(["/camera/image"], bus) as reader:
+        launch = spawn("launch", str(only_bag), f"bag:={tmp_path / 'b'}", "fast:=true")
+        frames = [reader.recv(10.0) for _ in range(30)]
+    assert [f.msg.seq for f in frames] == list(range(30))
+    launch.wait(30)  # bag_play is required: the launch ends with it (the launcher then exits 1)
+    assert "bag_play exited with code 0" in launch.stdout.read() + launch.stderr.read()
+    with TopicReader(["/camera/info"], bus) as late:  # latched: still there for a late joiner
+        item = late.recv(2.0)
+    assert item is not None and item.latched and item.msg.width == 32
+
+
+def test_bench_bag_reports_completeness_and_cpu(bus: BusAddress, spawn: Spawn) -> None:
+    bench = spawn("bench", "bag", "--duration", "2", "--json")
+    out, err = bench.communicate(timeout=90)
+    assert bench.returncode == 0, err
+    result = json.loads(out)
+    assert result["complete"] and result["published"]["/camera/image"] == 120
+    assert result["recorded"] == result["published"] and set(result["missing"].values()) == {0}
+    assert 0 < result["recorder_cpu_percent"] < 200 and result["fast_play"]["received"] == 120
