@@ -18,6 +18,7 @@ import argparse
 import json
 import multiprocessing as mp
 import os
+import shutil
 import tempfile
 import time
 from typing import Any
@@ -136,7 +137,7 @@ def _run_path(name: str, pub_endpoint: str, sub_endpoint: str, bind_sub: bool, o
     return {
         "latency_ms": {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
                        "mean": float(lat.mean()), "n": int(lat.size)} if lat.size else {"n": 0},
-        "throughput_fps": (tp.size - 1) / span_s if tp.size > 1 else 0.0,
+        "throughput_fps": float((tp.size - 1) / span_s) if tp.size > 1 else 0.0,
         "throughput_received": int(tp.size),
         "throughput_sent": opts.throughput_frames,
         "send_fps": sent["send_fps"],
@@ -148,16 +149,18 @@ def run_bench(opts: argparse.Namespace) -> dict[str, Any]:
     from nodes.endpoints import bus_address
     from nodes.forwarder import ensure_forwarder
 
-    folder = tempfile.mkdtemp(prefix="fvbench", dir="/tmp")
-    raw = _run_path("raw", f"ipc://{folder}/raw", f"ipc://{folder}/raw", True, opts)
-    address = bus_address(f"ipc://{folder}/bus")
-    forwarder = ensure_forwarder(address)
+    folder = tempfile.mkdtemp(prefix="fvbench", dir="/tmp")  # IPC paths must stay short
+    forwarder = None
     try:
+        raw = _run_path("raw", f"ipc://{folder}/raw", f"ipc://{folder}/raw", True, opts)
+        address = bus_address(f"ipc://{folder}/bus")
+        forwarder = ensure_forwarder(address)
         fwd = _run_path("forwarder", address.pub, address.sub, False, opts)
     finally:
         if forwarder is not None:
             forwarder.terminate()
             forwarder.wait(5.0)
+        shutil.rmtree(folder, ignore_errors=True)
     added = fwd["latency_ms"]["p50"] - raw["latency_ms"]["p50"]
     return {
         "frame": {"width": opts.width, "height": opts.height, "encoding": "mono8", "bytes": opts.width * opts.height},
@@ -166,14 +169,19 @@ def run_bench(opts: argparse.Namespace) -> dict[str, Any]:
         "raw": raw, "forwarder": fwd,
         "forwarder_added_p50_ms": added,
         "goal": {"added_p50_ms_max": GOAL_ADDED_P50_MS, "throughput_fps_min": GOAL_THROUGHPUT_FPS,
-                 "met": added <= GOAL_ADDED_P50_MS and fwd["throughput_fps"] >= GOAL_THROUGHPUT_FPS},
+                 "met": bool(added <= GOAL_ADDED_P50_MS and fwd["throughput_fps"] >= GOAL_THROUGHPUT_FPS)},
     }
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    bench = sub.add_parser("bench", help="benchmarks")
-    kinds = bench.add_subparsers(dest="bench", required=True, metavar="KIND")
-    p = kinds.add_parser("bus", help="Image latency and throughput through the forwarder vs raw pyzmq")
+    """Create the `fv bench` group with `bus` in it (nodes.bench_commands adds the others)."""
+    bench = sub.add_parser("bench", help="benchmarks (fv bench KIND --help)")
+    add_parser(bench.add_subparsers(dest="bench", required=True, metavar="KIND"), "bus")
+
+
+def add_parser(kinds: argparse._SubParsersAction, name: str) -> None:
+    """Add `fv bench NAME` (the BENCHMARKS entry form of nodes.bench_commands)."""
+    p = kinds.add_parser(name, help="Image latency and throughput through the forwarder vs raw pyzmq")
     p.add_argument("--width", type=int, default=640, help="frame width in px")
     p.add_argument("--height", type=int, default=480, help="frame height in px")
     p.add_argument("--frames", type=int, default=300, help="frames for the latency measurement")

@@ -15,7 +15,7 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -35,7 +35,6 @@ class Child:
     retries: int = 0
     restart_at: float | None = None
     reader: threading.Thread | None = None
-    exit_codes: list[int] = field(default_factory=list)
 
 
 class Launch:
@@ -45,9 +44,9 @@ class Launch:
     >>> launch.start(); ...; launch.stop()
     """
 
-    def __init__(self, specs: list[NodeSpec], output: TextIO | None = None, name: str = "launch") -> None:
+    def __init__(self, specs: list[NodeSpec], output: TextIO | None = None) -> None:
+        """specs: the validated nodes; output: where prefixed node output goes (default stdout)."""
         self.specs = specs
-        self.name = name
         self.output = output or sys.stdout
         self.children = [Child(spec) for spec in specs]
         self.exit_code = 0
@@ -60,7 +59,7 @@ class Launch:
     @classmethod
     def from_file(cls, path: str | Path, args: dict[str, Any] | None = None, output: TextIO | None = None) -> "Launch":
         """Parse and validate `path` with launch arguments `args`; LaunchError names file, line and key."""
-        return cls(load_launch(path, args), output, Path(path).stem)
+        return cls(load_launch(path, args), output)
 
     # -- output ----------------------------------------------------------------------
     def say(self, text: str, who: str = "launch") -> None:
@@ -163,7 +162,6 @@ class Launch:
 
     def _exited(self, child: Child, now: float) -> None:
         spec, code = child.spec, child.proc.returncode
-        child.exit_codes.append(code)
         child.proc = None
         if child.reader is not None:
             child.reader.join(1.0)

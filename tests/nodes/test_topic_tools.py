@@ -1,0 +1,109 @@
+"""`fv topic ...` and `fv node list` against running nodes: outputs parse and agree
+with what the nodes do."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from msgs import SlipState
+from nodes.bus import TopicReader
+from nodes.topic_tools import build_message
+from tests.nodes.conftest import REPO, Bus, run_fv, wait_status
+
+
+def _start(*args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "nodes.cli", *args], cwd=REPO, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def _finish(proc: subprocess.Popen, timeout_s: float = 15.0) -> str:
+    try:
+        out, err = proc.communicate(timeout=timeout_s)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err
+    return out
+
+
+def test_introspection_outputs_parse(bus: Bus, spawn) -> None:
+    spawn("node", "talker", "-p", "rate_hz=20")
+    spawn("node", "listener")
+    wait_status("listener", lambda st: st.counters.get("received", 0) > 0, timeout_s=8.0)
+    procs = {
+        "echo": _start("topic", "echo", "/chatter", "--count", "3", "--json", "--timeout", "5"),
+        "hz": _start("topic", "hz", "/chatter", "--duration", "2", "--json"),
+        "bw": _start("topic", "bw", "/chatter", "--duration", "1", "--json"),
+        "delay": _start("topic", "delay", "/chatter", "--duration", "1", "--json"),
+        "list": _start("topic", "list", "--json"),
+        "info": _start("topic", "info", "/chatter", "--json"),
+        "nodes": _start("node", "list", "--json"),
+    }
+    out = {name: _finish(proc) for name, proc in procs.items()}
+
+    echoed = [json.loads(line) for line in out["echo"].splitlines()]
+    assert len(echoed) == 3 and {e["type"] for e in echoed} == {"SlipState"}
+    assert all(0.0 <= e["probability"] <= 1.0 and e["node"] == "talker" for e in echoed)
+    assert echoed[0]["window_stamps_ns"] == {"dtype": "<i8", "shape": [0], "data": []}
+
+    hz = json.loads(out["hz"])
+    assert hz["topic"] == "/chatter" and 20 * 0.8 <= hz["rate_hz"] <= 20 * 1.2 and hz["window"] >= 20
+    bw = json.loads(out["bw"])
+    assert bw["mean_bytes"] > 50 and bw["bytes_per_s"] > 20 * 50 * 0.5
+    delay = json.loads(out["delay"])
+    assert 0 <= delay["transport_ms"] <= delay["delay_ms"] < 1000
+
+    topics = {t["topic"]: t for t in json.loads(out["list"])}
+    assert topics["/chatter"]["publishers"] == ["talker"] and topics["/chatter"]["subscribers"] == ["listener"]
+    assert topics["/chatter"]["types"] == ["SlipState"] and "/status" in topics
+    info = json.loads(out["info"])
+    assert info == topics["/chatter"]
+    nodes = {n["name"]: n for n in json.loads(out["nodes"])}
+    assert set(nodes) == {"talker", "listener"} and nodes["listener"]["counters"]["received"] > 0
+
+
+def test_pub_reaches_a_subscriber(bus: Bus) -> None:
+    with TopicReader(["/cmd"]) as reader:
+        proc = _start("topic", "pub", "/cmd", "SlipState", "{probability: 0.9, slip: true}", "--count", "3",
+                      "--rate", "20")
+        got = [reader.recv(timeout_s=5.0) for _ in range(3)]
+        _finish(proc)
+    assert all(g is not None and g.msg.slip and g.msg.probability == 0.9 for g in got)
+    assert [g.msg.seq for g in got] == [0, 1, 2]
+
+
+def test_latched_pub_reaches_a_later_echo(bus: Bus) -> None:
+    assert run_fv("topic", "pub", "/info", "CameraInfo", "{width: 640, height: 480, K: [[1, 0, 0], [0, 1, 0], "
+                  "[0, 0, 1]]}", "--once", "--latched").returncode == 0
+    result = run_fv("topic", "echo", "/info", "--once", "--json", "--timeout", "3")
+    assert result.returncode == 0, result.stderr
+    info = json.loads(result.stdout)
+    assert info["width"] == 640 and info["K"]["data"] == [[1, 0, 0], [0, 1, 0], [0, 0, 1]]
+
+
+def test_echo_times_out_and_info_knows_no_topic(bus: Bus) -> None:
+    result = run_fv("topic", "echo", "/nothing", "--timeout", "0.3")
+    assert result.returncode == 1 and "no message on /nothing" in result.stderr
+    result = run_fv("topic", "info", "/nothing", "--wait", "0.2")
+    assert result.returncode == 1 and "/nothing" in result.stderr
+
+
+@pytest.mark.parametrize("type_name, text, match", [
+    ("SlipState", "{probabilty: 0.9}", "probabilty"),
+    ("SlipState", "{probability: 2.0}", "probability"),
+    ("SlipState", "{slip: 1}", "slip"),
+    ("SlipState", "{seq: 4}", "seq"),
+    ("Image", "{data: [[1, 2], [3]]}", "data"),
+    ("Slip", "{}", "unknown message type"),
+    ("SlipState", "[1, 2]", "mapping"),
+])
+def test_pub_fields_errors_name_the_field(type_name: str, text: str, match: str) -> None:
+    with pytest.raises((ValueError, KeyError), match=match):
+        build_message(type_name, text)
+
+
+def test_pub_builds_arrays_in_the_field_dtype() -> None:
+    msg = build_message("SlipState", "{window_stamps_ns: [1, 2, 3], model: m}")
+    assert isinstance(msg, SlipState) and msg.window_stamps_ns.dtype.kind == "i" and msg.model == "m"
