@@ -173,14 +173,8 @@ def run_bench(opts: argparse.Namespace) -> dict[str, Any]:
     }
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    """Create the `fv bench` group with `bus` in it (nodes.bench_commands adds the others)."""
-    bench = sub.add_parser("bench", help="benchmarks (fv bench KIND --help)")
-    add_parser(bench.add_subparsers(dest="bench", required=True, metavar="KIND"), "bus")
-
-
 def add_parser(kinds: argparse._SubParsersAction, name: str) -> None:
-    """Add `fv bench NAME` (the BENCHMARKS entry form of nodes.bench_commands)."""
+    """Add `fv bench NAME` (an entry of nodes.bench_commands.BENCHMARKS)."""
     p = kinds.add_parser(name, help="Image latency and throughput through the forwarder vs raw pyzmq")
     p.add_argument("--width", type=int, default=640, help="frame width in px")
     p.add_argument("--height", type=int, default=480, help="frame height in px")

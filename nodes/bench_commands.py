@@ -11,22 +11,14 @@ import argparse
 import importlib
 
 BENCHMARKS: dict[str, tuple[str, str]] = {
+    "bus": ("nodes.bench_bus", "add_parser"),
     "bag": ("nodes.bag.bench", "add_parser"),
     "perception": ("nodes.bench_perception", "add_parser"),
 }
 
 
-def _bench_group(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
-    """The sub-parsers of `fv bench`, created here unless a command module that predates
-    this group (nodes.bench_bus) already made the `bench` parser."""
-    bench = sub.choices.get("bench")
-    if bench is None:
-        bench = sub.add_parser("bench", help="benchmarks (fv bench KIND --help)")
-        return bench.add_subparsers(dest="bench", required=True, metavar="KIND")
-    return next(a for a in bench._actions if isinstance(a, argparse._SubParsersAction))
-
-
 def register(sub: argparse._SubParsersAction) -> None:
-    kinds = _bench_group(sub)
+    bench = sub.add_parser("bench", help="benchmarks (fv bench KIND --help)")
+    kinds = bench.add_subparsers(dest="bench", required=True, metavar="KIND")
     for name, (module, function) in BENCHMARKS.items():
         getattr(importlib.import_module(module), function)(kinds, name)

@@ -13,7 +13,6 @@ COMMAND_MODULES = [
     "nodes.sim_commands",
     "nodes.launcher",
     "nodes.topic_tools",
-    "nodes.bench_bus",
     "nodes.bag.commands",
     "nodes.bench_commands",
 ]
