@@ -68,7 +68,7 @@ class DetectorParams:
     min_area_ratio: float = 0.2
     max_area_ratio: float = 3.5
     max_aspect: float = 3.5
-    refine_iterations: int = 2
+    refine_iterations: int = 1
     min_downsampled_px: float = 4.0
 
     def __post_init__(self) -> None:

@@ -16,6 +16,10 @@ from scipy.spatial import cKDTree
 from fv_algos.detection import Detections
 
 
+# Rejecting an implausible match changes its neighbours' medians, so the check is repeated.
+_PLAUSIBILITY_PASSES = 3
+
+
 @dataclass(frozen=True)
 class TrackerParams:
     """Tracker settings; distances are fractions of the median reference marker spacing.
@@ -328,8 +332,10 @@ class Tracker:
             pred_next, has = self._neighbour_prediction(matched, det)
             pred = np.where(has[:, None], pred_next, pred)
         self._gated_round(pred, det, ratio, p.gate_ratio * self.pitch_px, matched, free)
-        seen = matched >= 0
-        new = np.where(seen[:, None], det[np.maximum(matched, 0)], self._cur)
-        bad = _inconsistent(new - self._ref, seen, self._graph, self._spacing, p.tolerance_ratio)
-        matched[bad] = -1
+        new = det[np.maximum(matched, 0)] - self._ref
+        for _ in range(_PLAUSIBILITY_PASSES):
+            bad = _inconsistent(new, matched >= 0, self._graph, self._spacing, p.tolerance_ratio)
+            if not bad.any():
+                break
+            matched[bad] = -1
         return matched

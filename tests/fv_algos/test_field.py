@@ -64,6 +64,7 @@ def test_smooth_field_accuracy_and_griddata_alternative() -> None:
     assert np.median(inside) < 0.05
 
 
+@pytest.mark.slow
 def test_missing_markers_use_a_cached_operator_per_pattern() -> None:
     cur = REF + _smooth(REF)
     interp = FieldInterpolator(REF, FieldParams(cache_size=2))

@@ -13,14 +13,14 @@ from fv_algos.perception import Perception, PerceptionParams
 from fv_algos.tracking import neighbour_consistency
 
 
-def _frames(path: Path, step: int = 1) -> list[tuple[int, np.ndarray]]:
-    """(index, BGR frame) for every `step`-th frame of a video."""
+def _frames(path: Path, step: int = 1, stop: int | None = None) -> list[tuple[int, np.ndarray]]:
+    """(index, BGR frame) for every `step`-th frame of a video, up to frame `stop` (excluded)."""
     capture = cv2.VideoCapture(str(path))
     out: list[tuple[int, np.ndarray]] = []
     index = 0
     while True:
         ok, frame = capture.read()
-        if not ok:
+        if not ok or (stop is not None and index >= stop):
             break
         if index % step == 0:
             out.append((index, frame))
@@ -50,7 +50,7 @@ def test_gsmini_example_all_markers_tracked_without_swaps(real_data: Path) -> No
 @pytest.mark.slow
 def test_gsmini_overlay_matches_gelsight_tracker(real_data: Path) -> None:
     table = np.loadtxt(real_data / "gsmini_tracked_marker_locations_5.csv", delimiter=",", skiprows=1)
-    frames = _frames(real_data / "gsmini_tracked_video_5_overlay.avi", step=2)
+    frames = _frames(real_data / "gsmini_tracked_video_5_overlay.avi", stop=200)
     perception = Perception()
     reference = perception.reset(frames[0][1])
     first = table[table[:, 0] == 1]

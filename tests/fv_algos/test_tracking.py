@@ -36,6 +36,7 @@ def test_clean_small_motion_is_exact() -> None:
         assert np.sqrt(np.mean((state.current_px - truth) ** 2)) < 1e-12
 
 
+@pytest.mark.slow
 def test_static_input_is_a_fixed_point_so_no_drift() -> None:
     """A static frame leaves the state unchanged (bit for bit), so 100,000 frames cannot drift;
     2,000 real steps with 0.05 px jitter stay centred on the truth."""
