@@ -18,6 +18,7 @@ from typing import Literal
 
 import numpy as np
 from scipy.interpolate import RBFInterpolator, griddata
+from scipy.spatial import cKDTree
 
 Kernel = Literal["thin_plate_spline", "multiquadric", "inverse_multiquadric", "gaussian", "linear", "cubic"]
 
@@ -44,6 +45,12 @@ class FieldParams:
     rcond: singular values below rcond x the largest are dropped when solving (keeps
         ill-conditioned systems finite).
     cache_size: operators kept, one per validity pattern.
+    rebuild_after_frames: 'rbf_operator' solves an exact operator for a new validity
+        pattern only once the pattern has held this many frames in a row; until then the
+        missing markers' displacements are estimated from their valid reference
+        neighbours (inverse-distance weighted) and the all-markers operator is applied, so
+        flickering markers never cost a solve in the frame loop.
+    fill_neighbours: reference neighbours used for that estimate.
     min_markers: fewer valid markers than this (or than the polynomial needs) gives an
         all-zero field flagged invalid.
     """
@@ -56,6 +63,8 @@ class FieldParams:
     rcond: float = 1e-10
     cache_size: int = 64
     min_markers: int = 3
+    rebuild_after_frames: int = 5
+    fill_neighbours: int = 6
 
     def __post_init__(self) -> None:
         if self.method not in ("rbf_operator", "rbf_refit", "griddata"):
@@ -72,6 +81,9 @@ class FieldParams:
             raise ValueError(f"FieldParams.rcond must be in (0, 1), got {self.rcond}")
         if self.cache_size < 1 or self.min_markers < 1:
             raise ValueError(f"cache_size and min_markers must be >= 1, got {self.cache_size}, {self.min_markers}")
+        if self.rebuild_after_frames < 1 or self.fill_neighbours < 1:
+            raise ValueError(f"rebuild_after_frames and fill_neighbours must be >= 1, got "
+                             f"{self.rebuild_after_frames}, {self.fill_neighbours}")
 
 
 @dataclass(frozen=True)
@@ -82,6 +94,8 @@ class DisplacementField:
     invalid). x_px: (W,) float64 and y_px: (H,) float64 grid coordinates in the reference
     frame. valid: False when too few markers were valid. markers_used: markers that fed it.
     filled_cells: grid cells filled from the nearest marker (griddata outside the hull).
+    estimated_markers: missing markers whose displacement was estimated from their
+    neighbours ('rbf_operator' while a new validity pattern is not yet solved).
     """
 
     field: np.ndarray
@@ -90,6 +104,7 @@ class DisplacementField:
     valid: bool
     markers_used: int
     filled_cells: int = 0
+    estimated_markers: int = 0
 
 
 def _kernel(r: np.ndarray, kernel: str, width: float) -> np.ndarray:
@@ -204,6 +219,14 @@ class FieldInterpolator:
             self.width_px = 1.0
         self._cache: OrderedDict[bytes, tuple[np.ndarray, float]] = OrderedDict()
         self.last_condition = float("nan")
+        k = min(params.fill_neighbours, ref.shape[0] - 1)
+        if k >= 1:
+            dist, idx = cKDTree(ref).query(ref, k=k + 1)
+            self._fill_idx, self._fill_w = idx[:, 1:], 1.0 / np.maximum(dist[:, 1:], 1e-9)
+        else:
+            self._fill_idx, self._fill_w = np.zeros((ref.shape[0], 0), int), np.zeros((ref.shape[0], 0))
+        self._pattern = b""
+        self._streak = 0
 
     def operator(self, valid: np.ndarray) -> np.ndarray:
         """(G, n_valid) float64 operator for the markers where `valid` (N,) bool is True (cached)."""
@@ -246,8 +269,9 @@ class FieldInterpolator:
         disp = cur[mask] - self.reference_px[mask]
         filled = 0
         method = self.params.method
+        estimated = 0
         if method == "rbf_operator":
-            grid = self.operator(mask) @ disp
+            grid, estimated = self._apply_operator(cur, mask, disp)
         elif method == "rbf_refit":
             epsilon = 1.0 / self.width_px if self.params.kernel in _SCALED else 1.0
             try:
@@ -268,7 +292,43 @@ class FieldInterpolator:
         out = np.empty((h * w, 3), dtype=np.float32)
         out[:, :2] = grid
         out[:, 2] = np.hypot(grid[:, 0], grid[:, 1])
-        return DisplacementField(out.reshape(h, w, 3), self.x_px, self.y_px, True, used, filled)
+        return DisplacementField(out.reshape(h, w, 3), self.x_px, self.y_px, True, used, filled, estimated)
+
+    def _apply_operator(self, cur: np.ndarray, mask: np.ndarray, disp: np.ndarray) -> tuple[np.ndarray, int]:
+        """(G, 2) grid displacements and the number of estimated markers (see
+        FieldParams.rebuild_after_frames)."""
+        key = np.packbits(mask).tobytes()
+        self._streak = self._streak + 1 if key == self._pattern else 1
+        self._pattern = key
+        if mask.all() or key in self._cache or self._streak >= self.params.rebuild_after_frames:
+            return self.operator(mask) @ disp, 0
+        full = np.zeros_like(cur)
+        full[mask] = disp
+        missing = np.flatnonzero(~mask)
+        full[missing] = self._estimate_missing(full, mask, missing, disp)
+        return self.operator(np.ones_like(mask)) @ full, int(missing.size)
+
+    def _estimate_missing(self, full: np.ndarray, mask: np.ndarray, missing: np.ndarray,
+                          disp: np.ndarray) -> np.ndarray:
+        """(M, 2) displacement estimates of the `missing` markers: an inverse-distance
+        weighted affine fit over their valid reference neighbours (exact for affine
+        motion); weighted mean where the fit is degenerate; the median valid displacement
+        where no neighbour is valid."""
+        nbr = self._fill_idx[missing]
+        w = self._fill_w[missing] * mask[nbr]
+        offsets = self.reference_px[nbr] - self.reference_px[missing][:, None, :]
+        basis = np.concatenate([np.ones(offsets.shape[:2] + (1,)), offsets], axis=2)  # (M, k, 3)
+        normal = np.einsum("mk,mki,mkj->mij", w, basis, basis)
+        rhs = np.einsum("mk,mki,mkc->mic", w, basis, full[nbr])
+        total = w.sum(axis=1)
+        estimate = np.einsum("mk,mkc->mc", w, full[nbr]) / np.maximum(total, 1e-300)[:, None]
+        fit = (mask[nbr].sum(axis=1) >= 3) & (np.abs(np.linalg.det(normal)) > 1e-12 * np.maximum(total, 1e-300) ** 3)
+        if fit.any():
+            estimate[fit] = np.linalg.solve(normal[fit], rhs[fit])[:, 0, :]
+        isolated = total <= 0
+        if isolated.any():
+            estimate[isolated] = np.median(disp, axis=0)
+        return estimate
 
     def _griddata(self, points: np.ndarray, disp: np.ndarray) -> tuple[np.ndarray, int]:
         """Cubic griddata (G, 2); cells outside the hull (or degenerate input) take the nearest marker."""
