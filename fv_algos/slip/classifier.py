@@ -1,0 +1,203 @@
+"""Slip inference for the slip_detector node, and the checkpoint file format.
+
+A checkpoint is a ``torch.save`` dict loadable with ``weights_only=True`` holding: format name and
+version, the software version that wrote it, the :class:`ModelConfig` (architecture and the fixed
+input scale), the model weights, the training step, the optimizer state, the training config and
+the metric history.
+"""
+from __future__ import annotations
+
+import importlib.metadata
+import pickle
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from fv_algos.slip.models import ModelConfig, build_model, to_model_input
+
+CHECKPOINT_FORMAT = "fv-slip-checkpoint"
+CHECKPOINT_VERSION = 1
+
+
+def software_version() -> str:
+    """Installed version of the ``fingervision`` package ("unknown" when run from an uninstalled tree)."""
+    try:
+        return importlib.metadata.version("fingervision")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
+
+
+@dataclass
+class Checkpoint:
+    """Contents of a checkpoint file.
+
+    model_state: state_dict of the model built from ``model_config``.
+    step: optimizer steps taken so far.
+    optimizer_state: Adam state_dict (None for an inference-only export).
+    train_config: the TrainConfig as a plain dict (empty when unknown).
+    history: metric records, one dict per evaluation (see fv_algos.slip.train).
+    """
+
+    model_config: ModelConfig
+    model_state: dict[str, torch.Tensor]
+    step: int = 0
+    optimizer_state: dict[str, object] | None = None
+    train_config: dict[str, object] = field(default_factory=dict)
+    history: list[dict[str, float]] = field(default_factory=list)
+    software_version: str = field(default_factory=software_version)
+
+
+def save_checkpoint(path: str | Path, checkpoint: Checkpoint) -> Path:
+    """Write ``checkpoint`` atomically (temp file then rename); returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "format": CHECKPOINT_FORMAT,
+        "format_version": CHECKPOINT_VERSION,
+        "software_version": checkpoint.software_version,
+        "torch_version": str(torch.__version__),
+        "model_config": checkpoint.model_config.to_dict(),
+        "model_state": {k: v.detach().cpu() for k, v in checkpoint.model_state.items()},
+        "step": int(checkpoint.step),
+        "optimizer_state": checkpoint.optimizer_state,
+        "train_config": checkpoint.train_config,
+        "history": checkpoint.history,
+    }
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(payload, tmp)
+    tmp.replace(path)
+    return path
+
+
+def load_checkpoint(path: str | Path, expected: ModelConfig | None = None) -> Checkpoint:
+    """Read and validate a checkpoint.
+
+    Raises FileNotFoundError for a missing file, ValueError for a file that is not a slip
+    checkpoint, has an unsupported version, or whose model config differs from ``expected``
+    (the message lists each differing field).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint not found: {path}")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, zipfile.BadZipFile, RuntimeError, EOFError, OSError) as exc:
+        raise ValueError(f"{path} is not a slip checkpoint (torch.load failed: {exc})") from exc
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path} is not a slip checkpoint (no {CHECKPOINT_FORMAT!r} format tag)")
+    if payload.get("format_version") != CHECKPOINT_VERSION:
+        raise ValueError(
+            f"{path}: checkpoint format version {payload.get('format_version')!r} is not supported "
+            f"(expected {CHECKPOINT_VERSION})"
+        )
+    config = ModelConfig.from_dict(payload["model_config"])
+    if expected is not None and config != expected:
+        raise ValueError(f"{path}: checkpoint model config does not match: {'; '.join(config.mismatches(expected))} (checkpoint != expected)")
+    return Checkpoint(
+        model_config=config,
+        model_state=payload["model_state"],
+        step=int(payload["step"]),
+        optimizer_state=payload.get("optimizer_state"),
+        train_config=dict(payload.get("train_config", {})),
+        history=list(payload.get("history", [])),
+        software_version=str(payload.get("software_version", "unknown")),
+    )
+
+
+def model_from_checkpoint(checkpoint: Checkpoint) -> nn.Module:
+    """The model described by ``checkpoint`` with its weights loaded, in eval mode."""
+    model = build_model(checkpoint.model_config)
+    try:
+        model.load_state_dict(checkpoint.model_state)
+    except RuntimeError as exc:
+        raise ValueError(f"checkpoint weights do not fit {checkpoint.model_config}: {exc}") from exc
+    return model.eval()
+
+
+def validate_windows(windows: np.ndarray, config: ModelConfig) -> np.ndarray:
+    """Check a batch (B, T, H, W, 3) of windows against ``config``; returns it as float32.
+
+    Raises ValueError for a wrong shape or any NaN/inf value (naming how many). Finite values of
+    any size are accepted: the model clamps its scaled input.
+    """
+    arr = np.asarray(windows)
+    expected = (config.window, config.grid, config.grid, 3)
+    if arr.ndim != 5 or tuple(arr.shape[1:]) != expected:
+        raise ValueError(f"windows must have shape (B, {', '.join(map(str, expected))}), got {arr.shape}")
+    if not np.issubdtype(arr.dtype, np.floating):
+        raise ValueError(f"windows must be floating point (px), got dtype {arr.dtype}")
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        raise ValueError(f"windows contain {int(bad.sum())} non-finite values (NaN/inf); cannot classify")
+    return np.clip(arr, -np.finfo(np.float32).max, np.finfo(np.float32).max).astype(np.float32)
+
+
+def predict_proba(
+    model: nn.Module,
+    windows: np.ndarray,
+    autocast: torch.dtype | None = None,
+    device: str | torch.device = "cpu",
+) -> np.ndarray:
+    """Slip probabilities (B,) float64 in [0, 1] for windows (B, T, H, W, 3) px.
+
+    ``model`` must carry a ``config`` (:class:`ModelConfig`); ``autocast`` runs the forward pass
+    under ``torch.autocast`` with that dtype (e.g. torch.bfloat16). The softmax is taken in
+    float32. Raises ValueError for invalid input and if the model yields non-finite logits.
+    """
+    x = to_model_input(validate_windows(windows, model.config)).to(device)
+    with torch.inference_mode():
+        if autocast is None:
+            logits = model(x)
+        else:
+            with torch.autocast(device_type=torch.device(device).type, dtype=autocast):
+                logits = model(x)
+        logits = logits.float()
+        if not torch.isfinite(logits).all():
+            raise ValueError("model produced non-finite logits; refusing to report a probability")
+        prob = torch.softmax(logits, dim=1)[:, 1]
+    return prob.clamp(0.0, 1.0).cpu().numpy().astype(np.float64)
+
+
+class SlipClassifier:
+    """Slip probability of one window at a time, for the slip_detector node.
+
+    source: a checkpoint path or a model built by :func:`fv_algos.slip.models.build_model`.
+    expected: if given, the checkpoint's model config must equal it.
+    threads: torch intra-op threads to use (None leaves torch's setting alone).
+    """
+
+    def __init__(
+        self,
+        source: str | Path | nn.Module,
+        expected: ModelConfig | None = None,
+        device: str = "cpu",
+        threads: int | None = None,
+    ) -> None:
+        if isinstance(source, nn.Module):
+            if not isinstance(getattr(source, "config", None), ModelConfig):
+                raise ValueError("model has no ModelConfig `config` attribute; build it with build_model()")
+            if expected is not None and source.config != expected:
+                raise ValueError(f"model config does not match: {'; '.join(source.config.mismatches(expected))}")
+            model = source.eval()
+        else:
+            model = model_from_checkpoint(load_checkpoint(source, expected))
+        if threads is not None:
+            torch.set_num_threads(threads)
+        self.device = torch.device(device)
+        self.model = model.to(self.device)
+
+    @property
+    def config(self) -> ModelConfig:
+        """The model's configuration (window length, grid, input scale...)."""
+        return self.model.config
+
+    def predict(self, window: np.ndarray) -> float:
+        """Slip probability in [0, 1] for one window (T, H, W, 3) float px (ValueError on NaN/inf)."""
+        arr = np.asarray(window)
+        if arr.ndim != 4:
+            raise ValueError(f"window must have shape (T, H, W, 3), got {arr.shape}")
+        return float(predict_proba(self.model, arr[None], device=self.device)[0])

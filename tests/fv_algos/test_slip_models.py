@@ -1,0 +1,229 @@
+"""Slip models, inference (SlipClassifier), the classical detector and the evaluation harness."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from torch.nn import functional as F
+
+from fv_algos.slip.classical import ClassicalConfig, ClassicalSlipDetector, pattern_change, stick_ratio
+from fv_algos.slip.classifier import SlipClassifier, predict_proba
+from fv_algos.slip.evaluate import (
+    classification_metrics,
+    evaluate_predictor,
+    table_rows,
+    time_forward,
+    variant_predictor,
+    variant_rows,
+)
+from fv_algos.slip.models import ModelConfig, build_model, count_parameters, to_model_input
+from fv_algos.slip.windows import SyntheticConfig, make_windows, split_windows, synthetic_sequences
+
+torch.set_num_threads(1)
+SMALL = ModelConfig(hidden=8, window=4, grid=8)
+
+
+def _model(config: ModelConfig = SMALL, seed: int = 0) -> torch.nn.Module:
+    torch.manual_seed(seed)
+    return build_model(config).eval()
+
+
+def test_paper_model_has_exactly_269826_parameters() -> None:
+    assert count_parameters(build_model(ModelConfig())) == 269_826
+    five = (3 + 64) * 256 * 25 + 256 + 57_600 * 2 + 2
+    assert count_parameters(build_model(ModelConfig(kernel=5))) == five
+
+
+@pytest.mark.parametrize("arch", ["convlstm", "cnn_lstm", "lstm"])
+def test_models_map_windows_to_two_logits(arch: str) -> None:
+    config = ModelConfig(arch=arch, hidden=8, window=4, grid=12, pool=3)
+    x = to_model_input(np.random.default_rng(0).normal(size=(3, 4, 12, 12, 3)).astype(np.float32))
+    assert x.shape == (3, 4, 3, 12, 12)
+    out = _model(config)(x)
+    assert out.shape == (3, 2) and out.dtype == torch.float32
+    with pytest.raises(ValueError, match="model input must have shape"):
+        _model(config)(x[:, :3])
+
+
+def test_convlstm_matches_single_concat_convolution() -> None:
+    """The split x/h convolution must equal the textbook conv(concat[x, h]) ConvLSTM."""
+    model = _model(ModelConfig(hidden=6, window=5, grid=9, kernel=5))
+    x = torch.randn(2, 5, 3, 9, 9) * 4.0
+    xs = model.normalise(x)
+    h = torch.zeros(2, 6, 9, 9)
+    c = torch.zeros_like(h)
+    for t in range(5):
+        gates = model.gates(torch.cat([xs[:, t], h], dim=1))
+        i, f, o, g = torch.chunk(gates, 4, dim=1)
+        c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
+        h = torch.sigmoid(o) * torch.tanh(c)
+    reference = model.head(h.flatten(1))
+    with torch.no_grad():
+        assert torch.allclose(model(x), reference.detach(), atol=1e-5)
+
+
+def test_model_config_validation_and_round_trip() -> None:
+    with pytest.raises(ValueError, match="arch"):
+        ModelConfig(arch="transformer")
+    with pytest.raises(ValueError, match="kernel"):
+        ModelConfig(kernel=4)
+    with pytest.raises(ValueError, match="scale_px"):
+        ModelConfig(scale_px=0.0)
+    with pytest.raises(ValueError, match="unknown ModelConfig fields"):
+        ModelConfig.from_dict({"hidden": 8, "layers": 2})
+    config = ModelConfig(hidden=32, window=5, grid=20)
+    assert ModelConfig.from_dict(config.to_dict()) == config
+    assert config.mismatches(ModelConfig()) == ["hidden: 32 != 64", "window: 5 != 10", "grid: 20 != 30"]
+
+
+@pytest.mark.parametrize("scale", [0.0, 1.0, 1e6, -1e6, 3e38])
+def test_probability_is_finite_and_in_unit_interval(scale: float) -> None:
+    window = np.full((4, 8, 8, 3), scale, dtype=np.float32)
+    window[..., 1] *= -1
+    prob = SlipClassifier(_model()).predict(window)
+    assert isinstance(prob, float) and 0.0 <= prob <= 1.0
+
+
+def test_huge_fields_equal_clip_level_fields() -> None:
+    """Input is clamped after scaling, so 1e6 px reads exactly like clip * scale_px."""
+    model = _model()
+    rng = np.random.default_rng(1)
+    sign = np.sign(rng.normal(size=(1, 4, 8, 8, 3))).astype(np.float32)
+    at_clip = predict_proba(model, sign * SMALL.clip * SMALL.scale_px)
+    assert np.allclose(predict_proba(model, sign * 1e6), at_clip, atol=1e-7)
+
+
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
+def test_low_precision_autocast_does_not_overflow(dtype: torch.dtype) -> None:
+    model = _model()
+    window = np.random.default_rng(2).normal(scale=1e6, size=(2, 4, 8, 8, 3)).astype(np.float32)
+    prob = predict_proba(model, window, autocast=dtype)
+    assert np.isfinite(prob).all() and ((prob >= 0) & (prob <= 1)).all()
+    assert np.allclose(prob, predict_proba(model, window), atol=0.05)
+
+
+def test_nan_or_bad_shape_raises_clear_error() -> None:
+    classifier = SlipClassifier(_model())
+    window = np.zeros((4, 8, 8, 3), dtype=np.float32)
+    window[1, 2, 3, 0] = np.nan
+    with pytest.raises(ValueError, match="1 non-finite"):
+        classifier.predict(window)
+    window[1, 2, 3, 0] = np.inf
+    with pytest.raises(ValueError, match="non-finite"):
+        classifier.predict(window)
+    with pytest.raises(ValueError, match="shape"):
+        classifier.predict(np.zeros((10, 8, 8, 3), dtype=np.float32))
+    with pytest.raises(ValueError, match="shape"):
+        classifier.predict(np.zeros((8, 8, 3), dtype=np.float32))
+    with pytest.raises(ValueError, match="floating point"):
+        classifier.predict(np.zeros((4, 8, 8, 3), dtype=np.int32))
+
+
+def test_classifier_rejects_model_with_other_config() -> None:
+    with pytest.raises(ValueError, match="hidden: 8 != 16"):
+        SlipClassifier(_model(), expected=ModelConfig(hidden=16, window=4, grid=8))
+
+
+def test_metrics_closed_form() -> None:
+    m = classification_metrics(np.array([0, 0, 1, 1, 1]), np.array([0, 1, 1, 1, 0]))
+    assert m.confusion == ((1, 1), (1, 2))
+    assert m.accuracy == pytest.approx(3 / 5)
+    assert m.f1 == pytest.approx(2 * 2 / (2 * 2 + 1 + 1))
+    assert classification_metrics(np.array([0, 0]), np.array([0, 0])).f1 == 0.0
+    with pytest.raises(ValueError, match="only hold 0"):
+        classification_metrics(np.array([0, 2]), np.array([0, 1]))
+    with pytest.raises(ValueError, match="equal-length"):
+        classification_metrics(np.array([0, 1]), np.array([0]))
+
+
+def _pattern_windows() -> tuple[np.ndarray, np.ndarray]:
+    """Two windows (T=6, 8x8): a fixed pattern growing (stick) and a translating one (slip)."""
+    yy, xx = np.mgrid[0:8, 0:8].astype(np.float64)
+    frames_stick, frames_slip = [], []
+    for t in range(6):
+        frames_stick.append(np.sin(xx / 2.0) * np.cos(yy / 3.0) * (1 + t))
+        frames_slip.append(np.sin((xx - 1.5 * t) / 2.0) * np.cos(yy / 3.0) * 3)
+    out = []
+    for frames in (frames_stick, frames_slip):
+        d = np.stack(frames)[..., None] * np.array([2.0, 1.0])
+        out.append(np.concatenate([d, np.hypot(d[..., :1], d[..., 1:])], axis=-1))
+    return np.stack(out).astype(np.float32), np.array([0, 1])
+
+
+def test_classical_features_separate_stick_from_slip() -> None:
+    windows, _ = _pattern_windows()
+    change = pattern_change(windows)
+    assert change[0] < 1e-6 and change[1] > 0.3
+    ratio = stick_ratio(windows)
+    assert ratio[0] == 1.0 and ratio[1] < 0.6
+    assert pattern_change(np.zeros_like(windows)).tolist() == [0.0, 0.0]
+    with pytest.raises(ValueError, match="non-finite"):
+        pattern_change(np.full_like(windows, np.nan))
+
+
+@pytest.mark.parametrize("feature", ["pattern_change", "stick_ratio"])
+def test_classical_detector_fits_threshold(feature: str) -> None:
+    windows, labels = _pattern_windows()
+    detector = ClassicalSlipDetector(ClassicalConfig(feature=feature))
+    with pytest.raises(ValueError, match="not fitted"):
+        detector.predict_proba(windows)
+    detector.fit_features(detector.features(windows), labels)
+    assert detector.predict_proba(windows).tolist() == [0.0, 1.0]
+    assert detector.slip_above == (feature == "pattern_change")
+
+
+def test_threshold_fit_is_optimal_on_overlapping_scores() -> None:
+    values = np.array([0.1, 0.2, 0.3, 0.35, 0.4, 0.8, 0.9])
+    labels = np.array([0, 0, 1, 0, 1, 1, 1])
+    detector = ClassicalSlipDetector().fit_features(values, labels)
+    assert detector.slip_above and 0.2 < detector.threshold < 0.3
+    flipped = ClassicalSlipDetector().fit_features(-values, labels)
+    assert not flipped.slip_above
+
+
+@pytest.fixture(scope="module")
+def small_split():
+    sequences = synthetic_sequences(40, SyntheticConfig(grid=8, n_frames=6), seed=5)
+    return split_windows(make_windows(sequences, window=4, per_sequence=2), "sequence", 0.25, seed=0)
+
+
+def test_harness_rows_for_models_and_classical(small_split) -> None:
+    model = _model()
+    detector = ClassicalSlipDetector().fit(small_split.windows, small_split.train)
+    rows = table_rows(
+        {"convlstm": (variant_predictor(model), count_parameters(model)), "classical": (detector.predict_proba, 0)},
+        small_split, threads=1, repeats=3,
+    )
+    assert [r["model"] for r in rows] == ["convlstm", "classical"]
+    for row in rows:
+        assert 0.0 <= row["accuracy"] <= 1.0 and row["ms_per_window"] > 0 and row["split"] == "sequence"
+        assert sum(map(sum, row["confusion"])) == small_split.test.size
+    assert rows[1]["accuracy"] > 0.6  # the feature carries signal on synthetic slips
+
+
+def test_variants_agree_with_fp32(small_split) -> None:
+    model = _model()
+    window = small_split.windows.get(small_split.test[:8])[0]
+    reference = variant_predictor(model, "fp32")(window)
+    for variant in ("bf16", "int8"):
+        assert np.allclose(variant_predictor(model, variant)(window), reference, atol=0.05), variant
+    rows = variant_rows([("tiny", model, small_split)], variants=("fp32", "int8"), threads=1, repeats=3)
+    assert [r["variant"] for r in rows] == ["fp32", "int8"]
+    assert rows[0]["accuracy"] == evaluate_predictor(variant_predictor(model), small_split).accuracy
+    with pytest.raises(ValueError, match="variant"):
+        variant_predictor(model, "fp8")
+
+
+def test_time_forward_validates_and_restores_threads() -> None:
+    before = torch.get_num_threads()
+    ms = time_forward(variant_predictor(_model()), np.zeros((1, 4, 8, 8, 3), np.float32), threads=2, repeats=5, warmup=1)
+    assert ms > 0 and torch.get_num_threads() == before
+    with pytest.raises(ValueError, match="window must have shape"):
+        time_forward(variant_predictor(_model()), np.zeros((2, 4, 8, 8, 3), np.float32), threads=1)
+
+
+def test_cross_entropy_gradient_reaches_all_parameters() -> None:
+    model = _model().train()
+    x = to_model_input(np.random.default_rng(3).normal(size=(4, 4, 8, 8, 3)).astype(np.float32))
+    F.cross_entropy(model(x), torch.tensor([0, 1, 0, 1])).backward()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0 for p in model.parameters())

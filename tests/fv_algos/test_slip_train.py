@@ -1,0 +1,149 @@
+"""Training loop, checkpoints, resume and DDP of fv_algos.slip.train (tiny problems only)."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from fv_algos.slip.classifier import SlipClassifier, load_checkpoint, model_from_checkpoint, save_checkpoint, Checkpoint
+from fv_algos.slip.models import ModelConfig, build_model
+from fv_algos.slip.train import TrainConfig, batch_rows, main, parameter_digest, train
+from fv_algos.slip.windows import Split, SyntheticConfig, make_windows, save_sequences, split_windows, synthetic_sequences
+
+torch.set_num_threads(1)
+REPO = Path(__file__).resolve().parents[2]
+TINY = ModelConfig(hidden=8, window=4, grid=8)
+EASY = SyntheticConfig(grid=8, n_frames=6, slip_speed=(0.5, 1.0), decorrelation=(0.1, 0.2), noise_px=0.05)
+
+
+@pytest.fixture(scope="module")
+def split() -> Split:
+    sequences = synthetic_sequences(64, EASY, seed=11)
+    return split_windows(make_windows(sequences, window=4, per_sequence=3), "sequence", 0.25, seed=0)
+
+
+def _config(tmp: Path | None = None, **kw: object) -> TrainConfig:
+    base = {"model": TINY, "steps": 6, "batch_size": 8, "lr": 1e-2, "eval_every": 3, "progress": False}
+    base.update(kw)
+    return TrainConfig(out_dir=None if tmp is None else str(tmp), **base)
+
+
+def test_batch_rows_cover_each_epoch_once_and_are_reproducible() -> None:
+    rows = np.arange(100, 120)
+    epoch = np.concatenate([batch_rows(rows, 5, seed=1, step=s) for s in range(4)])
+    assert sorted(epoch.tolist()) == rows.tolist()
+    assert np.array_equal(batch_rows(rows, 5, 1, 2), batch_rows(rows, 5, 1, 2))
+    assert not np.array_equal(batch_rows(rows, 5, 1, 4), batch_rows(rows, 5, 1, 0))
+    with pytest.raises(ValueError, match="fewer than batch_size"):
+        batch_rows(rows[:3], 5, 1, 0)
+
+
+def test_training_fits_training_windows(split: Split) -> None:
+    result = train(_config(steps=80, eval_every=40), split)
+    assert [r["step"] for r in result.history] == [40, 80]
+    final = result.history[-1]
+    assert final["test_windows"] == split.test.size
+    assert final["train_accuracy"] >= 0.7, result.history
+    assert final["train_loss"] < result.history[0]["train_loss"] < 0.75
+    assert result.windows_per_s > 0
+
+
+def test_same_seed_same_weights_other_seed_differs(split: Split) -> None:
+    a, b = train(_config(), split), train(_config(), split)
+    assert a.param_digest == b.param_digest
+    assert train(_config(seed=1), split).param_digest != a.param_digest
+
+
+def test_resume_continues_exactly(split: Split, tmp_path: Path) -> None:
+    straight = train(_config(tmp_path / "straight"), split)
+    first = train(_config(tmp_path / "part", steps=3), split)
+    ckpt = load_checkpoint(first.checkpoint_path)
+    assert ckpt.step == 3 and ckpt.model_config == TINY and ckpt.optimizer_state is not None
+    assert ckpt.software_version and ckpt.train_config["lr"] == 1e-2
+    resumed = train(_config(tmp_path / "part"), split, resume=first.checkpoint_path)
+    assert resumed.step == 6
+    assert resumed.param_digest == straight.param_digest
+    metrics = json.loads((tmp_path / "part" / "metrics.json").read_text())
+    assert [r["step"] for r in metrics["history"]] == [3, 6]
+    assert metrics["train_config"]["model"]["hidden"] == 8
+
+
+def test_resume_with_other_model_config_names_the_mismatch(split: Split, tmp_path: Path) -> None:
+    first = train(_config(tmp_path), split)
+    with pytest.raises(ValueError, match="hidden: 8 != 4"):
+        train(_config(model=ModelConfig(hidden=4, window=4, grid=8)), split, resume=first.checkpoint_path)
+
+
+def test_data_model_mismatch_is_rejected(split: Split) -> None:
+    with pytest.raises(ValueError, match="model expects 5 frames"):
+        train(_config(model=ModelConfig(hidden=8, window=5, grid=8)), split)
+    with pytest.raises(ValueError, match="lr"):
+        _config(lr=float("nan"))
+
+
+def test_checkpoint_round_trip_and_classifier(split: Split, tmp_path: Path) -> None:
+    result = train(_config(tmp_path), split)
+    window = split.windows.get(split.test[:1])[0][0]
+    from_path = SlipClassifier(result.checkpoint_path, expected=TINY).predict(window)
+    from_model = SlipClassifier(result.model).predict(window)
+    assert from_path == pytest.approx(from_model, abs=1e-6)
+    model = model_from_checkpoint(load_checkpoint(result.checkpoint_path))
+    assert parameter_digest(model) == result.param_digest
+
+
+def test_checkpoint_errors_are_clear(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError, match="not found"):
+        load_checkpoint(tmp_path / "nope.pt")
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"\x00\x01 not a torch file")
+    with pytest.raises(ValueError, match="not a slip checkpoint"):
+        load_checkpoint(garbage)
+    other = tmp_path / "other.pt"
+    torch.save({"weights": torch.zeros(3)}, other)
+    with pytest.raises(ValueError, match="format tag"):
+        load_checkpoint(other)
+    good = save_checkpoint(tmp_path / "good.pt", Checkpoint(TINY, build_model(TINY).state_dict()))
+    with pytest.raises(ValueError, match="grid: 8 != 30"):
+        SlipClassifier(good, expected=ModelConfig(hidden=8, window=4))
+    wrong_weights = save_checkpoint(tmp_path / "wrong.pt", Checkpoint(TINY, build_model(ModelConfig(hidden=4, window=4, grid=8)).state_dict()))
+    with pytest.raises(ValueError, match="do not fit"):
+        SlipClassifier(wrong_weights)
+
+
+def test_main_single_process(split: Split, tmp_path: Path) -> None:
+    data = save_sequences(tmp_path / "seq", split.windows.sequences)
+    out = tmp_path / "run"
+    args = ["--data", str(data), "--out", str(out), "--hidden", "8", "--window", "4", "--steps", "4",
+            "--batch-size", "8", "--eval-every", "2", "--no-progress", "--split", "object", "--per-sequence", "3"]
+    assert main(args) == 0
+    result = json.loads((out / "result_rank0.json").read_text())
+    assert result["step"] == 4
+    assert load_checkpoint(out / "checkpoint.pt").model_config.grid == 8
+
+
+@pytest.mark.slow
+def test_ddp_two_cpu_ranks_stay_identical(split: Split, tmp_path: Path) -> None:
+    data = save_sequences(tmp_path / "seq", split.windows.sequences)
+    common = ["--data", str(data), "--hidden", "8", "--window", "4", "--steps", "4", "--batch-size", "8",
+              "--eval-every", "4", "--no-progress", "--threads", "1", "--per-sequence", "3", "--lr", "0.01"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+           "-m", "fv_algos.slip.train", "--out", str(tmp_path / "ddp"), *common]
+    proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    ranks = [json.loads((tmp_path / "ddp" / f"result_rank{r}.json").read_text()) for r in (0, 1)]
+    assert ranks[0]["param_digest"] == ranks[1]["param_digest"]
+    assert ranks[0]["step"] == ranks[1]["step"] == 4
+    ddp_model = model_from_checkpoint(load_checkpoint(tmp_path / "ddp" / "checkpoint.pt"))
+    assert parameter_digest(ddp_model) == ranks[0]["param_digest"]
+    # two half batches with averaged gradients = one full batch: same weights as a single process
+    assert main(["--out", str(tmp_path / "single"), *common]) == 0
+    single = model_from_checkpoint(load_checkpoint(tmp_path / "single" / "checkpoint.pt"))
+    for (name, a), b in zip(single.state_dict().items(), ddp_model.state_dict().values()):
+        assert torch.allclose(a, b, atol=1e-5), name
