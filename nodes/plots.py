@@ -12,6 +12,19 @@ def _pyplot():
     return plt
 
 
+def _finish(plt, fig, ax, path: str | Path, title: str, x_label: str, y_label: str) -> Path:
+    """Label, grid and legend the axes, write the PNG and free the figure."""
+    ax.set(title=title, xlabel=x_label, ylabel=y_label)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
 def pareto_front(points: Sequence[tuple[float, float]], higher_is_better: bool = True) -> list[int]:
     """Indices of the points no other point beats on both cost (x, lower is better) and
     quality (y); sorted by x."""
@@ -41,15 +54,7 @@ def pareto_plot(rows: Sequence[dict[str, Any]], x: str, y: str, label: str, path
             lw=1, label="Pareto front")
     if log_x:
         ax.set_xscale("log")
-    ax.set(title=title, xlabel=x_label, ylabel=y_label)
-    ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _finish(plt, fig, ax, path, title, x_label, y_label)
 
 
 def curve_plot(series: dict[str, tuple[Sequence[float], Sequence[float]]], path: str | Path, *, title: str,
@@ -59,15 +64,7 @@ def curve_plot(series: dict[str, tuple[Sequence[float], Sequence[float]]], path:
     fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
     for name, (xs, ys) in series.items():
         ax.plot(list(xs), list(ys), label=name, lw=1.2)
-    ax.set(title=title, xlabel=x_label, ylabel=y_label)
-    ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _finish(plt, fig, ax, path, title, x_label, y_label)
 
 
 def markdown_table(rows: Sequence[dict[str, Any]], columns: Sequence[str]) -> str:
