@@ -69,7 +69,7 @@ class DetectorParams:
     max_area_ratio: float = 3.5
     max_aspect: float = 3.5
     refine_iterations: int = 1
-    min_downsampled_px: float = 4.0
+    min_downsampled_px: float = 3.5
 
     def __post_init__(self) -> None:
         if not 0.0 < self.threshold_fraction < 1.0:

@@ -12,13 +12,11 @@ reference (scipy RBFInterpolator refit every frame) and cubic griddata are the a
 """
 from __future__ import annotations
 
-from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 from scipy.interpolate import RBFInterpolator, griddata
-from scipy.spatial import cKDTree
 
 Kernel = Literal["thin_plate_spline", "multiquadric", "inverse_multiquadric", "gaussian", "linear", "cubic"]
 
@@ -44,13 +42,6 @@ class FieldParams:
     smoothing: added to the kernel matrix diagonal (0 = exact interpolation).
     rcond: singular values below rcond x the largest are dropped when solving (keeps
         ill-conditioned systems finite).
-    cache_size: operators kept, one per validity pattern.
-    rebuild_after_frames: 'rbf_operator' solves an exact operator for a new validity
-        pattern only once the pattern has held this many frames in a row; until then the
-        missing markers' displacements are estimated from their valid reference
-        neighbours (inverse-distance weighted) and the all-markers operator is applied, so
-        flickering markers never cost a solve in the frame loop.
-    fill_neighbours: reference neighbours used for that estimate.
     min_markers: fewer valid markers than this (or than the polynomial needs) gives an
         all-zero field flagged invalid.
     """
@@ -61,10 +52,7 @@ class FieldParams:
     width_px: float | None = None
     smoothing: float = 0.0
     rcond: float = 1e-10
-    cache_size: int = 64
     min_markers: int = 3
-    rebuild_after_frames: int = 5
-    fill_neighbours: int = 6
 
     def __post_init__(self) -> None:
         if self.method not in ("rbf_operator", "rbf_refit", "griddata"):
@@ -79,11 +67,8 @@ class FieldParams:
             raise ValueError(f"FieldParams.smoothing must be finite >= 0, got {self.smoothing}")
         if not 0.0 < self.rcond < 1.0:
             raise ValueError(f"FieldParams.rcond must be in (0, 1), got {self.rcond}")
-        if self.cache_size < 1 or self.min_markers < 1:
-            raise ValueError(f"cache_size and min_markers must be >= 1, got {self.cache_size}, {self.min_markers}")
-        if self.rebuild_after_frames < 1 or self.fill_neighbours < 1:
-            raise ValueError(f"rebuild_after_frames and fill_neighbours must be >= 1, got "
-                             f"{self.rebuild_after_frames}, {self.fill_neighbours}")
+        if self.min_markers < 1:
+            raise ValueError(f"min_markers must be >= 1, got {self.min_markers}")
 
 
 @dataclass(frozen=True)
@@ -94,8 +79,6 @@ class DisplacementField:
     invalid). x_px: (W,) float64 and y_px: (H,) float64 grid coordinates in the reference
     frame. valid: False when too few markers were valid. markers_used: markers that fed it.
     filled_cells: grid cells filled from the nearest marker (griddata outside the hull).
-    estimated_markers: missing markers whose displacement was estimated from their
-    neighbours ('rbf_operator' while a new validity pattern is not yet solved).
     """
 
     field: np.ndarray
@@ -104,7 +87,6 @@ class DisplacementField:
     valid: bool
     markers_used: int
     filled_cells: int = 0
-    estimated_markers: int = 0
 
 
 def _kernel(r: np.ndarray, kernel: str, width: float) -> np.ndarray:
@@ -136,24 +118,24 @@ def _linear_basis(points: np.ndarray, centre: np.ndarray, scale: float) -> np.nd
     return np.column_stack([np.ones(points.shape[0]), normalised])
 
 
-def rbf_operator(
+def rbf_system(
     markers_px: np.ndarray,
     grid_points_px: np.ndarray,
     kernel: str = "thin_plate_spline",
     width_px: float = 25.0,
     smoothing: float = 0.0,
     rcond: float = 1e-10,
-) -> tuple[np.ndarray, float]:
-    """Linear operator mapping marker values to grid values by RBF interpolation.
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """The RBF interpolation system of N markers and its evaluation at G grid points.
 
     markers_px: (N, 2) float64 finite reference positions. grid_points_px: (G, 2) float64.
     Kernel phi(r / width_px) for multiquadric / inverse_multiquadric / gaussian, phi(r / extent)
     for the scale-free kernels (extent = the markers' largest bounding-box side; the
-    interpolant does not depend on it), plus a linear polynomial. Solves the symmetric system
-    [[K + smoothing I, P], [P^T, 0]] by an eigen pseudo-inverse (eigenvalues below
-    rcond x the largest magnitude dropped) so collinear or coincident markers stay finite.
-    Returns (operator (G, N) float64, condition number of the system); values_grid =
-    operator @ values_markers for any (N, C) values.
+    interpolant does not depend on it), plus a linear polynomial. The symmetric system
+    A = [[K + smoothing I, P], [P^T, 0]] is inverted by an eigen pseudo-inverse (eigenvalues
+    below rcond x the largest magnitude dropped) so collinear or coincident markers stay
+    finite. Returns (inverse (N+3, N+3), evaluation (G, N+3) float64, condition number of A):
+    grid values = evaluation @ inverse[:, :N] @ marker values.
     """
     n = markers_px.shape[0]
     centre = markers_px.mean(axis=0)
@@ -168,7 +150,7 @@ def rbf_operator(
     magnitude = np.abs(eigenvalues)
     largest = magnitude.max()
     keep = magnitude > rcond * largest if largest > 0.0 else np.zeros_like(magnitude, dtype=bool)
-    inverse_cols = (vectors[:, keep] / eigenvalues[keep]) @ vectors[:n, keep].T
+    inverse = (vectors[:, keep] / eigenvalues[keep]) @ vectors[:, keep].T
     evaluation = np.hstack(
         [
             _kernel(_distances(grid_points_px, markers_px), kernel, width),
@@ -177,7 +159,21 @@ def rbf_operator(
     )
     smallest = magnitude.min()
     condition = float(largest / smallest) if smallest > 0.0 else float("inf")
-    return evaluation @ inverse_cols, condition
+    return inverse, evaluation, condition
+
+
+def rbf_operator(
+    markers_px: np.ndarray,
+    grid_points_px: np.ndarray,
+    kernel: str = "thin_plate_spline",
+    width_px: float = 25.0,
+    smoothing: float = 0.0,
+    rcond: float = 1e-10,
+) -> tuple[np.ndarray, float]:
+    """(operator (G, N) float64, condition number): grid values = operator @ marker values
+    (N, C) for the RBF interpolant of `rbf_system`."""
+    inverse, evaluation, condition = rbf_system(markers_px, grid_points_px, kernel, width_px, smoothing, rcond)
+    return evaluation @ inverse[:, : markers_px.shape[0]], condition
 
 
 def grid_axes(reference_px: np.ndarray, grid_shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -217,37 +213,17 @@ class FieldInterpolator:
             self.width_px = float(max(np.median(d.min(axis=1)), 1e-6))
         else:
             self.width_px = 1.0
-        self._cache: OrderedDict[bytes, tuple[np.ndarray, float]] = OrderedDict()
-        self.last_condition = float("nan")
-        k = min(params.fill_neighbours, ref.shape[0] - 1)
-        if k >= 1:
-            dist, idx = cKDTree(ref).query(ref, k=k + 1)
-            self._fill_idx, self._fill_w = idx[:, 1:], 1.0 / np.maximum(dist[:, 1:], 1e-9)
-        else:
-            self._fill_idx, self._fill_w = np.zeros((ref.shape[0], 0), int), np.zeros((ref.shape[0], 0))
-        self._pattern = b""
-        self._streak = 0
+        self._system: tuple[np.ndarray, np.ndarray] | None = None
+        self.condition = float("nan")
 
-    def operator(self, valid: np.ndarray) -> np.ndarray:
-        """(G, n_valid) float64 operator for the markers where `valid` (N,) bool is True (cached)."""
-        key = np.packbits(valid).tobytes()
-        hit = self._cache.get(key)
-        if hit is None:
-            hit = rbf_operator(
-                self.reference_px[valid],
-                self._grid_points,
-                self.params.kernel,
-                self.width_px,
-                self.params.smoothing,
-                self.params.rcond,
-            )
-            self._cache[key] = hit
-            if len(self._cache) > self.params.cache_size:
-                self._cache.popitem(last=False)
-        else:
-            self._cache.move_to_end(key)
-        self.last_condition = hit[1]
-        return hit[0]
+    def system(self) -> tuple[np.ndarray, np.ndarray]:
+        """(inverse (N+3, N+3), evaluation (G, N+3)) of all reference markers, solved once."""
+        if self._system is None:
+            inverse, evaluation, self.condition = rbf_system(
+                self.reference_px, self._grid_points, self.params.kernel, self.width_px,
+                self.params.smoothing, self.params.rcond)
+            self._system = inverse, evaluation
+        return self._system
 
     def interpolate(self, current_px: np.ndarray, valid: np.ndarray) -> DisplacementField:
         """Field from current marker positions (N, 2) px and validity (N,) bool.
@@ -269,9 +245,8 @@ class FieldInterpolator:
         disp = cur[mask] - self.reference_px[mask]
         filled = 0
         method = self.params.method
-        estimated = 0
         if method == "rbf_operator":
-            grid, estimated = self._apply_operator(cur, mask, disp)
+            grid = self._apply_operator(mask, disp)
         elif method == "rbf_refit":
             epsilon = 1.0 / self.width_px if self.params.kernel in _SCALED else 1.0
             try:
@@ -292,43 +267,31 @@ class FieldInterpolator:
         out = np.empty((h * w, 3), dtype=np.float32)
         out[:, :2] = grid
         out[:, 2] = np.hypot(grid[:, 0], grid[:, 1])
-        return DisplacementField(out.reshape(h, w, 3), self.x_px, self.y_px, True, used, filled, estimated)
+        return DisplacementField(out.reshape(h, w, 3), self.x_px, self.y_px, True, used, filled)
 
-    def _apply_operator(self, cur: np.ndarray, mask: np.ndarray, disp: np.ndarray) -> tuple[np.ndarray, int]:
-        """(G, 2) grid displacements and the number of estimated markers (see
-        FieldParams.rebuild_after_frames)."""
-        key = np.packbits(mask).tobytes()
-        self._streak = self._streak + 1 if key == self._pattern else 1
-        self._pattern = key
-        if mask.all() or key in self._cache or self._streak >= self.params.rebuild_after_frames:
-            return self.operator(mask) @ disp, 0
-        full = np.zeros_like(cur)
-        full[mask] = disp
+    def _apply_operator(self, mask: np.ndarray, disp: np.ndarray) -> np.ndarray:
+        """(G, 2) grid displacements from the valid markers' (n_valid, 2) displacements.
+
+        Exact RBF interpolation of the valid markers alone, without solving their system:
+        with B the inverse of the all-markers system and S the k missing markers, the
+        inverse of the reduced system is B_RR - B_RS B_SS^-1 B_SR (block inverse), so a
+        frame costs two (N+3) x N products and one k x k solve.
+        """
+        inverse, evaluation = self.system()
+        n = self.reference_px.shape[0]
+        values = np.zeros((n, 2))
+        values[mask] = disp
+        coeffs = inverse[:, :n] @ values
         missing = np.flatnonzero(~mask)
-        full[missing] = self._estimate_missing(full, mask, missing, disp)
-        return self.operator(np.ones_like(mask)) @ full, int(missing.size)
-
-    def _estimate_missing(self, full: np.ndarray, mask: np.ndarray, missing: np.ndarray,
-                          disp: np.ndarray) -> np.ndarray:
-        """(M, 2) displacement estimates of the `missing` markers: an inverse-distance
-        weighted affine fit over their valid reference neighbours (exact for affine
-        motion); weighted mean where the fit is degenerate; the median valid displacement
-        where no neighbour is valid."""
-        nbr = self._fill_idx[missing]
-        w = self._fill_w[missing] * mask[nbr]
-        offsets = self.reference_px[nbr] - self.reference_px[missing][:, None, :]
-        basis = np.concatenate([np.ones(offsets.shape[:2] + (1,)), offsets], axis=2)  # (M, k, 3)
-        normal = np.einsum("mk,mki,mkj->mij", w, basis, basis)
-        rhs = np.einsum("mk,mki,mkc->mic", w, basis, full[nbr])
-        total = w.sum(axis=1)
-        estimate = np.einsum("mk,mkc->mc", w, full[nbr]) / np.maximum(total, 1e-300)[:, None]
-        fit = (mask[nbr].sum(axis=1) >= 3) & (np.abs(np.linalg.det(normal)) > 1e-12 * np.maximum(total, 1e-300) ** 3)
-        if fit.any():
-            estimate[fit] = np.linalg.solve(normal[fit], rhs[fit])[:, 0, :]
-        isolated = total <= 0
-        if isolated.any():
-            estimate[isolated] = np.median(disp, axis=0)
-        return estimate
+        if missing.size:
+            block = inverse[np.ix_(missing, missing)]
+            try:
+                correction = np.linalg.solve(block, coeffs[missing])
+            except np.linalg.LinAlgError:
+                correction = np.linalg.lstsq(block, coeffs[missing], rcond=None)[0]
+            coeffs -= inverse[:, missing] @ correction
+            coeffs[missing] = 0.0
+        return evaluation @ coeffs
 
     def _griddata(self, points: np.ndarray, disp: np.ndarray) -> tuple[np.ndarray, int]:
         """Cubic griddata (G, 2); cells outside the hull (or degenerate input) take the nearest marker."""

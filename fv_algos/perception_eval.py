@@ -17,6 +17,7 @@ Per frame, with `match` from `match_reference`:
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from typing import Literal
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -43,13 +44,15 @@ def _mask(array: np.ndarray, name: str, rows: int) -> np.ndarray:
     return out.astype(bool)
 
 
-def marker_pitch_px(points_px: np.ndarray) -> float:
-    """Median distance (px) from each of the points (N >= 2, 2) to its nearest other point."""
+def marker_pitch_px(points_px: np.ndarray, statistic: Literal["median", "min"] = "median") -> float:
+    """Median (or smallest) distance, px, from each of the points (N >= 2, 2) to its nearest other point."""
     pts = _points(points_px, "points_px")
     if pts.shape[0] < 2:
         raise ValueError(f"need >= 2 points for a pitch, got {pts.shape[0]}")
+    if statistic not in ("median", "min"):
+        raise ValueError(f"statistic must be 'median' or 'min', got {statistic!r}")
     distances, _ = cKDTree(pts).query(pts, k=2)
-    return float(np.median(distances[:, 1]))
+    return float(np.median(distances[:, 1]) if statistic == "median" else distances[:, 1].min())
 
 
 def match_reference(reference_px: np.ndarray, truth_reference_px: np.ndarray, max_distance_px: float) -> np.ndarray:
