@@ -15,6 +15,8 @@ COMMAND_MODULES = [
     "nodes.topic_tools",
     "nodes.bag.commands",
     "nodes.bench_commands",
+    "nodes.slip_commands",
+    "nodes.real_commands",
 ]
 
 

@@ -1,0 +1,290 @@
+"""Real grasp trials (e.g. GelSight Mini recordings) -> displacement fields and tracking quality.
+
+A trial folder holds one video per finger camera (``camera_0.avi``, optionally ``camera_2.avi``)
+and one label for the whole trial. A trial table is ``labels.csv`` in the dataset root with at
+least the columns ``trial`` (folder relative to the root), ``object`` and ``label`` (``slip`` /
+``no_slip``, or 1 / 0); any other columns are kept as ``Trial.extra``.
+
+Each video goes through :class:`fv_algos.perception.Perception` frame by frame: the frame
+``reference_frame`` (default 1, frame 0 of these cameras is often stale) is the undeformed skin,
+earlier frames are dropped. Only markers the tracker marks valid (measured and consistent with
+their neighbours this frame) feed the field, so markers that leave the view or blur do not
+poison it. Per frame we also keep the share of reference markers valid and the number of
+markers :func:`fv_algos.tracking.neighbour_consistency` flags (identity swaps / wrong matches).
+
+Window labels and trial decisions live in :mod:`fv_algos.trial_eval`: a window of a slip trial
+takes the slip label only when the field is moving (its activity reaches a threshold), since a
+slip trial also holds its grasp and lift before the slip; every window of a no-slip trial is a
+no-slip example; a trial's decision pools the window probabilities of both cameras.
+"""
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import time
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import nullcontext
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from fv_algos import detection, perception, tracking
+from fv_algos import field as field_module
+from fv_algos.perception import Perception, PerceptionParams
+from fv_algos.tracking import neighbour_consistency
+
+LABELS_FILE = "labels.csv"
+CAMERAS = ("camera_0", "camera_2")
+VIDEO_SUFFIX = ".avi"
+LABEL_VALUES = {"no_slip": 0, "slip": 1, "0": 0, "1": 1}
+REQUIRED_COLUMNS = ("trial", "object", "label")
+CACHE_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One labelled grasp.
+
+    name: folder relative to the dataset root (e.g. "train/blue_mug/exp_num_4").
+    folder: absolute folder. label: 0 no slip, 1 slip. videos: camera name -> video path, for the
+    cameras present (camera_0 always). extra: the table's other columns, as strings.
+    """
+
+    name: str
+    object: str
+    label: int
+    folder: Path
+    videos: dict[str, Path]
+    extra: dict[str, str] = field(default_factory=dict)
+
+
+def read_trials(root: str | Path) -> list[Trial]:
+    """Trials listed in ``root/labels.csv``, in file order.
+
+    Raises FileNotFoundError naming the missing ``labels.csv`` or ``camera_0.avi``, ValueError
+    naming the file and line for a missing column, an unknown label or a duplicate trial.
+    """
+    root = Path(root)
+    table = root / LABELS_FILE
+    if not table.is_file():
+        raise FileNotFoundError(f"trial table not found: {table} (needs columns {', '.join(REQUIRED_COLUMNS)})")
+    with table.open(newline="") as handle:
+        reader = csv.DictReader(handle)
+        missing = [c for c in REQUIRED_COLUMNS if c not in (reader.fieldnames or [])]
+        if missing:
+            raise ValueError(f"{table}: missing columns {missing} (has {reader.fieldnames})")
+        rows = list(reader)
+    trials, seen = [], set()
+    for line, row in enumerate(rows, start=2):
+        name, label = row["trial"].strip(), row["label"].strip().lower()
+        if label not in LABEL_VALUES:
+            raise ValueError(f"{table} line {line}: label {row['label']!r} is not slip / no_slip (or 1 / 0)")
+        if not name or name in seen:
+            raise ValueError(f"{table} line {line}: trial {name!r} is empty or listed twice")
+        seen.add(name)
+        folder = root / name
+        videos = {c: folder / f"{c}{VIDEO_SUFFIX}" for c in CAMERAS if (folder / f"{c}{VIDEO_SUFFIX}").is_file()}
+        if CAMERAS[0] not in videos:
+            raise FileNotFoundError(f"{table} line {line}: video not found: {folder / (CAMERAS[0] + VIDEO_SUFFIX)}")
+        extra = {k: v for k, v in row.items() if k not in REQUIRED_COLUMNS and k is not None}
+        trials.append(Trial(name, row["object"].strip(), LABEL_VALUES[label], folder, videos, extra))
+    if not trials:
+        raise ValueError(f"{table} lists no trials")
+    return trials
+
+
+@dataclass
+class VideoFields:
+    """Fields and tracking quality of one video, from the reference frame on (F frames).
+
+    fields: (F, H, W, 3) float16 px (dx, dy, magnitude); frame 0 is the reference (zeros).
+    field_valid: (F,) bool, enough valid markers for a field (an invalid field is all zeros).
+    valid_share: (F,) float32, share of the reference markers valid in each frame.
+    swaps: (F,) int32, valid markers flagged by neighbour_consistency in each frame.
+    n_markers: markers found in the reference frame. seconds: wall time of decode + perception.
+    """
+
+    fields: np.ndarray
+    field_valid: np.ndarray
+    valid_share: np.ndarray
+    swaps: np.ndarray
+    n_markers: int
+    seconds: float
+
+    def quality(self) -> dict[str, float]:
+        """Tracking quality summary: markers, frames, mean / min share valid, frames with a swap, swaps."""
+        return {
+            "markers": self.n_markers,
+            "frames": int(self.fields.shape[0]),
+            "valid_share_mean": float(self.valid_share.mean()),
+            "valid_share_min": float(self.valid_share.min()),
+            "frames_with_swaps": int(np.count_nonzero(self.swaps)),
+            "swaps": int(self.swaps.sum()),
+            "invalid_fields": int(np.count_nonzero(~self.field_valid)),
+        }
+
+
+def read_frames(path: str | Path) -> Iterator[np.ndarray]:
+    """BGR frames (H, W, 3) uint8 of a video file; FileNotFoundError / ValueError name the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"video not found: {path}")
+    capture = cv2.VideoCapture(str(path))
+    if not capture.isOpened():
+        raise ValueError(f"OpenCV cannot decode video {path}")
+    try:
+        while True:
+            ok, frame = capture.read()
+            if not ok:
+                return
+            yield frame
+    finally:
+        capture.release()
+
+
+def frame_count(path: str | Path) -> int:
+    """Frames in a video according to its container (0 when unknown)."""
+    capture = cv2.VideoCapture(str(path))
+    try:
+        return max(int(capture.get(cv2.CAP_PROP_FRAME_COUNT)), 0)
+    finally:
+        capture.release()
+
+
+def video_fields(
+    path: str | Path, params: PerceptionParams | None = None, reference_frame: int = 1
+) -> VideoFields:
+    """Run the perception core over one video (see the module docstring); ValueError naming the
+    file when it has no frame at ``reference_frame`` or its reference shows too few markers."""
+    started = time.perf_counter()
+    core = Perception(params or PerceptionParams.preset("default"))
+    fields, field_valid, shares, swaps = [], [], [], []
+    for index, frame in enumerate(read_frames(path)):
+        if index < reference_frame:
+            continue
+        if index == reference_frame:
+            try:
+                core.reset(frame)
+            except ValueError as exc:
+                raise ValueError(f"{path}: reference frame {reference_frame}: {exc}") from exc
+        state, dense = core.step(frame)
+        fields.append(dense.field)
+        field_valid.append(dense.valid)
+        shares.append(state.valid.mean())
+        swaps.append(int(neighbour_consistency(state.reference_px, state.current_px, state.valid).sum()))
+    if not fields:
+        raise ValueError(f"{path}: no frame at reference_frame={reference_frame}")
+    return VideoFields(
+        np.stack(fields).astype(np.float16),
+        np.array(field_valid, dtype=bool),
+        np.array(shares, dtype=np.float32),
+        np.array(swaps, dtype=np.int32),
+        int(state.valid.size),
+        time.perf_counter() - started,
+    )
+
+
+def _perception_digest() -> str:
+    """SHA-256 of the perception code (detection, tracking, field, perception modules): a cached
+    field is stale once any of them changes."""
+    digest = hashlib.sha256()
+    for module in (detection, tracking, field_module, perception):
+        digest.update(Path(module.__file__).read_bytes())
+    return digest.hexdigest()
+
+
+def _cache_key(video: Path, reference_frame: int) -> str:
+    stat = video.stat()
+    text = json.dumps([CACHE_VERSION, str(video.resolve()), stat.st_size, stat.st_mtime_ns, reference_frame,
+                       _perception_digest()])
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def cache_path(cache_dir: str | Path, video: Path, reference_frame: int = 1) -> Path:
+    """Where the fields of ``video`` are cached: one .npz per video, named after a key of the video
+    (path, size, mtime), the reference frame and the perception code, so a stale entry is never read."""
+    stem = "__".join(video.parts[-3:]).removesuffix(VIDEO_SUFFIX)
+    return Path(cache_dir) / f"{stem}__{_cache_key(video, reference_frame)}.npz"
+
+
+def save_video_fields(path: Path, value: VideoFields) -> None:
+    """Write ``value`` to ``path`` (.npz, atomically)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp.npz")
+    np.savez_compressed(tmp, fields=value.fields, field_valid=value.field_valid, valid_share=value.valid_share,
+                        swaps=value.swaps, n_markers=value.n_markers, seconds=value.seconds)
+    tmp.replace(path)
+
+
+def load_video_fields(path: Path) -> VideoFields:
+    """Read a file written by :func:`save_video_fields`."""
+    with np.load(path) as data:
+        return VideoFields(data["fields"], data["field_valid"], data["valid_share"], data["swaps"],
+                           int(data["n_markers"]), float(data["seconds"]))
+
+
+def _cached_fields(job: tuple[Path, Path | None, int]) -> VideoFields:
+    """Fields of one video, read from / written to the cache when a cache file is given."""
+    video, cached, reference_frame = job
+    if cached is not None and cached.is_file():
+        return load_video_fields(cached)
+    value = video_fields(video, reference_frame=reference_frame)
+    if cached is not None:
+        save_video_fields(cached, value)
+    return value
+
+
+TrialFields = dict[tuple[str, str], VideoFields]
+
+
+def trial_fields(
+    trials: Sequence[Trial],
+    cache_dir: str | Path | None = None,
+    reference_frame: int = 1,
+    workers: int = 1,
+    progress: bool = True,
+) -> TrialFields:
+    """Fields of every camera of every trial, keyed (trial name, camera).
+
+    cache_dir: folder for one .npz per video (None: no cache). workers: processes (1 = this one).
+    One progress bar (in frames) covers the whole set.
+    """
+    videos = [(t.name, cam, path) for t in trials for cam, path in t.videos.items()]
+    jobs = [(path, None if cache_dir is None else cache_path(cache_dir, path, reference_frame), reference_frame)
+            for _, _, path in videos]
+    sizes = [frame_count(path) for _, _, path in videos]
+    out: TrialFields = {}
+    with tqdm(total=sum(sizes), unit="frame", desc="fields", disable=not progress) as bar, (
+        ProcessPoolExecutor(workers) if workers > 1 else nullcontext()
+    ) as pool:
+        results = map(_cached_fields, jobs) if pool is None else pool.map(_cached_fields, jobs)
+        for (name, cam, _), size, value in zip(videos, sizes, results):
+            out[(name, cam)] = value
+            bar.update(size)
+    return out
+
+
+def tracking_quality(fields: TrialFields) -> dict[str, float]:
+    """Whole-set tracking quality: videos, frames, markers per video (mean), share of markers
+    valid per frame (mean, 1st percentile, min), frames with >= 1 swap flagged and swaps per
+    1000 frames, invalid fields, and perception time per frame (ms)."""
+    shares = np.concatenate([v.valid_share for v in fields.values()])
+    swaps = np.concatenate([v.swaps for v in fields.values()])
+    frames = int(shares.size)
+    return {
+        "videos": len(fields),
+        "frames": frames,
+        "markers_mean": float(np.mean([v.n_markers for v in fields.values()])),
+        "valid_share_mean": float(shares.mean()),
+        "valid_share_p01": float(np.percentile(shares, 1)),
+        "valid_share_min": float(shares.min()),
+        "frames_with_swaps": int(np.count_nonzero(swaps)),
+        "swaps_per_1000_frames": float(1e3 * swaps.sum() / frames),
+        "invalid_fields": int(sum(np.count_nonzero(~v.field_valid) for v in fields.values())),
+        "ms_per_frame": float(1e3 * sum(v.seconds for v in fields.values()) / frames),
+    }

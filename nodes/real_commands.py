@@ -1,0 +1,203 @@
+"""`fv real ...` (fields, cross-validation and training on real labelled grasp trials) and
+`fv eval-trials` (a trained slip model judged on a folder of real trials, video to decision).
+
+A trials folder holds `labels.csv` (columns trial, object, label = slip / no_slip) and per trial
+`<trial>/camera_0.avi` (+ `camera_2.avi`). Fields are cached per video under `--cache`
+(default ~/.cache/fingervision/real_fields), never inside the repository."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+DEFAULT_CACHE = Path.home() / ".cache" / "fingervision" / "real_fields"
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    real = sub.add_parser("real", help="slip detection on real labelled grasp trials (fields, cv, train)")
+    verbs = real.add_subparsers(dest="real_command", required=True, metavar="VERB")
+
+    p = verbs.add_parser("fields", help="fields of every trial video (cached) and tracking quality")
+    _data_args(p)
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.set_defaults(func=_fields)
+
+    p = verbs.add_parser("cv", help="object-held-out cross-validation (window and trial accuracy per fold)")
+    _data_args(p)
+    _fit_args(p, steps=300)
+    p.add_argument("--folds", type=int, default=5, help="object folds (default 5)")
+    p.add_argument("--init", default=None, help="fine-tune every fold from this checkpoint or shipped model name (e.g. sim); "
+                   "its architecture is used and --steps counts the extra steps")
+    p.add_argument("--out", type=Path, default=None, help="also write the full report (JSON) here")
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.set_defaults(func=_cv)
+
+    p = verbs.add_parser("train", help="train on all trials and write a shipped-model checkpoint + JSON")
+    _data_args(p)
+    _fit_args(p, steps=600)
+    p.add_argument("--out", type=Path, required=True, help="checkpoint path, e.g. fv_algos/weights/slip_gelsight.pt")
+    p.add_argument("--cv-report", type=Path, default=None, help="`fv real cv --out` report to record beside it")
+    p.set_defaults(func=_train)
+
+    p = sub.add_parser("eval-trials", help="judge a slip model on a folder of real trials (video to decision)")
+    p.add_argument("--model", required=True, help="shipped model name (gelsight, sim) or checkpoint path")
+    p.add_argument("--trials", type=Path, required=True, help="folder with labels.csv and <trial>/camera_0.avi")
+    p.add_argument("--cache", type=Path, default=None, help="reuse / write cached fields here (default: none)")
+    p.add_argument("--workers", type=int, default=1, help="processes for the fields (default 1)")
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.set_defaults(func=eval_trials_command)
+
+
+def _data_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--trials", type=Path, required=True, help="folder with labels.csv and the trial folders")
+    p.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help=f"field cache folder (default {DEFAULT_CACHE})")
+    p.add_argument("--workers", type=int, default=1, help="processes for the fields (default 1)")
+
+
+def _fit_args(p: argparse.ArgumentParser, steps: int) -> None:
+    p.add_argument("--arch", default="convlstm", help="convlstm (the paper), cnn_lstm or lstm (default convlstm)")
+    p.add_argument("--hidden", type=int, default=16, help="hidden channels / units (default 16)")
+    p.add_argument("--steps", type=int, default=steps, help=f"optimizer steps (default {steps})")
+    p.add_argument("--batch-size", type=int, default=32)
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--stride", type=int, default=5, help="frames between window starts (default 5)")
+    p.add_argument("--activity-px", type=float, default=None, help="activity (px/frame) from which a slip "
+                   "trial's window is labelled slip (default: the TrialRule default)")
+    p.add_argument("--top-k", type=int, default=None, help="windows averaged for the trial score")
+
+
+def _rule(args: argparse.Namespace):
+    from fv_algos.trial_eval import TrialRule
+    overrides = {k: v for k, v in (("activity_px", args.activity_px), ("top_k", args.top_k)) if v is not None}
+    return TrialRule(stride=args.stride, **overrides)
+
+
+def _load(trials_dir: Path, cache: Path | None, workers: int):
+    """(trials, fields, seconds) of the trials in ``trials_dir``, fields cached under ``cache`` (None: no cache)."""
+    from fv_algos.real_trials import read_trials, trial_fields
+    trials = read_trials(trials_dir)
+    started = time.perf_counter()
+    fields = trial_fields(trials, cache, workers=workers)
+    return trials, fields, time.perf_counter() - started
+
+
+def _fields(args: argparse.Namespace) -> int:
+    from fv_algos.real_trials import tracking_quality
+    trials, fields, seconds = _load(args.trials, args.cache, args.workers)
+    quality = tracking_quality(fields)
+    report = {"trials": len(trials), "wall_s": seconds, "cache": str(args.cache), **quality}
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        print(f"{len(trials)} trials, {quality['videos']} videos, {quality['frames']} frames in {seconds:.1f} s; "
+              f"markers valid per frame: mean {quality['valid_share_mean']:.3f}, min {quality['valid_share_min']:.3f}; "
+              f"frames with a swap flagged: {quality['frames_with_swaps']}; cache {args.cache}")
+    return 0
+
+
+def _fit_config(args: argparse.Namespace):
+    import torch
+    from fv_algos.trial_eval import fit_config
+    torch.set_num_threads(1)
+    return fit_config(args.arch, args.hidden, args.steps, args.batch_size, args.lr, args.seed, _rule(args))
+
+
+def _cv(args: argparse.Namespace) -> int:
+    from fv_algos.trial_eval import cross_validate, trial_windows
+    from nodes.slip_detector import model_path
+    config = _fit_config(args)
+    trials, fields, _ = _load(args.trials, args.cache, args.workers)
+    data = trial_windows(trials, fields, config.train.model.window, config.rule)
+    started = time.perf_counter()
+    init = None if args.init is None else str(model_path(args.init))
+    report = cross_validate(data, config, args.folds, args.seed, init)
+    report["wall_s"] = time.perf_counter() - started
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(report, indent=1))
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        for r in report["folds"]:
+            print(f"fold {r['fold']}: trials {r['n_trials']:3d}  window acc {r['window_accuracy']:.3f}  "
+                  f"trial acc {r['trial_accuracy']:.3f}  objects {', '.join(r['objects'])}")
+        s = report["summary"]
+        print(f"trial accuracy {s['trial_accuracy_mean']:.3f} +/- {s['trial_accuracy_std']:.3f} "
+              f"(worst fold {s['worst_fold']}: {s['trial_accuracy_min']:.3f}); window accuracy "
+              f"{s['window_accuracy_mean']:.3f} +/- {s['window_accuracy_std']:.3f}")
+    return 0
+
+
+def _train(args: argparse.Namespace) -> int:
+    import numpy as np
+    from fv_algos.slip.classifier import Checkpoint, save_checkpoint
+    from fv_algos.slip.models import count_parameters
+    from fv_algos.trial_eval import fit, trial_windows
+    config = _fit_config(args)
+    trials, fields, _ = _load(args.trials, args.cache, args.workers)
+    data = trial_windows(trials, fields, config.train.model.window, config.rule)
+    started = time.perf_counter()
+    model, threshold, record = fit(data, np.arange(len(trials)), config)
+    checkpoint = Checkpoint(config.train.model, model.state_dict(), record["steps"], None,
+                            config.train.to_dict(), [])
+    path = save_checkpoint(args.out, checkpoint)
+    info = {
+        "model": path.stem.removeprefix("slip_"),
+        "trained_on": {"trials_dir": str(args.trials), "trials": len(trials),
+                       "slip": int(sum(t.label for t in trials)), "objects": len({t.object for t in trials})},
+        "fit": {"train": config.train.to_dict(), "rule": asdict(config.rule), "seconds": time.perf_counter() - started},
+        "trial_threshold": threshold,
+        "training": record,
+        "parameters": count_parameters(model),
+        "command": " ".join(["fv", *sys.argv[1:]]),
+    }
+    if args.cv_report is not None:
+        info["cross_validation"] = json.loads(args.cv_report.read_text())["summary"]
+    path.with_suffix(".json").write_text(json.dumps(info, indent=1))
+    print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KiB, {info['parameters']} parameters, "
+          f"trial threshold {threshold:.3f}) and {path.with_suffix('.json')}")
+    return 0
+
+
+def eval_trials_command(args: argparse.Namespace) -> int:
+    """Judge a slip model on a folder of real trials, the whole way from video to decision.
+
+    Needs args.model (shipped name or checkpoint), args.trials (folder), args.json; optional
+    args.cache (None: fields are computed, not cached) and args.workers. The window stride, top-k
+    and trial threshold come from the model's JSON sidecar (`slip_<name>.json`) when it has them,
+    else the TrialRule defaults and threshold 0.5. Prints trial_accuracy, n_trials,
+    window_accuracy, confusion ([[TN, FP], [FN, TP]] at trial level), the timing and tracking quality."""
+    import numpy as np
+    import torch
+    from fv_algos.real_trials import tracking_quality
+    from fv_algos.slip.classifier import SlipClassifier
+    from fv_algos.trial_eval import TrialRule, judge, trial_windows
+    from nodes.slip_detector import model_path
+    torch.set_num_threads(1)
+    started = time.perf_counter()
+    path = model_path(args.model)
+    sidecar = path.with_suffix(".json")
+    info = json.loads(sidecar.read_text()) if sidecar.is_file() else {}
+    rule = TrialRule(**info["fit"]["rule"]) if "fit" in info else TrialRule()
+    threshold = float(info.get("trial_threshold", 0.5))
+    classifier = SlipClassifier(path, threads=1)
+    trials, fields, field_s = _load(args.trials, getattr(args, "cache", None), getattr(args, "workers", 1))
+    data = trial_windows(trials, fields, classifier.config.window, rule)
+    report = judge(classifier.model, data, np.arange(len(trials)), threshold, rule.top_k)
+    wall = time.perf_counter() - started
+    frames = int(sum(v.fields.shape[0] for v in fields.values()))
+    out = {"model": str(path), "trial_accuracy": report["trial_accuracy"], "n_trials": report["n_trials"],
+           "window_accuracy": report["window_accuracy"], "n_windows": report["n_windows"],
+           "confusion": report["confusion"], "trial_f1": report["trial_f1"], "threshold": threshold,
+           "rule": asdict(rule), "wall_s": wall, "fields_s": field_s, "s_per_trial": wall / len(trials),
+           "ms_per_frame": 1e3 * wall / frames, "tracking": tracking_quality(fields)}
+    if args.json:
+        print(json.dumps(out, indent=2))
+    else:
+        print(f"{out['n_trials']} trials: trial accuracy {out['trial_accuracy']:.3f}, window accuracy "
+              f"{out['window_accuracy']:.3f}, confusion {out['confusion']} ({wall:.0f} s, {out['s_per_trial']:.2f} s/trial)")
+    return 0

@@ -1,0 +1,145 @@
+"""Real labelled grasp trials: trial table, video fields and tracking quality, windows, trial
+decisions, object-held-out folds and `fv eval-trials` (data tests skip without ../shared/data/isd)."""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from fv_algos.real_trials import read_trials, trial_fields, tracking_quality, video_fields
+from fv_algos.slip.classifier import Checkpoint, save_checkpoint
+from fv_algos.slip.models import ModelConfig, build_model
+from fv_algos.trial_eval import (
+    TrialRule,
+    balanced_rows,
+    choose_threshold,
+    object_folds,
+    trial_scores,
+    trial_windows,
+    window_activity,
+)
+
+SHORT_TRIALS = {  # trial -> (object, label): the shortest slip trials and the shortest no-slip trial
+    "train/nylon_thread/exp_num_1": ("nylon_thread", "slip"),
+    "train/marker_pen/exp_num_2": ("marker_pen", "slip"),
+    "train/blue_mug/exp_num_5": ("blue_mug", "no_slip"),
+}
+
+
+def _subset(isd: Path, root: Path) -> Path:
+    """A trials folder in ``root`` with SHORT_TRIALS (trial folders linked, not copied)."""
+    lines = ["trial,object,label"]
+    for name, (obj, label) in SHORT_TRIALS.items():
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / name).symlink_to(isd / name, target_is_directory=True)
+        lines.append(f"{name},{obj},{label}")
+    (root / "labels.csv").write_text("\n".join(lines) + "\n")
+    return root
+
+
+def test_dataset_table_lists_150_trials_with_both_cameras(isd_data: Path) -> None:
+    trials = read_trials(isd_data)
+    assert len(trials) == 150
+    assert sum(t.label for t in trials) == 65
+    assert len({t.object for t in trials}) == 29
+    assert all(set(t.videos) == {"camera_0", "camera_2"} for t in trials)
+    assert all((t.folder / "slip.txt").is_file() == bool(t.label) for t in trials)
+    assert "camera_0_frames" in trials[0].extra
+
+
+def test_bad_tables_name_the_file(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError, match="labels.csv"):
+        read_trials(tmp_path)
+    (tmp_path / "labels.csv").write_text("trial,object,label\nt1,cup,maybe\n")
+    with pytest.raises(ValueError, match=r"labels.csv line 2: label 'maybe'"):
+        read_trials(tmp_path)
+    (tmp_path / "labels.csv").write_text("trial,object,label\nt1,cup,slip\n")
+    with pytest.raises(FileNotFoundError, match=r"t1/camera_0.avi"):
+        read_trials(tmp_path)
+    (tmp_path / "labels.csv").write_text("trial,label\nt1,slip\n")
+    with pytest.raises(ValueError, match=r"missing columns \['object'\]"):
+        read_trials(tmp_path)
+
+
+def test_video_fields_track_every_frame_without_swaps(isd_data: Path) -> None:
+    video = isd_data / "train/nylon_thread/exp_num_1/camera_0.avi"
+    result = video_fields(video, reference_frame=1)
+    assert result.fields.shape == (48, 30, 30, 3) and result.fields.dtype == np.float16
+    assert np.all(result.fields[0] == 0) and result.field_valid.all()
+    assert result.n_markers >= 30
+    quality = result.quality()
+    assert quality["valid_share_mean"] > 0.95 and quality["swaps"] == 0
+
+
+def test_field_cache_round_trip(isd_data: Path, tmp_path: Path) -> None:
+    trials = [t for t in read_trials(isd_data) if t.name == "train/nylon_thread/exp_num_1"]
+    first = trial_fields(trials, tmp_path / "cache", progress=False)
+    assert len(list((tmp_path / "cache").glob("*.npz"))) == 2
+    again = trial_fields(trials, tmp_path / "cache", progress=False)
+    for key, value in first.items():
+        np.testing.assert_array_equal(value.fields, again[key].fields)
+    quality = tracking_quality(first)
+    assert quality["videos"] == 2 and quality["frames"] == 96
+
+
+def test_window_activity_of_uniform_motion() -> None:
+    frames = np.zeros((20, 30, 30, 3), np.float16)
+    frames[..., 0] = (0.5 * np.arange(20))[:, None, None]  # 0.5 px/frame in x
+    np.testing.assert_allclose(window_activity(frames, 10, np.array([0, 5, 10])), 0.5, atol=1e-3)
+
+
+def test_trial_scores_thresholds_balance_and_folds() -> None:
+    probability = np.array([0.1, 0.9, 0.8, 0.2, 0.3, 0.1])
+    trial = np.array([0, 0, 0, 1, 1, 1])
+    np.testing.assert_allclose(trial_scores(probability, trial, 2, top_k=2), [0.85, 0.25])
+    assert choose_threshold(np.array([0.1, 0.2, 0.8, 0.9]), np.array([0, 0, 1, 1])) == pytest.approx(0.5)
+    rows = balanced_rows(np.arange(5), np.array([0, 0, 0, 0, 1]))
+    assert np.count_nonzero(rows == 4) == 4 and rows.size == 8
+    objects = ["a"] * 5 + ["b"] * 3 + ["c"] * 3 + ["d"] * 2 + ["e"]
+    folds = object_folds(objects, 2)
+    assert sorted(sum(folds, [])) == ["a", "b", "c", "d", "e"]
+    counts = [sum(objects.count(o) for o in f) for f in folds]
+    assert abs(counts[0] - counts[1]) <= 1
+
+
+def test_windows_label_only_active_windows_of_slip_trials(isd_data: Path, tmp_path: Path) -> None:
+    root = _subset(isd_data, tmp_path / "trials")
+    trials = read_trials(root)
+    data = trial_windows(trials, trial_fields(trials, tmp_path / "cache", progress=False), 10, TrialRule(stride=5))
+    assert set(np.unique(data.trial)) == {0, 1, 2}
+    assert data.labelled[data.labels == 0].all()
+    slip = data.labels == 1
+    np.testing.assert_array_equal(data.labelled[slip], data.activity[slip] >= TrialRule().activity_px)
+    x, _ = data.windows.get(np.arange(4))
+    assert x.shape == (4, 10, 30, 30, 3)
+
+
+def test_eval_trials_command_from_video_to_decision(isd_data: Path, tmp_path: Path, capsys) -> None:
+    from nodes.real_commands import eval_trials_command
+    root = _subset(isd_data, tmp_path / "trials")
+    torch.manual_seed(0)
+    config = ModelConfig(arch="lstm", hidden=8)
+    model_path = save_checkpoint(tmp_path / "tiny.pt", Checkpoint(config, build_model(config).state_dict()))
+    args = argparse.Namespace(model=str(model_path), trials=root, cache=None, workers=1, json=True)
+    assert eval_trials_command(args) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["n_trials"] == 3 and 0.0 <= report["trial_accuracy"] <= 1.0
+    assert 0.0 <= report["window_accuracy"] <= 1.0
+    assert np.sum(report["confusion"]) == 3
+    assert report["tracking"]["videos"] == 6
+
+
+def test_fit_fine_tunes_from_a_checkpoint(isd_data: Path, tmp_path: Path) -> None:
+    from fv_algos.trial_eval import fit, fit_config
+    root = _subset(isd_data, tmp_path / "trials")
+    trials = read_trials(root)
+    data = trial_windows(trials, trial_fields(trials, tmp_path / "cache", progress=False), 10, TrialRule(stride=5))
+    config = ModelConfig(arch="lstm", hidden=8)
+    start = save_checkpoint(tmp_path / "start.pt", Checkpoint(config, build_model(config).state_dict(), step=7))
+    model, threshold, record = fit(data, np.arange(3), fit_config("convlstm", 16, steps=3, batch_size=4), init=str(start))
+    assert model.config == config and record["steps"] == 10
+    assert 0.0 <= threshold <= 1.0
