@@ -14,6 +14,7 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "bus": ("nodes.bench_bus", "add_parser"),
     "bag": ("nodes.bag.bench", "add_parser"),
     "perception": ("nodes.bench_perception", "add_parser"),
+    "slip": ("nodes.slip_commands", "add_bench_parser"),
 }
 
 

@@ -1,0 +1,189 @@
+"""The simulated slip dataset: random scenarios -> simulated camera -> real perception -> fields.
+
+Follows the paper's protocol: S raw sequences (1,600 in the paper) of F = 15 frames at 15 Hz,
+half slip (translational, rotational, incipient) and half no slip (pressing, holding, shear
+without slip), on the 12 shapes of :mod:`fv_algos.sim.objects`. Each sequence is rendered by
+:class:`~fv_algos.sim.sensor.SimSensor`; a rest frame of the unloaded skin is rendered first
+and given to :meth:`Perception.reset`, then every scenario frame goes through
+:meth:`Perception.step` (detect, track, interpolate: the fields a real sensor would yield, not
+ground-truth ones), giving fields (F, 30, 30, 3) float32 px (dx, dy, magnitude).
+
+Reproducibility: sequence ``i`` depends only on (seed, i) (its generator is
+``numpy.random.default_rng([seed, i])``) and its kind comes from a balanced plan shuffled by
+``seed``, so any chunking over worker processes gives identical data.
+"""
+from __future__ import annotations
+
+import multiprocessing
+import os
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from fv_algos.perception import Perception, PerceptionParams
+from fv_algos.sim.objects import SHAPES, shape_name
+from fv_algos.sim.scene import DEFAULT_RENDER_EFFECTS, NON_SLIP_KINDS, SLIP_KINDS, random_scenario
+from fv_algos.sim.sensor import SimSensor
+from fv_algos.slip.windows import SequenceSet
+
+OBJECT_NAMES: tuple[str, ...] = tuple(SHAPES)
+"""Object id i of a sequence is the shape OBJECT_NAMES[i]."""
+
+_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+@dataclass(frozen=True)
+class SimDatasetConfig:
+    """What to generate.
+
+    n_sequences: raw sequences S (>= 2); floor(S / 2) slip, the rest no slip.
+    n_frames: frames per sequence F (>= 4).
+    fps: frame rate, Hz.
+    seed: master seed; sequence i uses default_rng([seed, i]).
+    preset: perception preset name (PerceptionParams.preset).
+    render_effects: renderer effects of every scenario (fv_algos.sim.render.EFFECTS).
+    """
+
+    n_sequences: int = 1600
+    n_frames: int = 15
+    fps: float = 15.0
+    seed: int = 0
+    preset: str = "default"
+    render_effects: tuple[str, ...] = tuple(sorted(DEFAULT_RENDER_EFFECTS))
+
+    def __post_init__(self) -> None:
+        if self.n_sequences < 2:
+            raise ValueError(f"n_sequences must be >= 2, got {self.n_sequences}")
+        if self.n_frames < 4:
+            raise ValueError(f"n_frames must be >= 4, got {self.n_frames}")
+        if not (np.isfinite(self.fps) and self.fps > 0):
+            raise ValueError(f"fps must be finite and > 0, got {self.fps}")
+        if self.seed < 0:
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
+        PerceptionParams.preset(self.preset)  # raises ValueError naming the valid presets
+
+
+@dataclass(frozen=True)
+class SimSequence:
+    """One generated sequence: fields (F, H, W, 3) float32 px, its kind, label (1 = slip),
+    object id (index into OBJECT_NAMES), per-frame true slip flags (F,) bool, and the number
+    of frames whose field perception flagged invalid (stored as zeros)."""
+
+    fields: np.ndarray
+    kind: str
+    label: int
+    object_id: int
+    frame_slip: np.ndarray
+    invalid_frames: int
+
+
+def kind_plan(n_sequences: int, seed: int) -> list[str]:
+    """Scenario kind of every sequence: floor(S / 2) slip kinds and the rest no-slip kinds, each
+    group cycling through its three kinds, in an order shuffled by ``seed``."""
+    kinds = [
+        (SLIP_KINDS if i % 2 else NON_SLIP_KINDS)[(i // 2) % len(SLIP_KINDS)] for i in range(n_sequences)
+    ]
+    order = np.random.default_rng(seed).permutation(n_sequences)
+    return [kinds[i] for i in order]
+
+
+def simulate_sequence(config: SimDatasetConfig, index: int, kind: str) -> SimSequence:
+    """Render sequence ``index`` of kind ``kind`` and run perception on it (deterministic in
+    (config.seed, index))."""
+    rng = np.random.default_rng([config.seed, index])
+    effects = frozenset(config.render_effects)
+    scene = random_scenario(rng, kind, config.n_frames, config.fps, effects)
+    sensor = SimSensor(scene, seed=int(rng.integers(2**31)))
+    rest_markers = np.column_stack([sensor.markers_ref_mm, np.zeros(len(sensor.markers_ref_mm))])
+    perception = Perception(PerceptionParams.preset(config.preset))  # type: ignore[arg-type]
+    perception.reset(sensor.renderer.render(rest_markers).image)
+    fields, frame_slip, invalid = [], [], 0
+    for frame in sensor:
+        _, dense = perception.step(frame.image)
+        fields.append(dense.field)
+        frame_slip.append(frame.truth.is_slip)
+        invalid += not dense.valid
+    return SimSequence(
+        fields=np.stack(fields),
+        kind=kind,
+        label=int(kind in SLIP_KINDS),
+        object_id=OBJECT_NAMES.index(shape_name(scene.obj)),
+        frame_slip=np.array(frame_slip, dtype=bool),
+        invalid_frames=invalid,
+    )
+
+
+def _simulate_job(job: tuple[SimDatasetConfig, int, str]) -> SimSequence:
+    return simulate_sequence(*job)
+
+
+def _single_threaded_workers() -> None:
+    cv2.setNumThreads(1)
+
+
+def iter_sequences(config: SimDatasetConfig, workers: int = 1) -> Iterator[SimSequence]:
+    """Sequences 0 .. S-1 in order, computed in ``workers`` processes (1: in this process).
+
+    Worker processes are spawned (safe next to torch/OpenMP) with one BLAS/OpenMP/OpenCV thread
+    each, so W workers use about W cores; as with any spawned pool, a calling script needs the
+    ``if __name__ == "__main__":`` guard.
+    """
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    jobs = [(config, i, kind) for i, kind in enumerate(kind_plan(config.n_sequences, config.seed))]
+    if workers == 1:
+        yield from map(_simulate_job, jobs)
+        return
+    saved = {name: os.environ.get(name) for name in _THREAD_ENV}
+    os.environ.update({name: "1" for name in _THREAD_ENV})  # inherited by the spawned workers
+    try:
+        context = multiprocessing.get_context("spawn")
+        with context.Pool(workers, initializer=_single_threaded_workers) as pool:
+            chunk = max(1, min(8, len(jobs) // (4 * workers)))
+            yield from pool.imap(_simulate_job, jobs, chunksize=chunk)
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+def generate(config: SimDatasetConfig, workers: int = 1, progress: bool = True) -> SequenceSet:
+    """The whole dataset as a :class:`SequenceSet` (fields (S, F, 30, 30, 3) float16 px).
+
+    metadata holds: source "sim", the config, object_names, per-sequence ``kinds`` and
+    ``frame_slip`` (true per-frame slip flags as 0/1 lists), ``invalid_frames`` (total fields
+    perception flagged invalid), ``generation_s`` (wall time) and ``workers``.
+    """
+    started = time.perf_counter()
+    sequences = list(tqdm(iter_sequences(config, workers), total=config.n_sequences, desc="simulate",
+                          unit="seq", disable=not progress))
+    elapsed = time.perf_counter() - started
+    return to_sequence_set(sequences, config, {"generation_s": round(elapsed, 2), "workers": workers})
+
+
+def to_sequence_set(sequences: Sequence[SimSequence], config: SimDatasetConfig,
+                    extra: dict[str, object] | None = None) -> SequenceSet:
+    """Stack generated sequences into a :class:`SequenceSet` with the metadata of :func:`generate`."""
+    if not sequences:
+        raise ValueError("no sequences to stack")
+    metadata: dict[str, object] = {
+        "source": "sim",
+        "config": {**config.__dict__, "render_effects": list(config.render_effects)},
+        "object_names": list(OBJECT_NAMES),
+        "kinds": [s.kind for s in sequences],
+        "frame_slip": [s.frame_slip.astype(int).tolist() for s in sequences],
+        "invalid_frames": int(sum(s.invalid_frames for s in sequences)),
+        **(extra or {}),
+    }
+    return SequenceSet(
+        np.stack([s.fields for s in sequences]),
+        np.array([s.label for s in sequences], dtype=np.int64),
+        np.array([s.object_id for s in sequences], dtype=np.int64),
+        metadata,
+    )

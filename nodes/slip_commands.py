@@ -1,0 +1,378 @@
+"""`fv dataset sim` (simulated slip dataset), `fv train` (train a slip classifier) and
+`fv eval` (the paper's Table 1 per split, and the speed/accuracy variants)."""
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import time
+from pathlib import Path
+
+SPLITS = {"sequence": "sequence", "paper": "random", "object": "object"}
+"""CLI split name -> fv_algos.slip.windows split kind ("paper" = the paper's random windows)."""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("dataset", help="generate slip datasets")
+    kinds = p.add_subparsers(dest="dataset_kind", required=True, metavar="KIND")
+    q = kinds.add_parser("sim", help="simulated sequences through the real perception pipeline (paper protocol)")
+    q.add_argument("--out", type=Path, required=True, help="output .npz (float16 fields)")
+    q.add_argument("--sequences", type=int, default=1600, help="raw sequences, half slip (default 1600)")
+    q.add_argument("--frames", type=int, default=15, help="frames per sequence (default 15)")
+    q.add_argument("--fps", type=float, default=15.0, help="frame rate, Hz (default 15)")
+    q.add_argument("--seed", type=int, default=0, help="master seed (default 0)")
+    q.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")
+    q.add_argument("--preset", default="default", help="perception preset: paper, default, fastest")
+    q.add_argument("--no-progress", action="store_true", help="no progress bar")
+    q.set_defaults(func=_dataset_sim)
+
+    p = sub.add_parser("train", help="train a slip classifier (works under torchrun: DDP)")
+    p.add_argument("--data", type=Path, required=True, help="sequence dataset .npz (fv dataset sim)")
+    p.add_argument("--out", type=Path, required=True, help="run folder: checkpoint.pt, metrics.json, run.json, curve.png")
+    _model_flags(p)
+    p.add_argument("--steps", type=int, default=None, help="optimizer steps (default: TrainConfig's)")
+    p.add_argument("--resume", type=Path, default=None, help="checkpoint to continue from")
+    p.add_argument("--eval-every", type=int, default=None, help="steps between evaluations (default: TrainConfig's)")
+    p.add_argument("--export", type=Path, default=None,
+                   help="also write an inference-only checkpoint here (no optimizer state) and its .json record")
+    p.set_defaults(func=_train)
+
+    p = sub.add_parser("eval", help="Table 1 (every split and model) and the speed/accuracy variants")
+    p.add_argument("--data", type=Path, required=True, help="sequence dataset .npz (fv dataset sim)")
+    p.add_argument("--out", type=Path, required=True, help="report folder: table1.json, variants.json, pareto.png")
+    p.add_argument("--models", type=Path, default=None,
+                   help="checkpoint folder: DIR/<split>_<model>[_variant]/ as fv train writes; missing ones are "
+                        "trained there (default OUT/models)")
+    p.add_argument("--splits", default=",".join(SPLITS), help="comma-separated splits among sequence, paper, "
+                   "object (default all)")
+    p.add_argument("--models-list", default="convlstm,cnn_lstm,lstm", help="comma-separated learned models")
+    _model_flags(p, single_run=False)
+    p.add_argument("--steps", type=int, default=None, help="steps for models that must be trained (default: TrainConfig's)")
+    p.add_argument("--no-variants", action="store_true", help="skip the variants table and Pareto plot")
+    p.add_argument("--timing-threads", type=int, default=2, help="torch threads for the ms/window timing (default 2)")
+    p.add_argument("--repeats", type=int, default=50, help="timed calls per ms/window figure (default 50)")
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.set_defaults(func=_eval)
+
+
+def _model_flags(p: argparse.ArgumentParser, single_run: bool = True) -> None:
+    """Flags shared by `fv train` (single_run) and `fv eval`; None means the library default."""
+    if single_run:
+        p.add_argument("--split", choices=list(SPLITS), default="sequence",
+                       help="sequence: whole sequences held out; paper: random windows (the paper's, leaky); "
+                            "object: whole objects held out (default sequence)")
+        p.add_argument("--model", default="convlstm", help="convlstm (paper), cnn_lstm or lstm (default convlstm)")
+    p.add_argument("--hidden", type=int, default=64, help="hidden channels / units (default 64)")
+    p.add_argument("--kernel", type=int, default=3, help="ConvLSTM kernel (default 3: the paper's 269,826 params)")
+    p.add_argument("--window", type=int, default=10, help="frames per window (default 10)")
+    p.add_argument("--lr", type=float, default=None, help="Adam learning rate (default: TrainConfig's)")
+    p.add_argument("--batch", type=int, default=None, help="global batch (default: TrainConfig's)")
+    p.add_argument("--seed", type=int, default=0, help="training and split seed (default 0)")
+    p.add_argument("--test-fraction", type=float, default=0.1, help="held-out share (default 0.1)")
+    p.add_argument("--threads", type=int, default=None, help="torch threads for training")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+_NOT_FLAGS = ("func", "command", "dataset_kind", "verbose")
+
+
+def command_line(args: argparse.Namespace) -> str:
+    """The command as a shell string with every option spelled out, defaults included (for
+    provenance records: it reproduces the run whatever the defaults become)."""
+    words = ["fv", args.command] + ([args.dataset_kind] if getattr(args, "dataset_kind", None) else [])
+    for key, value in vars(args).items():
+        if key in _NOT_FLAGS or value is None or value is False:
+            continue
+        words += [f"--{key.replace('_', '-')}"] + ([] if value is True else [str(value)])
+    return shlex.join(words)
+
+
+def _dataset_sim(args: argparse.Namespace) -> int:
+    from collections import Counter
+
+    from fv_algos.sim_dataset import SimDatasetConfig, generate
+    from fv_algos.slip.windows import save_sequences
+    config = SimDatasetConfig(n_sequences=args.sequences, n_frames=args.frames, fps=args.fps, seed=args.seed,
+                              preset=args.preset)
+    started = time.perf_counter()
+    sequences = generate(config, workers=args.workers, progress=not args.no_progress)
+    sequences.metadata["command"] = command_line(args)
+    path = save_sequences(args.out, sequences)
+    kinds = Counter(sequences.metadata["kinds"])
+    print(f"wrote {len(sequences.labels)} sequences ({int(sequences.labels.sum())} slip) of "
+          f"{sequences.n_frames} frames to {path} ({path.stat().st_size / 1e6:.1f} MB) in "
+          f"{time.perf_counter() - started:.1f} s; kinds {dict(sorted(kinds.items()))}; "
+          f"invalid fields {sequences.metadata['invalid_frames']}")
+    return 0
+
+
+RUN_RECORD = "run.json"
+CURVE_PNG = "curve.png"
+
+
+def _write_run(out: Path, *, command: str, data: Path, fingerprint: str, split: str, seed: int, test_fraction: float,
+               model_config: dict, params: int, history: list[dict], wall_s: float, windows_per_s: float,
+               dataset_metadata: dict) -> dict:
+    """Write run.json (provenance and final metrics) and curve.png (accuracy and loss vs step,
+    like the paper's Fig. 7) into ``out``; returns the record."""
+    from nodes.plots import curve_plot
+    if not history:
+        raise ValueError(f"training in {out} recorded no evaluation")
+    final = history[-1]
+    record = {
+        "command": command, "data": str(data), "data_fingerprint": fingerprint,
+        "dataset_seed": dataset_metadata.get("config", {}).get("seed", dataset_metadata.get("seed")),
+        "split": split, "split_kind": SPLITS[split], "split_seed": seed, "test_fraction": test_fraction,
+        "model_config": model_config, "params": params, "steps": int(final["step"]),
+        "test_accuracy": final["test_accuracy"], "test_windows": final["test_windows"],
+        "train_accuracy": final["train_accuracy"], "wall_s": round(wall_s, 1),
+        "windows_per_s": round(windows_per_s, 2),
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    (out / RUN_RECORD).write_text(json.dumps(record, indent=1))
+    steps = [r["step"] for r in history]
+    series = {name.replace("_", " "): (steps, [r[name] for r in history])
+              for name in ("train_accuracy", "test_accuracy", "train_loss", "test_loss")}
+    curve_plot(series, out / CURVE_PNG, title=f"{model_config['arch']} on the {split} split",
+               x_label="optimizer step", y_label="accuracy / cross-entropy")
+    return record
+
+
+PAPER_WINDOWS_PER_SEQUENCE = 5
+
+
+def _per_sequence(n_frames: int, window: int) -> int:
+    """Windows cut from each sequence: the paper's 5, or as many as fit in shorter sequences."""
+    if n_frames < window:
+        raise ValueError(f"sequences have {n_frames} frames, fewer than --window {window}")
+    return min(PAPER_WINDOWS_PER_SEQUENCE, n_frames - window + 1)
+
+
+def _split(sequences, split: str, window: int, test_fraction: float, seed: int):
+    """Windows of ``window`` frames (see _per_sequence) and the named split of them."""
+    from fv_algos.slip.windows import make_windows, split_windows
+    windows = make_windows(sequences, window=window, per_sequence=_per_sequence(sequences.n_frames, window))
+    return split_windows(windows, SPLITS[split], test_fraction, seed)
+
+
+def _train(args: argparse.Namespace) -> int:
+    import os
+
+    from fv_algos.slip import train as slip_train
+    from fv_algos.slip.classifier import load_checkpoint
+    from fv_algos.slip.models import ModelConfig, build_model, count_parameters
+    from fv_algos.slip.windows import load_sequences
+    from fv_algos.slip_study import dataset_fingerprint
+    sequences = load_sequences(args.data)
+    # validate here: train.main's own parser would exit instead of raising a clear ValueError
+    ModelConfig(arch=args.model, hidden=args.hidden, kernel=args.kernel, window=args.window, grid=sequences.grid)
+    optional = {"--steps": args.steps, "--lr": args.lr, "--batch-size": args.batch, "--eval-every": args.eval_every,
+                "--threads": args.threads, "--resume": args.resume}
+    argv = ["--data", str(args.data), "--out", str(args.out), "--split", SPLITS[args.split], "--arch", args.model,
+            "--hidden", str(args.hidden), "--kernel", str(args.kernel), "--window", str(args.window),
+            "--seed", str(args.seed), "--test-fraction", str(args.test_fraction),
+            "--per-sequence", str(_per_sequence(sequences.n_frames, args.window))]
+    argv += [item for flag, value in optional.items() if value is not None for item in (flag, str(value))]
+    argv += ["--no-progress"] if args.no_progress else []
+    started = time.perf_counter()
+    slip_train.main(argv)
+    wall_s = time.perf_counter() - started
+    if int(os.environ.get("RANK", "0")) != 0:
+        return 0
+    checkpoint = load_checkpoint(args.out / slip_train.CHECKPOINT_NAME)
+    result = json.loads((args.out / "result_rank0.json").read_text())
+    record = _write_run(
+        args.out, command=command_line(args), data=args.data, fingerprint=dataset_fingerprint(sequences),
+        split=args.split, seed=args.seed, test_fraction=args.test_fraction, model_config=checkpoint.model_config.to_dict(),
+        params=count_parameters(build_model(checkpoint.model_config)), history=checkpoint.history, wall_s=wall_s,
+        windows_per_s=result["windows_per_s"], dataset_metadata=sequences.metadata)
+    print(f"{record['model_config']['arch']} on the {args.split} split: test accuracy "
+          f"{record['test_accuracy']:.4f} on {record['test_windows']} windows after {record['steps']} steps, "
+          f"{wall_s:.0f} s -> {args.out}")
+    if args.export is not None:
+        _export(checkpoint, record, args.export)
+    return 0
+
+
+def _export(checkpoint, record: dict, path: Path) -> None:
+    """Inference-only copy of ``checkpoint`` at ``path`` (.pt) and ``record`` next to it (.json)."""
+    from dataclasses import replace
+
+    from fv_algos.slip.classifier import save_checkpoint
+    if path.suffix != ".pt":
+        raise ValueError(f"--export {path} must end in .pt")
+    save_checkpoint(path, replace(checkpoint, optimizer_state=None))
+    path.with_suffix(".json").write_text(json.dumps(record, indent=1))
+    print(f"exported inference-only checkpoint {path} ({path.stat().st_size / 1e6:.2f} MB) "
+          f"and {path.with_suffix('.json')}")
+
+
+TABLE_COLUMNS = ["model", "split", "accuracy", "f1", "params", "ms_per_window", "n", "source"]
+VARIANT_COLUMNS = ["model", "variant", "accuracy", "f1", "params", "ms_per_window", "source"]
+VARIANT_KINDS = ("fp32", "int8", "bf16")
+
+
+class _ModelStore:
+    """Trained models of one `fv eval` run: loaded from DIR/<key>/checkpoint.pt when there (its
+    run.json must name the same data, split and seed), else trained and written there."""
+
+    def __init__(self, folder: Path, data: Path, sequences, args: argparse.Namespace) -> None:
+        from fv_algos.slip_study import dataset_fingerprint
+        self.folder, self.data, self.sequences, self.args = folder, data, sequences, args
+        self.fingerprint = dataset_fingerprint(sequences)
+        self.sources: dict[str, str] = {}
+        self.models: dict[str, object] = {}
+
+    def get(self, key: str, split_name: str, config, split, sequences=None):
+        """The model named ``key`` for ModelConfig ``config`` on Split ``split``."""
+        from fv_algos.slip.classifier import load_checkpoint, model_from_checkpoint
+        from fv_algos.slip.models import count_parameters
+        from fv_algos.slip.train import CHECKPOINT_NAME, TrainConfig, train
+        from fv_algos.slip_study import dataset_fingerprint
+        if key in self.models:
+            return self.models[key]
+        a, run_dir = self.args, self.folder / key
+        fingerprint = self.fingerprint if sequences is None else dataset_fingerprint(sequences)
+        if (run_dir / CHECKPOINT_NAME).is_file():
+            record = json.loads((run_dir / RUN_RECORD).read_text()) if (run_dir / RUN_RECORD).is_file() else {}
+            wanted = {"data_fingerprint": fingerprint, "split": split_name, "split_seed": a.seed,
+                      "test_fraction": a.test_fraction}
+            wrong = {k: (record.get(k), v) for k, v in wanted.items() if record.get(k) != v}
+            if wrong:
+                raise ValueError(f"{run_dir} was not trained on this data/split ({RUN_RECORD} has, vs wanted: {wrong}); "
+                                 "remove it or point --models elsewhere")
+            self.sources[key] = f"checkpoint {run_dir / CHECKPOINT_NAME}"
+            self.models[key] = model_from_checkpoint(load_checkpoint(run_dir / CHECKPOINT_NAME, expected=config))
+            return self.models[key]
+        given = {"steps": a.steps, "batch_size": a.batch, "lr": a.lr, "threads": a.threads}
+        train_config = TrainConfig(model=config, seed=a.seed, out_dir=str(run_dir), progress=not a.no_progress,
+                                   **{k: v for k, v in given.items() if v is not None})
+        started = time.perf_counter()
+        result = train(train_config, split)
+        _write_run(run_dir, command=command_line(a), data=self.data, fingerprint=fingerprint, split=split_name,
+                   seed=a.seed, test_fraction=a.test_fraction, model_config=config.to_dict(),
+                   params=count_parameters(result.model),
+                   history=result.history, wall_s=time.perf_counter() - started, windows_per_s=result.windows_per_s,
+                   dataset_metadata=self.sequences.metadata)
+        self.sources[key] = f"trained {train_config.steps} steps -> {run_dir}"
+        self.models[key] = result.model
+        return result.model
+
+
+def _eval(args: argparse.Namespace) -> int:
+    from fv_algos.slip.evaluate import table_rows
+    from fv_algos.slip.models import ModelConfig
+    from fv_algos.slip.windows import load_sequences
+    from fv_algos.slip_study import split_inflation, table_predictors
+    from nodes.plots import markdown_table, pareto_plot
+    splits, archs = _csv(args.splits, str), _csv(args.models_list, str)
+    unknown = sorted(set(splits) - set(SPLITS))
+    if unknown:
+        raise ValueError(f"--splits: unknown {unknown} (known: {list(SPLITS)})")
+    sequences = load_sequences(args.data)
+    store = _ModelStore(args.models or args.out / "models", args.data, sequences, args)
+    base = {"hidden": args.hidden, "kernel": args.kernel, "window": args.window, "grid": sequences.grid}
+    table, splits_done = [], {}
+    for split_name in splits:
+        split = _split(sequences, split_name, args.window, args.test_fraction, args.seed)
+        models = {arch: store.get(f"{split_name}_{arch}", split_name, ModelConfig(arch=arch, **base), split)
+                  for arch in archs}
+        rows = table_rows(table_predictors(models, split), split, args.timing_threads, args.repeats)
+        for row in rows:
+            row.update(split=split_name, source=store.sources.get(f"{split_name}_{row['model']}", "fitted on train"))
+        table += rows
+        splits_done[split_name] = split
+    report = {"data": str(args.data), "data_fingerprint": store.fingerprint, "seed": args.seed, "table1": table,
+              "paper_split_inflation": split_inflation(table, "paper", "sequence")}
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "table1.json").write_text(json.dumps(report, indent=1))
+    if not args.no_variants:
+        report["variants"] = _variants(args, sequences, store, splits_done, base)
+        (args.out / "variants.json").write_text(json.dumps(report["variants"], indent=1))
+        pareto_plot(report["variants"], "ms_per_window", "accuracy", "label", args.out / "pareto.png",
+                    title=f"ConvLSTM variants, {_VARIANT_SPLIT} split ({args.timing_threads} threads)",
+                    x_label="ms per window (batch 1)", y_label="test accuracy")
+    if args.json:
+        print(json.dumps(report, indent=1))
+        return 0
+    print(markdown_table(table, TABLE_COLUMNS))
+    print("\npaper (random-window) split minus by-sequence split accuracy:",
+          json.dumps({k: round(v, 4) for k, v in report["paper_split_inflation"].items()}))
+    if "variants" in report:
+        print("\n" + markdown_table(report["variants"], VARIANT_COLUMNS))
+    print(f"\nreport in {args.out}")
+    return 0
+
+
+_VARIANT_SPLIT = "sequence"
+
+
+def _variants(args: argparse.Namespace, sequences, store: _ModelStore, splits: dict, base: dict) -> list[dict]:
+    """ConvLSTM variants on the sequence split: hidden H, H/2, H/4; window W, W/2; grid G, 2G/3,
+    each in fp32, int8 and bf16 (defaults H=64, W=10, G=30: the paper's 64/32/16, 10/5, 30/20)."""
+    from fv_algos.slip.evaluate import variant_rows
+    from fv_algos.slip.models import ModelConfig
+    from fv_algos.slip_study import resample_grid
+    split_name = _VARIANT_SPLIT
+    split = splits.get(split_name) or _split(sequences, split_name, args.window, args.test_fraction, args.seed)
+    h, w, g = base["hidden"], base["window"], base["grid"]
+    half, small = max(1, w // 2), max(2, round(2 * g / 3))
+    coarse_sequences = resample_grid(sequences, small)
+    short = _split(sequences, split_name, half, args.test_fraction, args.seed)
+    coarse = _split(coarse_sequences, split_name, w, args.test_fraction, args.seed)
+    plan = [(f"_h{hidden}", {"hidden": hidden}, split, None) for hidden in (max(1, h // 2), max(1, h // 4))]
+    plan = [("", {}, split, None), *plan, (f"_w{half}", {"window": half}, short, None),
+            (f"_g{small}", {"grid": small}, coarse, coarse_sequences)]
+    entries, keys = [], {}
+    for suffix, change, variant_split, variant_sequences in plan:
+        config = ModelConfig(**{**base, **change})
+        name, key = f"h{config.hidden} w{config.window} g{config.grid}", f"{split_name}_convlstm{suffix}"
+        entries.append((name, store.get(key, split_name, config, variant_split, variant_sequences), variant_split))
+        keys[name] = key
+    rows = variant_rows(entries, VARIANT_KINDS, args.timing_threads, args.repeats)
+    for row in rows:
+        row.update(label=f"{row['model']} {row['variant']}", source=store.sources[keys[row["model"]]])
+    return rows
+
+
+def add_bench_parser(kinds: argparse._SubParsersAction, name: str) -> None:
+    """`fv bench slip`: inference time per window of a slip checkpoint in each variant."""
+    p = kinds.add_parser(name, help="slip classifier inference speed per variant (fp32, bf16, int8)")
+    p.add_argument("--model", default="sim", help="shipped model name or checkpoint path (default sim)")
+    p.add_argument("--variants", default="fp32,bf16,int8", help="comma-separated variants (fp32,bf16,int8,compile)")
+    p.add_argument("--threads", default="1,2", help="comma-separated torch thread counts (default 1,2)")
+    p.add_argument("--repeats", type=int, default=50, help="timed calls per measurement (default 50)")
+    p.add_argument("--json", action="store_true", help="print the rows as JSON")
+    p.set_defaults(func=_bench_slip)
+
+
+def _bench_slip(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from fv_algos.slip.classifier import load_checkpoint, model_from_checkpoint
+    from fv_algos.slip.evaluate import time_forward, variant_predictor
+    from fv_algos.slip.models import count_parameters
+    from nodes.plots import markdown_table
+    from nodes.slip_detector import model_path
+    model = model_from_checkpoint(load_checkpoint(model_path(args.model)))
+    cfg = model.config
+    window = np.zeros((1, cfg.window, cfg.grid, cfg.grid, 3), np.float32)
+    rows = []
+    for variant in _csv(args.variants, str):
+        predictor = variant_predictor(model, variant)
+        for threads in _csv(args.threads, int):
+            rows.append({"model": args.model, "variant": variant, "threads": threads, "params": count_parameters(model),
+                         "ms_per_window": time_forward(predictor, window, threads, args.repeats)})
+    print(json.dumps(rows, indent=1) if args.json else markdown_table(rows, list(rows[0])))
+    return 0
+
+
+def _csv(text: str, kind: type) -> list:
+    """'a,b' -> [kind('a'), kind('b')]; ValueError naming the bad item."""
+    items = [t.strip() for t in text.split(",") if t.strip()]
+    if not items:
+        raise ValueError(f"empty list {text!r}")
+    try:
+        return [kind(t) for t in items]
+    except ValueError as exc:
+        raise ValueError(f"bad item in {text!r}: {exc}") from exc

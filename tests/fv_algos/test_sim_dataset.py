@@ -1,0 +1,79 @@
+"""The simulated slip dataset (fv_algos.sim_dataset): protocol, labels, determinism, bad input."""
+from __future__ import annotations
+
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from fv_algos.sim.objects import SHAPES
+from fv_algos.sim.scene import NON_SLIP_KINDS, SLIP_KINDS
+from fv_algos.sim_dataset import OBJECT_NAMES, SimDatasetConfig, generate, iter_sequences, kind_plan, simulate_sequence
+from fv_algos.slip.windows import SequenceSet, load_sequences, save_sequences
+
+CONFIG = SimDatasetConfig(n_sequences=12, seed=5)
+
+
+@pytest.fixture(scope="module")
+def dataset() -> SequenceSet:
+    return generate(CONFIG, workers=2, progress=False)
+
+
+def test_shapes_dtypes_and_balance(dataset: SequenceSet) -> None:
+    assert dataset.fields.shape == (12, 15, 30, 30, 3)
+    assert dataset.fields.dtype == np.float16
+    assert np.isfinite(dataset.fields).all()
+    assert dataset.labels.tolist().count(1) == 6
+    assert Counter(dataset.metadata["kinds"]) == {kind: 2 for kind in SLIP_KINDS + NON_SLIP_KINDS}
+    assert set(dataset.object_ids.tolist()) <= set(range(len(SHAPES)))
+    assert dataset.metadata["object_names"] == list(OBJECT_NAMES)
+    assert [len(f) for f in dataset.metadata["frame_slip"]] == [15] * 12
+
+
+def test_labels_and_objects_follow_the_scenario_kinds(dataset: SequenceSet) -> None:
+    kinds = dataset.metadata["kinds"]
+    assert dataset.labels.tolist() == [int(k in SLIP_KINDS) for k in kinds]
+    for kind, obj, frame_slip in zip(kinds, dataset.object_ids, dataset.metadata["frame_slip"]):
+        shape = SHAPES[OBJECT_NAMES[obj]]
+        if kind == "rotational":
+            assert not shape.AXISYMMETRIC
+        if kind == "incipient":
+            assert not shape.FLAT
+        if kind in NON_SLIP_KINDS:
+            assert not any(frame_slip), kind
+        else:  # every 10-frame window of a slip sequence contains slipping frames
+            assert any(frame_slip[:10]) and all(frame_slip[-5:]), (kind, frame_slip)
+
+
+def test_fields_show_the_contact_from_a_rest_reference(dataset: SequenceSet) -> None:
+    peak = np.abs(dataset.fields[..., 2].astype(np.float32)).max(axis=(1, 2, 3))
+    assert (peak > 0.3).all(), peak  # every scenario loads the skin visibly (px)
+    assert (peak < 50.0).all(), peak
+
+
+def test_sequences_depend_only_on_seed_and_index(dataset: SequenceSet) -> None:
+    kinds = dataset.metadata["kinds"]
+    for index in (0, 7):  # computed in a worker process for the dataset, here in-process
+        again = simulate_sequence(CONFIG, index, kinds[index])
+        np.testing.assert_array_equal(again.fields.astype(np.float16), dataset.fields[index])
+        assert again.object_id == dataset.object_ids[index]
+    assert kind_plan(12, 5) == kinds
+    assert kind_plan(12, 6) != kinds
+
+
+def test_save_load_round_trip(dataset: SequenceSet, tmp_path) -> None:
+    loaded = load_sequences(save_sequences(tmp_path / "sim", dataset))
+    np.testing.assert_array_equal(loaded.fields, dataset.fields)
+    assert loaded.metadata["config"]["seed"] == 5
+    assert loaded.metadata["kinds"] == dataset.metadata["kinds"]
+
+
+def test_bad_input_is_rejected() -> None:
+    with pytest.raises(ValueError, match="n_sequences"):
+        SimDatasetConfig(n_sequences=1)
+    with pytest.raises(ValueError, match="preset"):
+        SimDatasetConfig(preset="nope")
+    with pytest.raises(ValueError, match="n_frames"):
+        SimDatasetConfig(n_frames=3)
+    with pytest.raises(ValueError, match="workers"):
+        next(iter_sequences(CONFIG, workers=0))

@@ -1,0 +1,95 @@
+"""`fv dataset sim`, `fv train`, `fv eval`, `fv bench slip` on tiny data, and the shipped sim model."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from fv_algos.sim_dataset import SimDatasetConfig, simulate_sequence
+from fv_algos.slip.classifier import SlipClassifier, load_checkpoint
+from fv_algos.slip.models import ModelConfig
+from fv_algos.slip.windows import SyntheticConfig, load_sequences, save_sequences, synthetic_sequences
+from nodes.cli import main
+from nodes.slip_detector import SlipDetectorParams, model_path
+
+torch.set_num_threads(1)
+TINY = ["--hidden", "2", "--window", "4", "--batch", "8", "--threads", "1", "--no-progress"]
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    sequences = synthetic_sequences(40, SyntheticConfig(grid=8, n_frames=6, slip_speed=(0.5, 1.0)), seed=3)
+    return save_sequences(tmp_path_factory.mktemp("slip") / "tiny.npz", sequences)
+
+
+def test_dataset_sim_writes_a_loadable_file(tmp_path: Path) -> None:
+    out = tmp_path / "sim.npz"
+    assert main(["dataset", "sim", "--out", str(out), "--sequences", "2", "--frames", "4", "--workers", "1",
+                 "--seed", "3", "--no-progress"]) == 0
+    sequences = load_sequences(out)
+    assert sequences.fields.shape == (2, 4, 30, 30, 3)
+    assert sorted(sequences.labels.tolist()) == [0, 1]
+    assert sequences.metadata["command"].startswith("fv dataset sim")
+
+
+def test_train_writes_checkpoint_metrics_curve_and_resumes(data: Path, tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    assert main(["train", "--data", str(data), "--out", str(run), "--steps", "4", "--eval-every", "2", *TINY]) == 0
+    for name in ("checkpoint.pt", "metrics.json", "run.json", "curve.png"):
+        assert (run / name).is_file(), name
+    record = json.loads((run / "run.json").read_text())
+    assert record["split"] == "sequence" and record["steps"] == 4 and 0.0 <= record["test_accuracy"] <= 1.0
+    export = tmp_path / "ship.pt"
+    assert main(["train", "--data", str(data), "--out", str(run), "--steps", "6", "--eval-every", "2", *TINY,
+                 "--resume", str(run / "checkpoint.pt"), "--export", str(export)]) == 0
+    history = json.loads((run / "metrics.json").read_text())["history"]
+    assert [r["step"] for r in history] == [2, 4, 6]
+    shipped = load_checkpoint(export)
+    assert shipped.optimizer_state is None and shipped.step == 6
+    assert json.loads(export.with_suffix(".json").read_text())["steps"] == 6
+
+
+def test_eval_json_has_table1_inflation_and_variants(data: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    args = ["eval", "--data", str(data), "--out", str(tmp_path / "report"), "--steps", "1", "--repeats", "1", *TINY]
+    assert main([*args, "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert {(r["model"], r["split"]) for r in report["table1"]} == {
+        (m, s) for m in ("convlstm", "cnn_lstm", "lstm", "classical") for s in ("sequence", "paper", "object")}
+    for row in report["table1"]:
+        assert {"accuracy", "f1", "params", "ms_per_window", "source"} <= set(row)
+    assert set(report["paper_split_inflation"]) == {"convlstm", "cnn_lstm", "lstm", "classical"}
+    assert {(r["model"], r["variant"]) for r in report["variants"]} == {
+        (m, v) for m in ("h2 w4 g8", "h1 w4 g8", "h2 w2 g8", "h2 w4 g5") for v in ("fp32", "int8", "bf16")}
+    assert (tmp_path / "report" / "pareto.png").is_file()
+    # a second run takes the checkpoints the first one trained
+    assert main([*args, "--json", "--splits", "sequence", "--no-variants"]) == 0
+    again = json.loads(capsys.readouterr().out)
+    assert all(r["source"].startswith(("checkpoint", "fitted")) for r in again["table1"])
+
+
+def test_bad_input_gives_clear_errors(data: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    assert main(["eval", "--data", str(data), "--out", str(tmp_path), "--splits", "diagonal"]) == 2
+    assert "unknown ['diagonal']" in capsys.readouterr().err
+    assert main(["train", "--data", str(tmp_path / "missing.npz"), "--out", str(tmp_path)]) == 2
+    assert "not found" in capsys.readouterr().err
+    assert main(["train", "--data", str(data), "--out", str(tmp_path), "--model", "transformer", *TINY]) == 2
+    assert "arch" in capsys.readouterr().err
+
+
+def test_bench_slip_times_the_shipped_model(capsys: pytest.CaptureFixture) -> None:
+    assert main(["bench", "slip", "--variants", "fp32", "--threads", "1", "--repeats", "2", "--json"]) == 0
+    (row,) = json.loads(capsys.readouterr().out)
+    assert row["params"] == 269_826 and row["ms_per_window"] > 0
+
+
+def test_shipped_sim_model_loads_with_the_node_config_and_separates_slip() -> None:
+    classifier = SlipClassifier(model_path(SlipDetectorParams().model))
+    assert classifier.config == ModelConfig(arch="convlstm", hidden=64, kernel=3, window=10, grid=30)
+    assert 0.0 <= classifier.predict(np.zeros((10, 30, 30, 3), np.float32)) <= 1.0
+    held_out = SimDatasetConfig(n_sequences=2, seed=987_654)  # the shipped model saw seed 0
+    slip = simulate_sequence(held_out, 0, "translational").fields[:10]
+    stuck = simulate_sequence(held_out, 1, "holding").fields[:10]
+    assert classifier.predict(slip) > classifier.predict(stuck)
