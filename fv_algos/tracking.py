@@ -18,6 +18,10 @@ from fv_algos.detection import Detections
 
 # Rejecting an implausible match changes its neighbours' medians, so the check is repeated.
 _PLAUSIBILITY_PASSES = 3
+# Candidate detections per marker in a gated round (a free one within the gate is almost
+# always among them) and in the global fallback (a disc of 2 pitches holds ~13 markers).
+_ROUND_CANDIDATES = 4
+_TRANSPORT_CANDIDATES = 16
 
 
 @dataclass(frozen=True)
@@ -35,6 +39,9 @@ class TrackerParams:
     area_ratio_max: a detection whose area differs from the marker's reference area by
         more than this factor (either way) is rejected; 0 disables the check.
     use_velocity: predict markers seen in the last two frames with their last step.
+    transport_ratio: radius of the global one-to-one fallback of 'assignment' (tried when
+        the neighbour-grown match leaves both markers and detections unmatched; it needs no
+        velocity and handles steps of up to about this many pitches); 0 disables it.
     """
 
     method: Literal["nearest", "assignment"] = "assignment"
@@ -45,6 +52,7 @@ class TrackerParams:
     tolerance_ratio: float = 0.25
     area_ratio_max: float = 3.0
     use_velocity: bool = True
+    transport_ratio: float = 2.0
 
     def __post_init__(self) -> None:
         if self.method not in ("nearest", "assignment"):
@@ -57,6 +65,8 @@ class TrackerParams:
             raise ValueError(f"rounds and neighbours must be >= 1, got {self.rounds}, {self.neighbours}")
         if not self.tolerance_ratio > 0.0:
             raise ValueError(f"tolerance_ratio must be > 0, got {self.tolerance_ratio}")
+        if self.transport_ratio < 0.0:
+            raise ValueError(f"transport_ratio must be >= 0, got {self.transport_ratio}")
         if self.area_ratio_max != 0.0 and not self.area_ratio_max > 1.0:
             raise ValueError(f"area_ratio_max must be 0 (off) or > 1, got {self.area_ratio_max}")
 
@@ -177,35 +187,34 @@ def neighbour_consistency(
     return _inconsistent(displacement, mask, graph, spacing, tolerance_ratio)
 
 
-def _assign(pred: np.ndarray, det: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
-    """One-to-one pairs (rows into pred, cols into det) with distance < gate.
+def _transport(pred: np.ndarray, det: np.ndarray, radius: float) -> np.ndarray:
+    """Global one-to-one matching: the most pairs within `radius` px, then the least sum of squares.
 
-    Mutual nearest neighbours are taken directly; the rest is solved by
-    scipy.optimize.linear_sum_assignment on the gated distances.
+    pred: (N, 2) predicted marker positions, det: (M, 2) detections, px. Among the
+    assignments pairing as many markers as possible with detections less than `radius`
+    away (each marker's `_TRANSPORT_CANDIDATES` nearest), the one with the smallest sum of
+    squared distances (scipy.optimize.linear_sum_assignment) is returned as (N,) int64
+    detection indices, -1 = unpaired. Unlike a nearest-neighbour or gated match this sees
+    the whole marker array at once: shifting a
+    lattice by one pitch leaves a row of markers and one of detections unpaired at its edge,
+    so the true motion wins even when it exceeds half a pitch everywhere.
     """
-    empty = np.zeros(0, dtype=np.int64)
-    if pred.shape[0] == 0 or det.shape[0] == 0:
-        return empty, empty
-    d_pd, i_pd = cKDTree(det).query(pred, k=1, distance_upper_bound=gate)
-    _, i_dp = cKDTree(pred).query(det, k=1, distance_upper_bound=gate)
-    m = det.shape[0]
-    rows = np.flatnonzero(i_pd < m)
-    mutual = rows[i_dp[i_pd[rows]] == rows]
-    cols = i_pd[mutual]
-    rest_rows = np.setdiff1d(rows, mutual)
-    if rest_rows.size == 0:
-        return mutual.astype(np.int64), cols.astype(np.int64)
-    taken = np.zeros(m, dtype=bool)
-    taken[cols] = True
-    rest_cols = np.flatnonzero(~taken)
-    cost = np.linalg.norm(pred[rest_rows, None, :] - det[None, rest_cols, :], axis=2)
-    big = 1e6 * gate
-    cost = np.where(cost < gate, cost, big)
+    n, m = pred.shape[0], det.shape[0]
+    k = min(_TRANSPORT_CANDIDATES, m)
+    dist, idx = cKDTree(det).query(pred, k=k, distance_upper_bound=radius)
+    dist, idx = dist.reshape(n, k), idx.reshape(n, k)
+    ok = idx < m
+    rows = np.broadcast_to(np.arange(n)[:, None], (n, k))[ok]
+    # A pair costs at most 1; a missing pair costs more than all real pairs together, so
+    # the number of pairs comes first.
+    missing = float(n + 1)
+    cost = np.full((n, m), missing)
+    cost[rows, idx[ok]] = (dist[ok] / radius) ** 2
     r, c = linear_sum_assignment(cost)
-    ok = cost[r, c] < gate
-    out_rows = np.concatenate([mutual, rest_rows[r[ok]]]).astype(np.int64)
-    out_cols = np.concatenate([cols, rest_cols[c[ok]]]).astype(np.int64)
-    return out_rows, out_cols
+    real = cost[r, c] < missing
+    out = np.full(n, -1, dtype=np.int64)
+    out[r[real]] = c[real]
+    return out
 
 
 class Tracker:
@@ -280,62 +289,133 @@ class Tracker:
         seen = matched >= 0
         new = np.where(seen[:, None], det[np.maximum(matched, 0)], self._cur)
         step_med, step_has = masked_median((new - self._cur)[self._graph], (seen & self._valid)[self._graph])
+        pred = self._cur + step_med
+        if np.all(step_has | ~self._valid):
+            return pred, step_has
         total_med, total_has = masked_median((new - self._ref)[self._graph], seen[self._graph])
         use_step = self._valid & step_has
-        pred = np.where(use_step[:, None], self._cur + step_med, self._ref + total_med)
+        pred = np.where(use_step[:, None], pred, self._ref + total_med)
         return pred, use_step | total_has
 
     def _gated_round(
-        self, pred: np.ndarray, det: np.ndarray, ratio: np.ndarray, gate: float, matched: np.ndarray, free: np.ndarray
+        self, pred: np.ndarray, det: np.ndarray, tree: cKDTree, areas: np.ndarray, gate: float,
+        matched: np.ndarray, free: np.ndarray,
     ) -> int:
-        """Assign unmatched markers (predicted at pred (N, 2)) to free detections within `gate` px.
+        """Assign unmatched markers (predicted at pred (N, 2) px) to free detections within `gate` px.
 
-        ratio: (N, M) detection area / reference area. Updates `matched` (N,) and `free` (M,)
-        in place and returns the number of new matches.
+        tree: cKDTree of det (M, 2) px; areas: (M,) px^2. A marker takes its nearest free
+        candidate when it is that detection's closest claimant; the markers left over are
+        solved by scipy.optimize.linear_sum_assignment over their free candidates. Pairs
+        failing the area check are dropped. Updates `matched` (N,) and `free` (M,) in place
+        and returns the number of new matches.
         """
         todo = np.flatnonzero(matched < 0)
-        cols_free = np.flatnonzero(free)
-        if todo.size == 0 or cols_free.size == 0:
+        m = det.shape[0]
+        if todo.size == 0 or not free.any():
             return 0
-        rows, cols = _assign(pred[todo], det[cols_free], gate)
-        rows, cols = todo[rows], cols_free[cols]
+        k = min(_ROUND_CANDIDATES, m)
+        dist, idx = tree.query(pred[todo], k=k, distance_upper_bound=gate)
+        dist, idx = dist.reshape(todo.size, k), idx.reshape(todo.size, k)
+        usable = idx < m
+        usable[usable] = free[idx[usable]]
+        has = usable.any(axis=1)
+        if not has.any():
+            return 0
+        todo, dist, idx, usable = todo[has], dist[has], idx[has], usable[has]
+        first = usable.argmax(axis=1)
+        rows_all = np.arange(todo.size)
+        best_col, best_dist = idx[rows_all, first], dist[rows_all, first]
+        order = np.lexsort((best_dist, best_col))
+        winner = np.ones(order.size, dtype=bool)
+        winner[1:] = best_col[order[1:]] != best_col[order[:-1]]
+        won = order[winner]
+        rows, cols = todo[won], best_col[won]
+        lost = order[~winner]
+        if lost.size:
+            taken = np.zeros(m, dtype=bool)
+            taken[cols] = True
+            cand = usable[lost]
+            cand[cand] = ~taken[idx[lost][cand]]
+            rest_cols = np.unique(idx[lost][cand])
+            if rest_cols.size:
+                rest_rows = todo[lost]
+                cost = np.linalg.norm(pred[rest_rows, None, :] - det[None, rest_cols, :], axis=2)
+                cost = np.where(cost < gate, cost, 1e6 * gate)
+                r, c = linear_sum_assignment(cost)
+                ok = cost[r, c] < gate
+                rows = np.concatenate([rows, rest_rows[r[ok]]])
+                cols = np.concatenate([cols, rest_cols[c[ok]]])
         limit = self.params.area_ratio_max
         if limit > 0.0:
-            r = ratio[rows, cols]
-            ok = (r <= limit) & (r >= 1.0 / limit)
+            ratio = areas[cols] / np.maximum(self._ref_areas[rows], 1e-9)
+            ok = (ratio <= limit) & (ratio >= 1.0 / limit)
             rows, cols = rows[ok], cols[ok]
         matched[rows] = cols
         free[cols] = False
         return int(rows.size)
 
-    def _match_assignment(self, det: np.ndarray, areas: np.ndarray) -> np.ndarray:
-        """One-to-one matching grown outwards from confident matches, then plausibility checks."""
+    def _grow(self, pred: np.ndarray, det: np.ndarray, tree: cKDTree, areas: np.ndarray) -> np.ndarray:
+        """(N,) int64 detection index per marker (-1 = none), grown outwards from `pred` (N, 2) px.
+
+        Strict-gate rounds alternate with re-predicting unmatched markers from their matched
+        neighbours; a last round uses the wider gate; matches that disagree with their
+        neighbours (`neighbour_consistency`) are dropped.
+        """
         p = self.params
-        n = self._ref.shape[0]
-        matched = np.full(n, -1, dtype=np.int64)
-        if det.shape[0] == 0:
-            return matched
-        ratio = areas[None, :] / np.maximum(self._ref_areas[:, None], 1e-9)
-        last_total = np.where(self._valid[:, None], self._cur - self._ref, 0.0)
-        total_med, total_has = masked_median(last_total[self._graph], self._valid[self._graph])
-        velocity = self._velocity if p.use_velocity else np.zeros_like(self._velocity)
-        pred = np.where(
-            self._valid[:, None],
-            self._cur + velocity,
-            np.where(total_has[:, None], self._ref + total_med, self._cur),
-        )
+        matched = np.full(self._ref.shape[0], -1, dtype=np.int64)
         free = np.ones(det.shape[0], dtype=bool)
         strict_gate = p.strict_gate_ratio * self.pitch_px
         for _ in range(p.rounds):
-            if self._gated_round(pred, det, ratio, strict_gate, matched, free) == 0 or np.all(matched >= 0):
+            if self._gated_round(pred, det, tree, areas, strict_gate, matched, free) == 0 or np.all(matched >= 0):
                 break
             pred_next, has = self._neighbour_prediction(matched, det)
             pred = np.where(has[:, None], pred_next, pred)
-        self._gated_round(pred, det, ratio, p.gate_ratio * self.pitch_px, matched, free)
+        self._gated_round(pred, det, tree, areas, p.gate_ratio * self.pitch_px, matched, free)
         new = det[np.maximum(matched, 0)] - self._ref
         for _ in range(_PLAUSIBILITY_PASSES):
             bad = _inconsistent(new, matched >= 0, self._graph, self._spacing, p.tolerance_ratio)
             if not bad.any():
                 break
             matched[bad] = -1
+        return matched
+
+    def _base_prediction(self) -> np.ndarray:
+        """(N, 2) px: the last position of markers seen last frame; for the others the
+        reference plus their seen neighbours' median displacement (the last position when none)."""
+        if self._valid.all():
+            return self._cur.copy()
+        last_total = np.where(self._valid[:, None], self._cur - self._ref, 0.0)
+        total_med, total_has = masked_median(last_total[self._graph], self._valid[self._graph])
+        lost = np.where(total_has[:, None], self._ref + total_med, self._cur)
+        return np.where(self._valid[:, None], self._cur, lost)
+
+    def _transport_prediction(self, base: np.ndarray, det: np.ndarray, radius: float) -> np.ndarray:
+        """(N, 2) px: `base` moved by the median step of the global one-to-one matching
+        (`_transport`) over each marker and its neighbours (the median drops single wrong pairs)."""
+        cols = _transport(base, det, radius)
+        paired = cols >= 0
+        step = np.where(paired[:, None], det[np.maximum(cols, 0)] - base, 0.0)
+        around = np.hstack([np.arange(base.shape[0])[:, None], self._graph])
+        median, has = masked_median(step[around], paired[around])
+        return np.where(has[:, None], base + median, base)
+
+    def _match_assignment(self, det: np.ndarray, areas: np.ndarray) -> np.ndarray:
+        """One-to-one matching grown from the velocity prediction; when that leaves markers
+        and detections unmatched, also from the global one-to-one matching without velocity
+        (`_transport`), keeping whichever matches more markers."""
+        p = self.params
+        if det.shape[0] == 0:
+            return np.full(self._ref.shape[0], -1, dtype=np.int64)
+        tree = cKDTree(det)
+        base = self._base_prediction()
+        pred = base + self._velocity if p.use_velocity else base
+        matched = self._grow(pred, det, tree, areas)
+        radius = p.transport_ratio * self.pitch_px
+        unmatched = np.count_nonzero(matched < 0)
+        # A lattice matched one pitch off leaves markers at one edge and detections at the
+        # other unmatched, however far apart: any unmatched pair calls for the global match.
+        if radius > 0.0 and unmatched > 0 and det.shape[0] > self._ref.shape[0] - unmatched:
+            other = self._grow(self._transport_prediction(base, det, radius), det, tree, areas)
+            if np.count_nonzero(other < 0) < unmatched:
+                return other
         return matched

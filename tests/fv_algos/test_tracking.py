@@ -77,6 +77,29 @@ def test_one_frame_shear_of_one_pitch_from_rest() -> None:
     assert np.abs(state.current_px - truth).max() < 1e-9
 
 
+@pytest.mark.parametrize("shift", [(1.5, 0.0), (0.0, -1.5), (1.1, 1.1)])
+def test_uniform_shear_of_one_and_a_half_pitches_from_rest(shift: tuple[float, float]) -> None:
+    """The whole array jumps 1.5 pitches in one frame from rest: every marker's nearest
+    detection is its neighbour's, and only the array's edge tells the true motion."""
+    tracker = Tracker(_det(REF, None))
+    truth = REF + np.asarray(shift) * PITCH
+    state = tracker.step(_det(truth))
+    assert state.valid.all()
+    assert np.abs(state.current_px - truth).max() < 1e-9
+
+
+def test_abrupt_stop_and_return_keep_identities() -> None:
+    """Steps of 0.75 and 1.5 pitches, an abrupt stop (the velocity prediction is 1.5 pitches
+    off), a hold, and the same steps back: no frame may swap, and the markers end at home."""
+    tracker = Tracker(_det(REF, None))
+    totals = [0.75, 2.25, 2.25, 2.25, 0.75, 0.0, 0.0]
+    for k, total in enumerate(totals):
+        truth = _bump(REF, total * PITCH, sigma_px=6 * PITCH, direction=(1.0, 0.0))
+        state = tracker.step(_det(truth, k))
+        assert state.valid.all(), k
+        assert np.abs(state.current_px - truth).max() < 1e-9, k
+
+
 def test_paper_nearest_can_share_a_detection_assignment_cannot() -> None:
     midpoint = 0.5 * (REF[0] + REF[1])
     points = np.vstack([midpoint, REF[2:]])
