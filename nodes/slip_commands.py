@@ -112,9 +112,10 @@ CURVE_PNG = "curve.png"
 
 def _write_run(out: Path, *, command: str, data: Path, fingerprint: str, split: str, seed: int, test_fraction: float,
                model_config: dict, params: int, history: list[dict], wall_s: float, windows_per_s: float,
-               dataset_metadata: dict) -> dict:
+               dataset_metadata: dict, resumed_from: Path | None = None) -> dict:
     """Write run.json (provenance and final metrics) and curve.png (accuracy and loss vs step,
-    like the paper's Fig. 7) into ``out``; returns the record."""
+    like the paper's Fig. 7) into ``out``; returns the record. wall_s is this invocation's time;
+    wall_s_total adds the wall_s_total of the run resumed from (its folder's run.json)."""
     from nodes.plots import curve_plot
     if not history:
         raise ValueError(f"training in {out} recorded no evaluation")
@@ -126,7 +127,8 @@ def _write_run(out: Path, *, command: str, data: Path, fingerprint: str, split: 
         "model_config": model_config, "params": params, "steps": int(final["step"]),
         "test_accuracy": final["test_accuracy"], "test_windows": final["test_windows"],
         "train_accuracy": final["train_accuracy"], "wall_s": round(wall_s, 1),
-        "windows_per_s": round(windows_per_s, 2),
+        "wall_s_total": round(wall_s + _previous_wall_s(resumed_from), 1), "windows_per_s": round(windows_per_s, 2),
+        "resumed_from": None if resumed_from is None else str(resumed_from),
     }
     out.mkdir(parents=True, exist_ok=True)
     (out / RUN_RECORD).write_text(json.dumps(record, indent=1))
@@ -136,6 +138,15 @@ def _write_run(out: Path, *, command: str, data: Path, fingerprint: str, split: 
     curve_plot(series, out / CURVE_PNG, title=f"{model_config['arch']} on the {split} split",
                x_label="optimizer step", y_label="accuracy / cross-entropy")
     return record
+
+
+def _previous_wall_s(resumed_from: Path | None) -> float:
+    """wall_s_total recorded next to a checkpoint being resumed (0 when none is recorded)."""
+    record = None if resumed_from is None else resumed_from.parent / RUN_RECORD
+    if record is None or not record.is_file():
+        return 0.0
+    previous = json.loads(record.read_text())
+    return float(previous.get("wall_s_total", previous.get("wall_s", 0.0)))
 
 
 PAPER_WINDOWS_PER_SEQUENCE = 5
@@ -185,7 +196,7 @@ def _train(args: argparse.Namespace) -> int:
         args.out, command=command_line(args), data=args.data, fingerprint=dataset_fingerprint(sequences),
         split=args.split, seed=args.seed, test_fraction=args.test_fraction, model_config=checkpoint.model_config.to_dict(),
         params=count_parameters(build_model(checkpoint.model_config)), history=checkpoint.history, wall_s=wall_s,
-        windows_per_s=result["windows_per_s"], dataset_metadata=sequences.metadata)
+        windows_per_s=result["windows_per_s"], dataset_metadata=sequences.metadata, resumed_from=args.resume)
     print(f"{record['model_config']['arch']} on the {args.split} split: test accuracy "
           f"{record['test_accuracy']:.4f} on {record['test_windows']} windows after {record['steps']} steps, "
           f"{wall_s:.0f} s -> {args.out}")
