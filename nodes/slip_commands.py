@@ -37,9 +37,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="also write an inference-only checkpoint here (no optimizer state) and its .json record")
     p.set_defaults(func=_train)
 
-    p = sub.add_parser("eval", help="Table 1 (every split and model) and the speed/accuracy variants")
-    p.add_argument("--data", type=Path, required=True, help="sequence dataset .npz (fv dataset sim)")
-    p.add_argument("--out", type=Path, required=True, help="report folder: table1.json, variants.json, pareto.png")
+    p = sub.add_parser("eval", help="Table 1 (every split and model) and the speed/accuracy variants; or, with "
+                       "--trials, one model on a folder of labelled real recordings")
+    p.add_argument("--data", type=Path, help="sequence dataset .npz (fv dataset sim)")
+    p.add_argument("--out", type=Path, help="report folder: table1.json, variants.json, pareto.png")
+    p.add_argument("--trials", type=Path, help="folder with labels.csv (trial,object,label) and "
+                   "<trial>/camera_0.avi [camera_2.avi]: judge --model on it, from video to decision")
+    p.add_argument("--model", help="with --trials: shipped model name (sim, gelsight) or checkpoint path")
+    p.add_argument("--cache", type=Path, help="with --trials: folder to cache the fields in (default: none)")
+    p.add_argument("--workers", type=int, default=2, help="with --trials: processes for the fields (default 2)")
     p.add_argument("--models", type=Path, default=None,
                    help="checkpoint folder: DIR/<split>_<model>[_variant]/ as fv train writes; missing ones are "
                         "trained there (default OUT/models)")
@@ -271,6 +277,13 @@ class _ModelStore:
 
 
 def _eval(args: argparse.Namespace) -> int:
+    if args.trials is not None:
+        from nodes.real_commands import eval_trials_command
+        if not args.model:
+            raise ValueError("--trials needs --model (a shipped name such as gelsight, or a checkpoint)")
+        return eval_trials_command(args)
+    if args.data is None or args.out is None:
+        raise ValueError("give --data DATASET.npz and --out DIR (or --trials DIR --model M)")
     from fv_algos.slip.evaluate import table_rows
     from fv_algos.slip.models import ModelConfig
     from fv_algos.slip.windows import load_sequences

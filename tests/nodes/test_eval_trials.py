@@ -1,0 +1,31 @@
+"""`fv eval --model M --trials DIR --json` on a user's folder of labelled recordings: the
+whole real path from video to decision."""
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+from tests.nodes.conftest import run_fv
+
+
+def test_eval_trials_on_two_real_trials(isd_data: Path, tmp_path: Path) -> None:
+    rows = list(csv.DictReader(open(isd_data / "labels.csv")))
+    picks = [next(r for r in rows if r["label"] == label) for label in ("slip", "no_slip")]
+    with open(tmp_path / "labels.csv", "w") as f:  # the user's layout: DIR/<trial>/camera_0.avi
+        f.write("trial,object,label\n")
+        for i, r in enumerate(picks):
+            (tmp_path / f"t{i}").symlink_to(isd_data / r["trial"])  # a link, the data stays in ../shared
+            f.write(f"t{i},{r['object']},{r['label']}\n")
+    result = run_fv("eval", "--trials", str(tmp_path), "--model", "gelsight", "--json", timeout_s=240)
+    assert result.returncode == 0, result.stderr[-2000:]
+    report = json.loads(result.stdout)
+    assert report["n_trials"] == 2
+    assert 0.0 <= report["trial_accuracy"] <= 1.0 and 0.0 <= report["window_accuracy"] <= 1.0
+    assert sum(map(sum, report["confusion"])) == 2
+    assert report["tracking"]["videos"] == 4 and report["tracking"]["valid_share_mean"] > 0.9
+
+
+def test_eval_without_data_or_trials_is_a_clear_error() -> None:
+    result = run_fv("eval", "--json", timeout_s=60)
+    assert result.returncode == 2 and "--trials" in result.stderr and "Traceback" not in result.stderr
