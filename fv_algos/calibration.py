@@ -19,7 +19,7 @@ import numpy as np
 
 from fv_algos.fisheye import FisheyeCamera, utc_timestamp
 
-IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
 
 
 @dataclass(frozen=True)
@@ -204,6 +204,21 @@ def calibrate_fisheye(views: Sequence[tuple[str, np.ndarray]], params: Calibrati
     return CalibrationResult(camera=camera, rms_px=float(rms_px), used=used, rejected=rejected, per_view_rms_px=per_view)
 
 
+def image_files(folder: str | Path, suffixes: tuple[str, ...] = IMAGE_SUFFIXES) -> list[Path]:
+    """The image files of a folder (not recursive), sorted by name.
+
+    Raises:
+        ValueError: the folder does not exist or holds no file ending in `suffixes`.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ValueError(f"image folder {folder} does not exist")
+    paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in suffixes and p.is_file())
+    if not paths:
+        raise ValueError(f"image folder {folder} holds no file ending in {', '.join(suffixes)}")
+    return paths
+
+
 def load_images(folder: str | Path, suffixes: tuple[str, ...] = IMAGE_SUFFIXES) -> list[tuple[str, np.ndarray]]:
     """Read every image in a folder (not recursive) as mono uint8, sorted by file name.
 
@@ -212,14 +227,8 @@ def load_images(folder: str | Path, suffixes: tuple[str, ...] = IMAGE_SUFFIXES) 
     Raises:
         ValueError: the folder does not exist, holds no image, or an image cannot be decoded.
     """
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise ValueError(f"image folder {folder} does not exist")
-    paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in suffixes and p.is_file())
-    if not paths:
-        raise ValueError(f"image folder {folder} holds no file ending in {', '.join(suffixes)}")
     views = []
-    for path in paths:
+    for path in image_files(folder, suffixes):
         image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         if image is None:
             raise ValueError(f"image {path} cannot be decoded")

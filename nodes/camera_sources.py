@@ -13,7 +13,8 @@ from typing import Protocol
 import cv2
 import numpy as np
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
+from fv_algos.calibration import image_files
+
 log = logging.getLogger("fv.camera")
 
 
@@ -93,11 +94,10 @@ class FolderSource:
         self.finished = False
 
     def open(self) -> None:
-        if not self.path.is_dir():
-            raise SourceError(f"{self.name}: no such folder")
-        self._files = sorted(p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-        if not self._files:
-            raise SourceError(f"{self.name}: holds no images ({', '.join(IMAGE_SUFFIXES)})")
+        try:
+            self._files = image_files(self.path)
+        except ValueError as exc:
+            raise SourceError(f"{self.name}: {exc}") from None
         self._index = 0
 
     def read(self) -> Frame | None:

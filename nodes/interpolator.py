@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fv_algos.contact_summary import ContactParams, summarise_contact
+from fv_algos.field import FieldInterpolator, FieldParams
 from msgs import ContactSummary, DisplacementField, MarkerArray
 from nodes.node import Node
 
@@ -35,8 +37,6 @@ class InterpolatorNode(Node):
     Params = InterpolatorParams
 
     def setup(self) -> None:
-        from fv_algos.contact_summary import ContactParams
-        from fv_algos.field import FieldParams
         p = self.params
         self.field_params = FieldParams(method=p.method, grid_shape=(p.grid, p.grid), kernel=p.kernel,
                                         smoothing=p.smoothing, width_px=p.width_px or None)
@@ -49,7 +49,6 @@ class InterpolatorNode(Node):
         self.counters.update(invalid_fields=0)
 
     def on_markers(self, msg: MarkerArray) -> None:
-        from fv_algos.field import FieldInterpolator
         key = msg.ref_px.tobytes()
         if key != self.reference_key:
             self.interpolator = FieldInterpolator(msg.ref_px, self.field_params)
@@ -65,7 +64,6 @@ class InterpolatorNode(Node):
             self.publish_contact(dense, msg)
 
     def publish_contact(self, dense, msg: MarkerArray) -> None:
-        from fv_algos.contact_summary import summarise_contact
         c = summarise_contact(dense, self.contact_params)
         self.contact_pub.publish(ContactSummary(
             stamp_ns=msg.stamp_ns, frame_id=msg.frame_id, in_contact=bool(c.in_contact), area_px2=float(c.area_px2),

@@ -113,6 +113,7 @@ class Node:
         self._pub_sock = PublisherSocket(name, self.address, self.ctx)
         self._publishers: list[Publisher] = []
         self._subs: dict[str, list[Subscription]] = {}
+        self._ready_order: collections.deque[Subscription] = collections.deque()
         self._timers: list[Timer] = []
         self._cond = threading.Condition()
         self._stop = threading.Event()
@@ -152,6 +153,7 @@ class Node:
         with self._cond:
             first = sub.topic not in self._subs
             self._subs.setdefault(sub.topic, []).append(sub)
+            self._ready_order.append(sub)
         if first and self._receiver is not None and self._receiver.is_alive():
             self._ctl_out.send_string("sub " + sub.topic)
         return sub
@@ -281,13 +283,12 @@ class Node:
                 if due is not None and due.next_s <= now:
                     due.next_s = max(due.next_s + due.period_s, now)
                     return due
-                for subs in self._subs.values():
-                    for s in subs:
-                        if s.queue:
-                            topic, frames = s.queue.popleft()
-                            # rotate so busy topics cannot starve the others
-                            subs.append(subs.pop(subs.index(s)))
-                            return s, topic, frames
+                for _ in range(len(self._ready_order)):
+                    s = self._ready_order[0]
+                    self._ready_order.rotate(-1)  # round robin: a busy topic cannot starve the others
+                    if s.queue:
+                        topic, frames = s.queue.popleft()
+                        return s, topic, frames
                 self._cond.wait(None if due is None else due.next_s - now)
         return None
 

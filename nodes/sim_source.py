@@ -25,7 +25,6 @@ class SimSource:
         self.sensor = SimSensor(scene, seed=seed, loop_fps=fps)
         self.camera = self.sensor.camera
         self._frames: Iterator[SimFrame] | None = None
-        self.last: SimFrame | None = None
 
     def open(self) -> None:
         self._frames = iter(self.sensor)
@@ -37,7 +36,6 @@ class SimSource:
         if frame is None:  # a scene ended: play it again
             self._frames = iter(self.sensor)
             frame = next(self._frames)
-        self.last = frame
         return Frame(frame.image, time.time_ns())
 
     def close(self) -> None:

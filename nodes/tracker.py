@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fv_algos.perception import Perception, PerceptionParams
 from msgs import Image, MarkerArray
 from nodes.node import Node
 
@@ -41,7 +42,6 @@ class TrackerNode(Node):
     Params = TrackerNodeParams
 
     def setup(self) -> None:
-        from fv_algos.perception import Perception, PerceptionParams
         self.perception = Perception(PerceptionParams.preset(self.params.preset))
         self.frames_seen = 0
         self.needs_reference = True

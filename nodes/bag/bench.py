@@ -118,16 +118,17 @@ def _fast_play(bag_dir: Path, env: dict[str, str], address: Any) -> dict[str, An
                 if reader.recv_raw(0.2) is not None:
                     times.append(time.monotonic())
         finally:
-            _stop(proc)
+            stop_process(proc)
     span = times[-1] - times[0] if len(times) > 1 else 0.0
     return {"received": len(times), "fps": (len(times) - 1) / span if span > 0 else 0.0}
 
 
-def _stop(proc: subprocess.Popen, sig: int = signal.SIGINT) -> int:
+def stop_process(proc: subprocess.Popen, sig: int = signal.SIGINT, timeout_s: float = STOP_TIMEOUT_S) -> int:
+    """Send `sig` to `proc`, SIGKILL it if it has not exited after `timeout_s`; its return code."""
     if proc.poll() is None:
         proc.send_signal(sig)
         try:
-            proc.wait(STOP_TIMEOUT_S)
+            proc.wait(timeout_s)
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
@@ -152,7 +153,7 @@ def run_bench(duration_s: float, fps: float, width: int, height: int, compressio
         published = _publish(address, duration_s, fps, width, height,
                              lambda: start.extend((_cpu_s(recorder.pid), time.monotonic())))
         cpu_s, wall_s = _cpu_s(recorder.pid) - start[0], time.monotonic() - start[1]
-        code = _stop(recorder)
+        code = stop_process(recorder)
         log = recorder.stderr.read()
         if code != 0:
             raise RuntimeError(f"fv bag record exited with {code}: {log.strip()[-500:]}")
@@ -164,9 +165,9 @@ def run_bench(duration_s: float, fps: float, width: int, height: int, compressio
         return result
     finally:
         if recorder is not None:
-            _stop(recorder, signal.SIGKILL)
+            stop_process(recorder, signal.SIGKILL)
         if forwarder is not None:
-            _stop(forwarder, signal.SIGTERM)
+            stop_process(forwarder, signal.SIGTERM)
         shutil.rmtree(tmp, ignore_errors=True)
 
 

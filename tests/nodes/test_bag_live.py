@@ -27,6 +27,7 @@ from nodes.bag.reader import BagError, BagReader
 from nodes.bag.recorder import BagRecord
 from nodes.bag.player import BagPlay
 from nodes.bag.recover import recover
+from nodes.bag.bench import stop_process
 from nodes.bus import PublisherSocket, TopicReader
 from nodes.endpoints import BUS_ENV, BusAddress, bus_address
 from nodes.forwarder import ensure_forwarder
@@ -36,15 +37,8 @@ REPO = Path(__file__).resolve().parents[2]
 Spawn = Callable[..., subprocess.Popen]
 
 
-def stop(proc: subprocess.Popen, sig: int = signal.SIGINT, timeout_s: float = 20.0) -> int:
-    if proc.poll() is None:
-        proc.send_signal(sig)
-        try:
-            proc.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-    return proc.returncode
+def stop(proc: subprocess.Popen, sig: int = signal.SIGINT) -> int:
+    return stop_process(proc, sig, timeout_s=20.0)
 
 
 @pytest.fixture
