@@ -15,6 +15,8 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "bag": ("nodes.bag.bench", "add_parser"),
     "perception": ("nodes.bench_perception", "add_parser"),
     "slip": ("nodes.slip_commands", "add_bench_parser"),
+    "pipeline": ("nodes.bench_pipeline", "add_parser"),
+    "soak": ("nodes.bench_soak", "add_parser"),
 }
 
 

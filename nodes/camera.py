@@ -33,6 +33,7 @@ class CameraParams:
     undistort: bool = False  # remap frames with the calibration before publishing
     encoding: str = "mono8"  # mono8 | bgr8
     seed: int = 0  # sim: random seed
+    prerender: bool = False  # sim: render the scene once at start and replay it from memory
     frame_id: str = "fv_camera"
     reopen_backoff_s: float = 0.5  # first retry delay after a lost source; doubles up to 8 s
 
@@ -58,7 +59,7 @@ def make_source(p: CameraParams) -> FrameSource:
     if p.source == "v4l2":
         return V4L2Source(p.path, p.width, p.height, p.fps, p.exposure, p.white_balance)
     from nodes.sim_source import SimSource
-    return SimSource(p.scene, p.seed, p.fps)
+    return SimSource(p.scene, p.seed, p.fps, p.prerender)
 
 
 class CameraNode(Node):

@@ -95,6 +95,11 @@ class Launch:
                 return child.proc.pid
         return None
 
+    @property
+    def forwarder_pid(self) -> int | None:
+        """The pid of the forwarder this launch started, None when it uses one already running."""
+        return None if self._forwarder is None else self._forwarder.pid
+
     def start(self) -> None:
         """Start the forwarder (when none answers) and every node; supervise in a thread."""
         from nodes.endpoints import bus_address

@@ -11,13 +11,21 @@ from nodes.camera_sources import Frame, SourceError
 
 class SimSource:
     """Frames of the simulated sensor: a scene file played in a loop, or endless random
-    scenarios (`scene_path` ""). `camera` is the simulator's exact fisheye model."""
+    scenarios (`scene_path` ""). `camera` is the simulator's exact fisheye model.
 
-    def __init__(self, scene_path: str, seed: int, fps: float) -> None:
+    With `prerender`, open() renders the whole scene once and read() replays those frames
+    from memory, so the camera costs what a real camera's driver costs (a few MB per second
+    of scene at 640x480): how `fv bench pipeline` measures the pipeline rather than the
+    renderer. It needs a scene file (random scenarios never end)."""
+
+    def __init__(self, scene_path: str, seed: int, fps: float, prerender: bool = False) -> None:
         self.scene_path = scene_path
         self.seed = seed
         self.fps = fps
+        self.prerender = prerender
         self.name = f"sim {scene_path or 'random scenarios'}"
+        if prerender and not scene_path:
+            raise SourceError(f"{self.name}: prerender needs a scene file (random scenarios never end)")
         try:
             scene = load_scene(scene_path) if scene_path else None
         except (OSError, ValueError) as exc:
@@ -25,16 +33,19 @@ class SimSource:
         self.sensor = SimSensor(scene, seed=seed, loop_fps=fps)
         self.camera = self.sensor.camera
         self._frames: Iterator[SimFrame] | None = None
+        self._rendered: list[SimFrame] | None = None
 
     def open(self) -> None:
-        self._frames = iter(self.sensor)
+        if self.prerender and self._rendered is None:
+            self._rendered = list(self.sensor)
+        self._frames = iter(self._rendered if self._rendered is not None else self.sensor)
 
     def read(self) -> Frame | None:
         if self._frames is None:
             return None
         frame = next(self._frames, None)
         if frame is None:  # a scene ended: play it again
-            self._frames = iter(self.sensor)
+            self.open()
             frame = next(self._frames)
         return Frame(frame.image, time.time_ns())
 

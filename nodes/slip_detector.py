@@ -1,7 +1,9 @@
 """The `slip_detector` node: DisplacementField -> SlipState on `/slip` at the field rate.
 
 It keeps the last `window` fields (the model's window length), asks the ConvLSTM for
-P(slip), and decides with a threshold and optional hysteresis. `model` is a shipped
+P(slip), and decides with a threshold and optional hysteresis. Every field enters the
+window, but when the model falls behind (newer fields already queued) only the newest
+window is judged: the skipped decisions are counted, and latency stays one model call. `model` is a shipped
 model name (`sim`, `gelsight`) or a checkpoint path."""
 from __future__ import annotations
 
@@ -58,8 +60,8 @@ class SlipDetectorNode(Node):
         self.window: collections.deque = collections.deque(maxlen=cfg.window)
         self.slip = False
         self.slip_pub = self.publisher("/slip", SlipState)
-        self.subscribe("/field", DisplacementField, self.on_field, depth=cfg.window)
-        self.counters.update(decisions=0, invalid_windows=0)
+        self.field_sub = self.subscribe("/field", DisplacementField, self.on_field, depth=cfg.window)
+        self.counters.update(decisions=0, invalid_windows=0, skipped=0)
         self.log.info("model %s: window %d, grid %d", p.model, cfg.window, cfg.grid)
 
     def on_field(self, msg: DisplacementField) -> None:
@@ -69,6 +71,9 @@ class SlipDetectorNode(Node):
                              "set the interpolator's grid param")
         self.window.append((msg.stamp_ns, msg.field, msg.valid))
         if len(self.window) < self.window.maxlen:
+            return
+        if self.field_sub.queue:  # newer fields wait: judge only the newest window (latency stays one call)
+            self.counters["skipped"] += 1
             return
         stamps = np.array([s for s, _, _ in self.window], np.int64)
         valid = all(v for _, _, v in self.window)

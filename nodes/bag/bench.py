@@ -22,6 +22,8 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from nodes.proc_stats import cpu_seconds
+
 TOPICS = ("/camera/image", "/field", "/slip")
 N_DISTINCT_FRAMES = 16
 STOP_TIMEOUT_S = 30.0
@@ -40,12 +42,6 @@ def add_parser(kinds: argparse._SubParsersAction, name: str) -> None:
     p.add_argument("--keep", type=Path, help="keep the bag in this (new) folder")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.set_defaults(func=_bench_bag)
-
-
-def _cpu_s(pid: int) -> float:
-    """User + system CPU seconds of process `pid` so far."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _frames(width: int, height: int) -> list[Any]:
@@ -151,8 +147,8 @@ def run_bench(duration_s: float, fps: float, width: int, height: int, compressio
                                      "--compression", compression], env=env, stderr=subprocess.PIPE, text=True)
         start: list[float] = []  # recorder CPU s and wall time when publishing starts
         published = _publish(address, duration_s, fps, width, height,
-                             lambda: start.extend((_cpu_s(recorder.pid), time.monotonic())))
-        cpu_s, wall_s = _cpu_s(recorder.pid) - start[0], time.monotonic() - start[1]
+                             lambda: start.extend((cpu_seconds(recorder.pid), time.monotonic())))
+        cpu_s, wall_s = cpu_seconds(recorder.pid) - start[0], time.monotonic() - start[1]
         code = stop_process(recorder)
         log = recorder.stderr.read()
         if code != 0:

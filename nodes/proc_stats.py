@@ -1,0 +1,24 @@
+"""CPU time and memory of a running process, read from /proc (Linux)."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+_TICK_S = 1.0 / os.sysconf("SC_CLK_TCK")
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds process `pid` has used so far; OSError when it is gone."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) * _TICK_S
+
+
+def memory_bytes(pid: int) -> tuple[int, int]:
+    """(resident set size now, peak resident set size) of process `pid` in bytes;
+    OSError when it is gone."""
+    values = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        key, _, rest = line.partition(":")
+        if key in ("VmRSS", "VmHWM"):
+            values[key] = int(rest.split()[0]) * 1024  # reported in kB
+    return values.get("VmRSS", 0), values.get("VmHWM", 0)
