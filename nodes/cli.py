@@ -17,6 +17,7 @@ COMMAND_MODULES = [
     "nodes.bench_commands",
     "nodes.slip_commands",
     "nodes.real_commands",
+    "nodes.view_commands",
 ]
 
 

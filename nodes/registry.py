@@ -16,6 +16,7 @@ NODES: dict[str, str] = {
     "slip_detector": "nodes.slip_detector:SlipDetectorNode",
     "bag_record": "nodes.bag.recorder:BagRecord",
     "bag_play": "nodes.bag.player:BagPlay",
+    "viewer": "nodes.viewer:ViewerNode",
 }
 
 

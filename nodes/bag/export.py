@@ -26,12 +26,8 @@ FOURCC = {"mp4": "mp4v", "avi": "MJPG"}
 
 
 def _bgr(img: Image) -> np.ndarray:
-    import cv2
-    if img.encoding == "mono8":
-        return cv2.cvtColor(img.data, cv2.COLOR_GRAY2BGR)
-    if img.encoding == "rgb8":
-        return cv2.cvtColor(img.data, cv2.COLOR_RGB2BGR)
-    return np.ascontiguousarray(img.data)
+    from fv_algos.visualize import as_bgr
+    return as_bgr(img.data, img.encoding)
 
 
 def _row(msg: Message, log_time_ns: int) -> dict[str, Any]:
