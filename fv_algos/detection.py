@@ -7,7 +7,8 @@ polarity and contrast from one reference frame so that nobody has to tune by han
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from functools import lru_cache
 from typing import Literal
 
 import cv2
@@ -102,13 +103,14 @@ class Detections:
         return int(self.centres_px.shape[0])
 
 
-def to_gray(image: np.ndarray, polarity: Polarity) -> np.ndarray:
-    """Grey image in which markers keep their polarity, (H, W) uint8.
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """Grey image of a frame, (H, W) uint8: BT.601 luma for BGR, mono input as is.
 
-    A BGR frame becomes the per-pixel maximum over channels for dark markers (a dark
-    marker is dark in every channel, so coloured shading or a red overlay drawn over the
-    frame never looks like a marker) and luma for light markers. Mono input is returned
-    as is. Raises ValueError for any other shape or dtype.
+    Luma, not a single channel or the channel maximum: colour video is stored as full
+    resolution luma plus half resolution chroma, so any channel mix other than luma blurs
+    marker edges with chroma from the surroundings (a coloured overlay drawn over the frame,
+    coloured shading).
+    Raises ValueError for any other shape or dtype.
     """
     if not isinstance(image, np.ndarray) or image.dtype != np.uint8:
         raise ValueError(f"image must be a uint8 numpy array, got {getattr(image, 'dtype', type(image))}")
@@ -119,8 +121,6 @@ def to_gray(image: np.ndarray, polarity: Polarity) -> np.ndarray:
     if image.ndim == 3 and image.shape[2] == 3:
         if min(image.shape[:2]) < 8:
             raise ValueError(f"image is too small: {image.shape}")
-        if polarity == "dark":
-            return cv2.max(cv2.max(image[:, :, 0], image[:, :, 1]), image[:, :, 2])
         return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     raise ValueError(f"image must be (H, W) mono or (H, W, 3) BGR, got shape {image.shape}")
 
@@ -130,34 +130,51 @@ def _odd(value: float) -> int:
     return max(3, int(round(value)) | 1)
 
 
-def _marker_mask(gray: np.ndarray, marker: MarkerParams, params: DetectorParams) -> np.ndarray:
-    """Binary mask (H, W) uint8 (255 = marker) from a box-filter local mean and a contrast margin."""
-    box = _odd(params.background_pitches * marker.pitch_px)
-    mean = cv2.boxFilter(gray, -1, (box, box), borderType=cv2.BORDER_REPLICATE)
-    margin = float(max(2.0, round(params.threshold_fraction * marker.contrast)))
-    if marker.polarity == "dark":
-        return cv2.compare(gray, cv2.subtract(mean, margin), cv2.CMP_LT)
-    return cv2.compare(gray, cv2.add(mean, margin), cv2.CMP_GT)
+@lru_cache(maxsize=16)
+def _disc_window(radius: int, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pixels of a disc of `radius` px in an image `width` px wide.
 
-
-def _disc_offsets(radius: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Offsets (K,) int of the pixels of a disc of `radius` px, and a (K,) bool mask of its rim."""
+    Returns flat index offsets (K,) intp, (x, y) offsets (K, 2) intp, the moment matrix
+    (K, 3) float32 with columns dx, dy, 1, and the (K,) bool mask of the disc's rim.
+    """
     dy, dx = np.mgrid[-radius : radius + 1, -radius : radius + 1]
     r2 = dx * dx + dy * dy
     inside = r2 <= radius * radius
-    rim = r2[inside] > (radius - 1.5) ** 2
-    return dx[inside].ravel(), dy[inside].ravel(), rim
+    dx, dy = dx[inside].astype(np.intp), dy[inside].astype(np.intp)
+    window = (
+        dy * width + dx,
+        np.column_stack([dx, dy]),
+        np.column_stack([dx, dy, np.ones_like(dx)]).astype(np.float32),
+        r2[inside] > (radius - 1.5) ** 2,
+    )
+    for array in window:
+        array.flags.writeable = False  # shared by every call through the cache
+    return window
+
+
+def _rim_median(values: np.ndarray, rim: np.ndarray) -> np.ndarray:
+    """(N, 1) float32 median over the rim pixels (mask (K,) bool) of window values (N, K)."""
+    rim_values = values[:, rim]
+    lo, hi = (rim_values.shape[1] - 1) // 2, rim_values.shape[1] // 2
+    ordered = np.partition(rim_values, (lo, hi), axis=1)
+    return 0.5 * (ordered[:, lo : lo + 1].astype(np.float32) + ordered[:, hi : hi + 1])
 
 
 def refine_centres(
-    gray: np.ndarray, centres_px: np.ndarray, marker: MarkerParams, iterations: int = 1
+    gray: np.ndarray,
+    centres_px: np.ndarray,
+    marker: MarkerParams,
+    iterations: int = 1,
+    background: np.ndarray | None = None,
 ) -> np.ndarray:
     """Sub-pixel intensity-weighted centroids around approximate marker centres.
 
     gray: (H, W) uint8 from `to_gray`. centres_px: (N, 2) float64 approximate (x, y) px,
-    within ~1.5 px of the truth. Each marker is weighted by its contrast to the median of a
-    rim around it, inside a disc window of radius diameter/2 + 2 px (capped so that no
-    neighbour enters); the result is exact for a symmetric marker fully inside the window.
+    within ~1.5 px of the truth. background: (N,) grey levels of the skin around each
+    marker (e.g. a local mean); None = the median of a rim around each marker. Each marker
+    is weighted by its contrast to its background, less a margin of 0.2 x contrast, inside
+    a disc window of radius diameter/2 + 2 px (capped so that no neighbour enters); the
+    result is exact for a symmetric marker fully inside the window.
     Returns (N, 2) float64 px; a marker whose window holds no contrast keeps its input.
     """
     centres = np.asarray(centres_px, dtype=np.float64).reshape(-1, 2)
@@ -166,33 +183,78 @@ def refine_centres(
     h, w = gray.shape
     limit = int(np.floor(marker.pitch_px - 0.5 * marker.diameter_px - 1.0))
     radius = max(2, min(int(np.ceil(0.5 * marker.diameter_px + 2.0)), limit))
-    dx, dy, rim = _disc_offsets(radius)
-    moments = np.column_stack([dx, dy, np.ones_like(dx)]).astype(np.float32)
+    offsets, offsets_xy, moments, rim = _disc_window(radius, w)
     margin = np.float32(0.5 * max(2.0, 0.4 * marker.contrast))
-    flat = gray.ravel()
+    flat = np.ascontiguousarray(gray).ravel()
+    given = None if background is None else np.asarray(background, dtype=np.float32).reshape(-1, 1)
+    if given is not None and given.shape[0] != centres.shape[0]:
+        raise ValueError(f"background has {given.shape[0]} levels for {centres.shape[0]} centres")
     out = centres.copy()
     for _ in range(iterations):
-        cx = np.clip(np.rint(out[:, 0]).astype(np.intp), 0, w - 1)
-        cy = np.clip(np.rint(out[:, 1]).astype(np.intp), 0, h - 1)
-        xs = cx[:, None] + dx[None, :]
-        ys = cy[:, None] + dy[None, :]
-        inside = (xs >= 0) & (xs < w) & (ys >= 0) & (ys < h)
-        if inside.all():
-            values = flat[ys * w + xs].astype(np.float32)
+        pixel = np.rint(out).astype(np.intp)
+        np.clip(pixel[:, 0], 0, w - 1, out=pixel[:, 0])
+        np.clip(pixel[:, 1], 0, h - 1, out=pixel[:, 1])
+        interior = bool(np.all((pixel >= radius) & (pixel < np.array([w - radius, h - radius]))))
+        if interior:
+            values = flat[(pixel[:, 1] * w + pixel[:, 0])[:, None] + offsets[None, :]]
+            inside = None
         else:
-            values = gray[np.clip(ys, 0, h - 1), np.clip(xs, 0, w - 1)].astype(np.float32)
-        background = np.median(values[:, rim], axis=1).astype(np.float32)
+            xs = pixel[:, 0, None] + offsets_xy[None, :, 0]
+            ys = pixel[:, 1, None] + offsets_xy[None, :, 1]
+            inside = (xs >= 0) & (xs < w) & (ys >= 0) & (ys < h)
+            values = gray[np.clip(ys, 0, h - 1), np.clip(xs, 0, w - 1)]
+        level = _rim_median(values, rim) if given is None else given
         if marker.polarity == "dark":
-            weights = background[:, None] - values
+            weights = (level - margin) - values
         else:
-            weights = values - background[:, None]
-        weights = np.maximum(weights - margin, np.float32(0.0)) * inside
+            weights = values - (level + margin)
+        np.maximum(weights, np.float32(0.0), out=weights)
+        if inside is not None:
+            weights *= inside
         sums = weights @ moments
         ok = sums[:, 2] > 0.0
-        safe = np.where(ok, sums[:, 2], 1.0)
-        out[ok, 0] = cx[ok] + sums[ok, 0] / safe[ok]
-        out[ok, 1] = cy[ok] + sums[ok, 1] / safe[ok]
+        out[ok] = pixel[ok] + sums[ok, :2] / sums[ok, 2:3]
     return out
+
+
+def _segment(
+    gray: np.ndarray, marker: MarkerParams, params: DetectorParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Marker components of `gray` (H, W) uint8, in `gray`'s own pixels.
+
+    A pixel belongs to a marker when it differs from the box-filter mean by more than the
+    threshold margin. Returns component centroids (N, 2) float64 px, areas (N,) float64 px^2
+    and the skin grey level around each (N,) float32: the box mean at the centroid less the
+    marker's own share of it.
+    """
+    box = _odd(params.background_pitches * marker.pitch_px)
+    mean = cv2.boxFilter(gray, -1, (box, box), borderType=cv2.BORDER_REPLICATE)
+    margin = float(max(2.0, round(params.threshold_fraction * marker.contrast)))
+    if marker.polarity == "dark":
+        mask = cv2.compare(gray, cv2.subtract(mean, margin), cv2.CMP_LT)
+    else:
+        mask = cv2.compare(gray, cv2.add(mean, margin), cv2.CMP_GT)
+    h, w = gray.shape
+    # 16-bit labels are much faster and cannot overflow when every 8-connected component
+    # (at most one per 2 x 2 block) gets its own label.
+    ltype = cv2.CV_16U if ((h + 1) // 2) * ((w + 1) // 2) < 65535 else cv2.CV_32S
+    _, _, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=ltype)
+    area = stats[1:, cv2.CC_STAT_AREA].astype(np.float64)
+    bw = stats[1:, cv2.CC_STAT_WIDTH]
+    bh = stats[1:, cv2.CC_STAT_HEIGHT]
+    expected = marker.area_px2
+    keep = (
+        (area >= max(2.0, params.min_area_ratio * expected))
+        & (area <= params.max_area_ratio * expected)
+        & (np.maximum(bw, bh) <= params.max_aspect * np.minimum(bw, bh))
+    )
+    centres = centroids[1:][keep]
+    pixel = np.rint(centres).astype(np.intp)
+    # The box mean over a marker holds the marker too: remove its share of the contrast.
+    marker_share = marker.area_px2 / float(box * box)
+    skin_offset = marker_share * (marker.contrast if marker.polarity == "dark" else -marker.contrast)
+    skin = mean[pixel[:, 1], pixel[:, 0]].astype(np.float32) + np.float32(skin_offset)
+    return centres, area[keep], skin
 
 
 def detect_fast(
@@ -204,35 +266,19 @@ def detect_fast(
     diameter are segmented on a 2x area-downsampled frame (4x fewer pixels). Components are
     kept when their area lies in [min_area_ratio, max_area_ratio] x the marker disc area and
     their bounding box is not too elongated; centres are then refined to sub-pixel on the
-    full-resolution frame by `refine_centres`.
+    full-resolution frame by `refine_centres`, against the skin level from the box filter.
     Returns `Detections` (centres (N, 2) float64 px, areas (N,) float64 px^2).
     """
-    gray = to_gray(image, marker.polarity)
-    scale = 2 if marker.diameter_px >= 2.0 * params.min_downsampled_px else 1
-    if scale == 2:
+    gray = to_gray(image)
+    if marker.diameter_px >= 2.0 * params.min_downsampled_px:
         small = cv2.resize(gray, (gray.shape[1] // 2, gray.shape[0] // 2), interpolation=cv2.INTER_AREA)
-        small_marker = MarkerParams(
-            diameter_px=marker.diameter_px / 2.0,
-            pitch_px=marker.pitch_px / 2.0,
-            polarity=marker.polarity,
-            contrast=marker.contrast,
-        )
+        half = replace(marker, diameter_px=marker.diameter_px / 2.0, pitch_px=marker.pitch_px / 2.0)
+        coarse, area, background = _segment(small, half, params)
+        coarse, area = 2.0 * coarse + 0.5, 4.0 * area
     else:
-        small, small_marker = gray, marker
-    mask = _marker_mask(small, small_marker, params)
-    _, _, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_32S)
-    area = stats[1:, cv2.CC_STAT_AREA].astype(np.float64) * (scale * scale)
-    bw = stats[1:, cv2.CC_STAT_WIDTH].astype(np.float64)
-    bh = stats[1:, cv2.CC_STAT_HEIGHT].astype(np.float64)
-    expected = marker.area_px2
-    keep = (
-        (area >= max(2.0, params.min_area_ratio * expected))
-        & (area <= params.max_area_ratio * expected)
-        & (np.maximum(bw, bh) <= params.max_aspect * np.minimum(bw, bh))
-    )
-    coarse = centroids[1:][keep] * scale + (scale - 1) * 0.5
-    centres = refine_centres(gray, coarse, marker, params.refine_iterations)
-    return Detections(centres_px=centres, areas_px2=area[keep])
+        coarse, area, background = _segment(gray, marker, params)
+    centres = refine_centres(gray, coarse, marker, params.refine_iterations, background)
+    return Detections(centres_px=centres, areas_px2=area)
 
 
 def detect_blobs(
@@ -245,7 +291,7 @@ def detect_blobs(
     own (no refinement), areas are pi/4 * size^2 from the key-point diameters.
     Returns `Detections` (centres (N, 2) float64 px, areas (N,) float64 px^2).
     """
-    gray = to_gray(image, marker.polarity)
+    gray = to_gray(image)
     blob = cv2.SimpleBlobDetector_Params()
     blob.filterByColor = True
     blob.blobColor = 0 if marker.polarity == "dark" else 255
@@ -300,8 +346,9 @@ def estimate_marker_params(image: np.ndarray, min_markers: int = 4) -> MarkerPar
     background. Raises ValueError when fewer than `min_markers` consistent blobs exist.
     """
     best: tuple[float, int, Polarity, np.ndarray, np.ndarray, np.ndarray] | None = None
+    gray = to_gray(image)
     for polarity in ("dark", "light"):
-        centres, area, peak = _candidate_blobs(to_gray(image, polarity), polarity)
+        centres, area, peak = _candidate_blobs(gray, polarity)
         if area.size == 0:
             continue
         median_area = np.median(area)

@@ -39,9 +39,14 @@ class TrackerParams:
     area_ratio_max: a detection whose area differs from the marker's reference area by
         more than this factor (either way) is rejected; 0 disables the check.
     use_velocity: predict markers seen in the last two frames with their last step.
-    transport_ratio: radius of the global one-to-one fallback of 'assignment' (tried when
-        the neighbour-grown match leaves both markers and detections unmatched; it needs no
-        velocity and handles steps of up to about this many pitches); 0 disables it.
+    transport_ratio: radius of the two fallbacks of 'assignment' for markers that the
+        neighbour-grown match leaves unmatched next to spare detections: the global
+        one-to-one matching (it needs no velocity and handles steps of up to about this
+        many pitches) and the local re-acquisition of a few lost markers; 0 disables both.
+    transport_edge_share: the global fallback runs only when at least this share of an
+        array edge (sqrt(N) of N markers), and at least 2, of both markers and detections
+        are left unmatched (a lattice matched one pitch off leaves a whole edge row so);
+        fewer go to the local re-acquisition, which costs far less.
     """
 
     method: Literal["nearest", "assignment"] = "assignment"
@@ -53,6 +58,7 @@ class TrackerParams:
     area_ratio_max: float = 3.0
     use_velocity: bool = True
     transport_ratio: float = 2.0
+    transport_edge_share: float = 0.25
 
     def __post_init__(self) -> None:
         if self.method not in ("nearest", "assignment"):
@@ -67,6 +73,8 @@ class TrackerParams:
             raise ValueError(f"tolerance_ratio must be > 0, got {self.tolerance_ratio}")
         if self.transport_ratio < 0.0:
             raise ValueError(f"transport_ratio must be >= 0, got {self.transport_ratio}")
+        if not 0.0 <= self.transport_edge_share <= 1.0:
+            raise ValueError(f"transport_edge_share must be in [0, 1], got {self.transport_edge_share}")
         if self.area_ratio_max != 0.0 and not self.area_ratio_max > 1.0:
             raise ValueError(f"area_ratio_max must be 0 (off) or > 1, got {self.area_ratio_max}")
 
@@ -123,6 +131,9 @@ def masked_median(values: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.
     n, k, c = values.shape
     if k == 0:
         return np.zeros((n, c)), np.zeros(n, dtype=bool)
+    if mask.all():
+        ordered = np.sort(values, axis=1)
+        return 0.5 * (ordered[:, (k - 1) // 2] + ordered[:, k // 2]), np.ones(n, dtype=bool)
     filled = np.where(mask[:, :, None], values, np.inf)
     ordered = np.sort(filled, axis=1)
     count = mask.sum(axis=1)
@@ -150,10 +161,11 @@ def _inconsistent(
     nb_valid = valid[graph]
     nb_disp = displacement[graph]
     median, _ = masked_median(nb_disp, nb_valid)
-    deviation = np.linalg.norm(nb_disp - median[:, None, :], axis=2)
+    offset = nb_disp - median[:, None, :]
+    deviation = np.hypot(offset[:, :, 0], offset[:, :, 1])
     mad, _ = masked_median(deviation[:, :, None], nb_valid)
     tolerance = tolerance_ratio * spacing + 3.0 * mad[:, 0]
-    residual = np.linalg.norm(displacement - median, axis=1)
+    residual = np.hypot(*(displacement - median).T)
     return valid & (nb_valid.sum(axis=1) >= 2) & (residual > tolerance)
 
 
@@ -246,6 +258,7 @@ class Tracker:
         self._since = np.zeros(ref.shape[0], dtype=np.int64)
         self._graph, self._spacing = neighbour_graph(ref, self.params.neighbours)
         self.pitch_px = float(np.median(self._spacing)) if ref.shape[0] > 1 else 1.0
+        self._transport_trigger = max(2, int(np.ceil(self.params.transport_edge_share * np.sqrt(ref.shape[0]))))
 
     @property
     def state(self) -> TrackState:
@@ -284,18 +297,34 @@ class Tracker:
         matched[hit] = idx[hit]
         return matched
 
-    def _neighbour_prediction(self, matched: np.ndarray, det: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Positions (N, 2) predicted from matched neighbours' motion, and (N,) bool where possible."""
+    def _neighbour_prediction(
+        self, matched: np.ndarray, det: np.ndarray, base: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (N, 2) predicted from matched neighbours' motion, and (N,) bool where possible.
+
+        A marker moves from `base` (N, 2) px (`_base_prediction`) by its matched neighbours'
+        median step from their last positions; one with no such neighbour sits at the reference
+        plus its matched neighbours' median displacement.
+        """
         seen = matched >= 0
         new = np.where(seen[:, None], det[np.maximum(matched, 0)], self._cur)
         step_med, step_has = masked_median((new - self._cur)[self._graph], (seen & self._valid)[self._graph])
-        pred = self._cur + step_med
-        if np.all(step_has | ~self._valid):
+        pred = base + step_med
+        if step_has.all():
             return pred, step_has
         total_med, total_has = masked_median((new - self._ref)[self._graph], seen[self._graph])
-        use_step = self._valid & step_has
-        pred = np.where(use_step[:, None], pred, self._ref + total_med)
-        return pred, use_step | total_has
+        pred = np.where(step_has[:, None], pred, self._ref + total_med)
+        return pred, step_has | total_has
+
+    def _area_checked(self, rows: np.ndarray, cols: np.ndarray, areas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The pairs (marker rows (P,), detection cols (P,)) whose detection area (areas (M,)
+        px^2) lies within `area_ratio_max` of the marker's reference area."""
+        limit = self.params.area_ratio_max
+        if limit == 0.0:
+            return rows, cols
+        ratio = areas[cols] / np.maximum(self._ref_areas[rows], 1e-9)
+        ok = (ratio <= limit) & (ratio >= 1.0 / limit)
+        return rows[ok], cols[ok]
 
     def _gated_round(
         self, pred: np.ndarray, det: np.ndarray, tree: cKDTree, areas: np.ndarray, gate: float,
@@ -313,30 +342,42 @@ class Tracker:
         m = det.shape[0]
         if todo.size == 0 or not free.any():
             return 0
-        k = min(_ROUND_CANDIDATES, m)
+        # With every detection free the nearest one is the first usable candidate; the
+        # other candidates are needed only by markers that lose their nearest one.
+        k = 1 if free.all() else min(_ROUND_CANDIDATES, m)
         dist, idx = tree.query(pred[todo], k=k, distance_upper_bound=gate)
         dist, idx = dist.reshape(todo.size, k), idx.reshape(todo.size, k)
         usable = idx < m
-        usable[usable] = free[idx[usable]]
+        if k > 1:
+            usable[usable] = free[idx[usable]]
         has = usable.any(axis=1)
         if not has.any():
             return 0
-        todo, dist, idx, usable = todo[has], dist[has], idx[has], usable[has]
-        first = usable.argmax(axis=1)
+        if not has.all():
+            todo, dist, idx, usable = todo[has], dist[has], idx[has], usable[has]
+        first = usable.argmax(axis=1) if k > 1 else np.zeros(todo.size, dtype=np.intp)
         rows_all = np.arange(todo.size)
         best_col, best_dist = idx[rows_all, first], dist[rows_all, first]
         order = np.lexsort((best_dist, best_col))
         winner = np.ones(order.size, dtype=bool)
         winner[1:] = best_col[order[1:]] != best_col[order[:-1]]
-        won = order[winner]
-        rows, cols = todo[won], best_col[won]
-        lost = order[~winner]
+        if winner.all():
+            rows, cols, lost = todo, best_col, order[:0]
+        else:
+            won = order[winner]
+            rows, cols = todo[won], best_col[won]
+            lost = order[~winner]
         if lost.size:
             taken = np.zeros(m, dtype=bool)
             taken[cols] = True
-            cand = usable[lost]
-            cand[cand] = ~taken[idx[lost][cand]]
-            rest_cols = np.unique(idx[lost][cand])
+            lost_idx = idx[lost]
+            if k == 1:
+                k = min(_ROUND_CANDIDATES, m)
+                _, lost_idx = tree.query(pred[todo[lost]], k=k, distance_upper_bound=gate)
+                lost_idx = lost_idx.reshape(lost.size, k)
+            cand = lost_idx < m
+            cand[cand] = free[lost_idx[cand]] & ~taken[lost_idx[cand]]
+            rest_cols = np.unique(lost_idx[cand])
             if rest_cols.size:
                 rest_rows = todo[lost]
                 cost = np.linalg.norm(pred[rest_rows, None, :] - det[None, rest_cols, :], axis=2)
@@ -345,16 +386,14 @@ class Tracker:
                 ok = cost[r, c] < gate
                 rows = np.concatenate([rows, rest_rows[r[ok]]])
                 cols = np.concatenate([cols, rest_cols[c[ok]]])
-        limit = self.params.area_ratio_max
-        if limit > 0.0:
-            ratio = areas[cols] / np.maximum(self._ref_areas[rows], 1e-9)
-            ok = (ratio <= limit) & (ratio >= 1.0 / limit)
-            rows, cols = rows[ok], cols[ok]
+        rows, cols = self._area_checked(rows, cols, areas)
         matched[rows] = cols
         free[cols] = False
         return int(rows.size)
 
-    def _grow(self, pred: np.ndarray, det: np.ndarray, tree: cKDTree, areas: np.ndarray) -> np.ndarray:
+    def _grow(
+        self, pred: np.ndarray, base: np.ndarray, det: np.ndarray, tree: cKDTree, areas: np.ndarray
+    ) -> np.ndarray:
         """(N,) int64 detection index per marker (-1 = none), grown outwards from `pred` (N, 2) px.
 
         Strict-gate rounds alternate with re-predicting unmatched markers from their matched
@@ -368,7 +407,7 @@ class Tracker:
         for _ in range(p.rounds):
             if self._gated_round(pred, det, tree, areas, strict_gate, matched, free) == 0 or np.all(matched >= 0):
                 break
-            pred_next, has = self._neighbour_prediction(matched, det)
+            pred_next, has = self._neighbour_prediction(matched, det, base)
             pred = np.where(has[:, None], pred_next, pred)
         self._gated_round(pred, det, tree, areas, p.gate_ratio * self.pitch_px, matched, free)
         new = det[np.maximum(matched, 0)] - self._ref
@@ -399,23 +438,61 @@ class Tracker:
         median, has = masked_median(step[around], paired[around])
         return np.where(has[:, None], base + median, base)
 
+    def _reacquire(
+        self, matched: np.ndarray, base: np.ndarray, det: np.ndarray, areas: np.ndarray, radius: float
+    ) -> np.ndarray:
+        """`matched` (N,) with unmatched markers paired to free detections (det (M, 2) px,
+        areas (M,) px^2) less than `radius` px from their `base` (N, 2) px prediction.
+
+        Pairs are one-to-one with the least sum of squared distances
+        (scipy.optimize.linear_sum_assignment) and pass the area check; a new pair that
+        disagrees with its neighbours (`neighbour_consistency`) is dropped. This catches a
+        marker that moved much farther than its neighbours (an edge or corner slipping
+        over the skin) without the global fallback.
+        """
+        lost = np.flatnonzero(matched < 0)
+        free = np.ones(det.shape[0], dtype=bool)
+        free[matched[matched >= 0]] = False
+        spare = np.flatnonzero(free)
+        gap = base[lost, None, :] - det[None, spare, :]
+        cost = np.einsum("ijk,ijk->ij", gap, gap)
+        within = cost < radius * radius
+        if not within.any():
+            return matched
+        r, c = linear_sum_assignment(np.where(within, cost, 2.0 * radius * radius * lost.size))
+        ok = within[r, c]
+        rows, cols = self._area_checked(lost[r[ok]], spare[c[ok]], areas)
+        if rows.size == 0:
+            return matched
+        trial = matched.copy()
+        trial[rows] = cols
+        bad = _inconsistent(det[np.maximum(trial, 0)] - self._ref, trial >= 0, self._graph, self._spacing,
+                            self.params.tolerance_ratio)
+        trial[rows[bad[rows]]] = -1
+        return trial
+
     def _match_assignment(self, det: np.ndarray, areas: np.ndarray) -> np.ndarray:
-        """One-to-one matching grown from the velocity prediction; when that leaves markers
-        and detections unmatched, also from the global one-to-one matching without velocity
-        (`_transport`), keeping whichever matches more markers."""
+        """One-to-one matching grown from the velocity prediction; when that leaves many
+        markers and detections unmatched (`TrackerParams.transport_edge_share`), also from
+        the global one-to-one matching without velocity (`_transport`), keeping whichever
+        matches more markers; when it leaves a few, those are re-acquired locally
+        (`_reacquire`)."""
         p = self.params
         if det.shape[0] == 0:
             return np.full(self._ref.shape[0], -1, dtype=np.int64)
         tree = cKDTree(det)
         base = self._base_prediction()
         pred = base + self._velocity if p.use_velocity else base
-        matched = self._grow(pred, det, tree, areas)
+        matched = self._grow(pred, base, det, tree, areas)
         radius = p.transport_ratio * self.pitch_px
         unmatched = np.count_nonzero(matched < 0)
         # A lattice matched one pitch off leaves markers at one edge and detections at the
-        # other unmatched, however far apart: any unmatched pair calls for the global match.
-        if radius > 0.0 and unmatched > 0 and det.shape[0] > self._ref.shape[0] - unmatched:
-            other = self._grow(self._transport_prediction(base, det, radius), det, tree, areas)
+        # other unmatched, however far apart: enough unmatched pairs call for the global match.
+        unpaired = min(unmatched, det.shape[0] - (self._ref.shape[0] - unmatched))
+        if radius > 0.0 and unpaired >= self._transport_trigger:
+            other = self._grow(self._transport_prediction(base, det, radius), base, det, tree, areas)
             if np.count_nonzero(other < 0) < unmatched:
                 return other
+        elif radius > 0.0 and unpaired > 0:
+            return self._reacquire(matched, base, det, areas, radius)
         return matched

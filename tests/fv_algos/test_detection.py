@@ -16,6 +16,7 @@ from fv_algos.detection import (
     detect_blobs,
     detect_fast,
     estimate_marker_params,
+    refine_centres,
     to_gray,
 )
 
@@ -115,15 +116,47 @@ def test_light_markers_and_bgr_input() -> None:
         assert error.max() < 0.08
 
 
-def test_red_overlay_is_not_dark_for_dark_markers() -> None:
+def test_bgr_becomes_luma_and_a_red_overlay_line_is_no_marker() -> None:
     truth = grid_centres(4, 4, 30.0, (40.0, 40.0))
     mono = render_markers(truth, diameter_px=10.0, shape=(160, 160))
     bgr = cv2.merge([mono, mono, mono])
+    np.testing.assert_array_equal(to_gray(bgr), mono)
     cv2.line(bgr, (0, 150), (159, 150), (0, 0, 255), 3)
-    gray = to_gray(bgr, "dark")
-    assert gray[150].min() == 255
     found = detect_fast(bgr, MarkerParams(diameter_px=10.0, pitch_px=30.0, contrast=130.0))
-    assert len(found) == 16
+    error, count = _match_error(found, truth)
+    assert len(found) == count == 16
+    assert error.max() < 0.05
+
+
+def test_red_overlay_inside_markers_of_a_chroma_subsampled_frame_keeps_centres() -> None:
+    """Red '+' marks drawn 1 px off every marker centre (as a tracker's overlay), then the
+    4:2:0 chroma subsampling of video codecs: the centres stay within 0.02 px."""
+    truth = grid_centres(8, 8, 30.0, (60.0, 50.0)) + 0.3
+    mono = render_markers(truth, diameter_px=12.0, background=190.0, marker=30.0)
+    bgr = cv2.merge([mono, mono, mono])
+    for x, y in np.rint(truth).astype(int) + 1:
+        cv2.line(bgr, (x - 1, y), (x + 1, y), (0, 0, 255), 1)
+        cv2.line(bgr, (x, y - 1), (x, y + 1), (0, 0, 255), 1)
+    ycc = cv2.cvtColor(bgr, cv2.COLOR_BGR2YCrCb)
+    h, w = mono.shape
+    for c in (1, 2):
+        half = cv2.resize(ycc[:, :, c], (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+        ycc[:, :, c] = cv2.resize(half, (w, h), interpolation=cv2.INTER_LINEAR)
+    marker = MarkerParams(diameter_px=12.0, pitch_px=30.0, contrast=160.0)
+    found = detect_fast(cv2.cvtColor(ycc, cv2.COLOR_YCrCb2BGR), marker)
+    error, count = _match_error(found, truth)
+    assert count == 64
+    assert error.max() < 0.02
+
+
+def test_refine_centres_with_a_given_background_matches_the_rim_median() -> None:
+    truth = grid_centres(4, 4, 25.0, (40.0, 40.0)) + np.array([0.37, -0.21])
+    image = render_markers(truth, shape=(160, 160))
+    start = np.rint(truth)
+    rim = refine_centres(image, start, SIM_MARKER)
+    given = refine_centres(image, start, SIM_MARKER, background=np.full(len(truth), 190.0))
+    assert np.abs(rim - truth).max() < 0.03
+    assert np.abs(given - rim).max() < 1e-6
 
 
 def test_estimate_marker_params_recovers_size_pitch_polarity() -> None:

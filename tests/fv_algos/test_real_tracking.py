@@ -1,15 +1,13 @@
 """The perception core on real recordings (skipped when ../shared/data/real is absent)."""
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from fv_algos.detection import DetectorParams
-from fv_algos.perception import Perception, PerceptionParams
+from fv_algos.perception import Perception
 from fv_algos.tracking import neighbour_consistency
 
 
@@ -47,6 +45,17 @@ def test_gsmini_example_all_markers_tracked_without_swaps(real_data: Path) -> No
     assert min(shares) > 0.95
 
 
+# GelSight's tracker (gsrobotics demos/mini_tracking_windows/marker_detection.py, the code
+# that wrote the CSV) finds markers by correlating a binary mask with a 20 x 20 Gaussian
+# template through fftconvolve(mode="same"): an even template centred that way shifts the
+# correlation image, and so every centre it reports, by half a pixel towards +x and +y.
+# Re-running that detector on frame 0 reproduces the CSV to 0.1 px, and with a centred
+# 21 x 21 template instead its centres move by (-0.52, -0.48) px (medians). Our centres
+# (pixel centres at integer coordinates, as theirs) are compared with theirs less that
+# half pixel.
+GELSIGHT_CENTRE_SHIFT_PX = np.array([0.5, 0.5])
+
+
 @pytest.mark.slow
 def test_gsmini_overlay_matches_gelsight_tracker(real_data: Path) -> None:
     table = np.loadtxt(real_data / "gsmini_tracked_marker_locations_5.csv", delimiter=",", skiprows=1)
@@ -58,20 +67,25 @@ def test_gsmini_overlay_matches_gelsight_tracker(real_data: Path) -> None:
     mapped = distance.min(axis=1) < 2.0
     keys = (first[distance.argmin(axis=1), 1] * 100 + first[distance.argmin(axis=1), 2]).astype(int)
     assert mapped.sum() >= 60
-    position_error, displacement_error, inconsistent = [], [], 0
+    raw_error, position_error, displacement_error, inconsistent = [], [], [], 0
     for index, frame in frames[1:]:
         state, _ = perception.step(frame)
         rows = table[table[:, 0] == index + 1]
         lookup = {int(r[1] * 100 + r[2]): r for r in rows}
         both = mapped & state.valid
         theirs = np.array([lookup[k] for k in keys[both]])
-        position_error.append(np.linalg.norm(state.current_px[both] - theirs[:, 5:7], axis=1))
+        raw_error.append(np.linalg.norm(state.current_px[both] - theirs[:, 5:7], axis=1))
+        position_error.append(
+            np.linalg.norm(state.current_px[both] - (theirs[:, 5:7] - GELSIGHT_CENTRE_SHIFT_PX), axis=1)
+        )
         displacement_error.append(
             np.linalg.norm(state.displacement_px[both] - (theirs[:, 5:7] - theirs[:, 3:5]), axis=1)
         )
         inconsistent += int(neighbour_consistency(state.reference_px, state.current_px, state.valid).sum())
-    assert np.median(np.concatenate(displacement_error)) < 0.5
-    assert np.median(np.concatenate(position_error)) < 1.0
+    assert np.median(np.concatenate(position_error)) < 0.5
+    assert np.median(np.concatenate(displacement_error)) < 0.3
+    # Without undoing their half-pixel shift: at most its length (0.71 px) away.
+    assert np.median(np.concatenate(raw_error)) < 0.71
     assert inconsistent == 0
 
 
@@ -89,8 +103,7 @@ def test_fingervision_validity_drops_instead_of_wrong_matches(real_data: Path) -
     frames = _frames(real_data / "fingervision_cam1_0002.m4v", step=8)
     stack = np.stack([f for _, f in frames[:: max(1, len(frames) // 25)]])
     reference_image = np.median(stack, axis=0).astype(np.uint8)
-    params = replace(PerceptionParams(), detection=DetectorParams(min_area_ratio=0.1, min_downsampled_px=8.0))
-    perception = Perception(params)
+    perception = Perception()  # marker parameters estimated from the reference, nothing hand-set
     reference = perception.reset(reference_image)
     assert len(reference.valid) >= 30
     shares, inconsistent = [], 0

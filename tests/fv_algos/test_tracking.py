@@ -170,6 +170,26 @@ def test_wrong_candidate_near_a_hidden_marker_is_rejected() -> None:
     assert state.valid.sum() == len(REF) - 1
 
 
+def test_lone_lost_marker_is_reacquired_without_the_global_fallback(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A marker hidden for a frame reappears 0.55 pitch from where its neighbours put it
+    (beyond the gate): the local re-acquisition pairs it; one lost marker and one spare
+    detection never run the global fallback."""
+    import fv_algos.tracking as tracking
+
+    def no_transport(*_: object) -> np.ndarray:
+        raise AssertionError("global fallback ran for a single lost marker")
+
+    monkeypatch.setattr(tracking, "_transport", no_transport)
+    tracker = Tracker(_det(REF, None), TrackerParams(tolerance_ratio=0.6))
+    hidden = tracker.step(_det(np.delete(REF, 100, axis=0)))
+    assert not hidden.valid[100] and hidden.valid.sum() == len(REF) - 1
+    truth = REF.copy()
+    truth[100] += np.array([0.55 * PITCH, 0.0])
+    state = tracker.step(_det(truth))
+    assert state.valid.all()
+    assert np.abs(state.current_px - truth).max() < 1e-9
+
+
 def test_oversized_blob_is_rejected_by_area() -> None:
     dets = Detections(REF.copy(), np.full(len(REF), AREA))
     dets.areas_px2[7] = 5.0 * AREA
@@ -189,6 +209,8 @@ def test_reference_reset_and_bad_input() -> None:
         Tracker(Detections(np.zeros((0, 2)), np.zeros(0)))
     with pytest.raises(ValueError, match="method"):
         TrackerParams(method="kalman")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="transport_edge_share"):
+        TrackerParams(transport_edge_share=1.5)
 
 
 def test_neighbour_consistency_flags_a_swap_not_a_smooth_field() -> None:
