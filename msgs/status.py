@@ -11,13 +11,16 @@ from msgs.message import Message
 class NodeStatus(Message):
     """Health of one node over the last status period.
 
-    state: "ok", "warn" (degraded: e.g. camera lost, reopening) or "error".
-    message: the latest warning or error text, "" when none.
+    state: "ok", "warn" (degraded: e.g. camera lost and reopening, an input overdue, the
+    forwarder unreachable) or "error" (e.g. a callback stuck, a recording failed).
+    message: the current warnings and errors, worst first, joined by "; " ("" when none),
+    e.g. "callback on_image (/camera/image) stuck for 6.2 s; no /markers for 2.1 s".
     rate_hz: callbacks processed per second; proc_ms_mean / proc_ms_p99: callback time.
     drops: messages dropped by keep-last queues; gaps: messages missing by sequence
     number; malformed: undecodable messages dropped; errors: callbacks that raised.
     publishes / subscribes: [topic, type] pairs of the node's endpoints.
-    counters: free-form node-specific counts (e.g. {"reopen": 2}).
+    counters: node-specific counts (e.g. {"lost": 1, "reopened": 1}) plus the runtime's
+    "bus_reconnects" (forwarder restarts survived) and "stuck_callbacks" (watchdog reports).
     """
 
     TYPE: ClassVar[str] = "NodeStatus"

@@ -5,7 +5,9 @@ Every bus message is ``[envelope, header, array frames...]``. The envelope is
 subscribe to ``b"-" + topic + b"\\0"`` and ``b"L" + topic + b"\\0"``: ZeroMQ matches by
 prefix, and the NUL makes the match exact (``/slip`` never receives ``/slip_debug``).
 The forwarder keeps the last latched message per (topic, node) and replays it to each
-new subscriber, so latched topics reach late joiners.
+new subscriber, so latched topics reach late joiners. A restarted forwarder has lost that
+cache: each publisher notices the new forwarder (its subscription to latched topics
+arrives again) and re-sends its last latched message per topic.
 """
 from __future__ import annotations
 
@@ -27,6 +29,8 @@ LINGER_MS = 100
 PUB_HWM = 200
 SUB_HWM = 200
 ALL_TOPICS = ""
+HEARTBEAT_IVL_MS = 1000  # TCP only: ping the forwarder this often...
+HEARTBEAT_TIMEOUT_MS = 3000  # ...and drop the connection (then reconnect) after this long without an answer
 
 log = logging.getLogger("fv.bus")
 
@@ -61,11 +65,30 @@ def new_context() -> zmq.Context:
     return zmq.Context.instance()
 
 
+def connect_client(sock: zmq.Socket, address: BusAddress, endpoint: str) -> None:
+    """Configure `sock` for the bus (CURVE and heartbeats on TCP) and connect it to
+    `endpoint`. ZeroMQ reconnects by itself after the forwarder restarts; the heartbeat
+    lets a TCP client notice a forwarder host that vanished without closing the connection."""
+    secure_client(sock, address)
+    if address.is_tcp:
+        sock.heartbeat_ivl = HEARTBEAT_IVL_MS
+        sock.heartbeat_timeout = HEARTBEAT_TIMEOUT_MS
+    sock.connect(endpoint)
+
+
 class PublisherSocket:
     """One node's publishing socket (an XPUB connected to the forwarder).
 
     XPUB rather than PUB so the node sees which topics have subscribers (the forwarder
-    passes subscriptions upstream) and knows when the forwarder is connected. Thread-safe.
+    passes subscriptions upstream) and whether the forwarder is there: the forwarder
+    always subscribes to latched topics, so its subscription arriving means connected and
+    its removal (ZMQ_IMMEDIATE: the connection's pipe goes with the connection) means
+    gone. When a forwarder connects after the first one (a restart), the last latched
+    message of each topic is sent again, unchanged, to refill the new forwarder's cache;
+    subscribers that saw it already drop it by its seq. Thread-safe.
+
+    connected: the forwarder is connected now. reconnects: forwarder connections after
+    the first. down_since_s: monotonic time the forwarder went away (None while connected).
     """
 
     def __init__(self, node: str, address: BusAddress | None = None, ctx: zmq.Context | None = None) -> None:
@@ -75,24 +98,55 @@ class PublisherSocket:
         self._sock = (ctx or new_context()).socket(zmq.XPUB)
         self._sock.linger = LINGER_MS
         self._sock.sndhwm = PUB_HWM
-        secure_client(self._sock, self.address)
-        self._sock.connect(self.address.pub)
+        self._sock.immediate = 1  # no queueing for a forwarder that is not there; unsubscribe when it goes
+        connect_client(self._sock, self.address, self.address.pub)
         self._prefixes: set[bytes] = set()
         self._seq: dict[str, int] = {}
+        self._latched: dict[bytes, list[bytes]] = {}  # envelope -> message frames, re-sent after a reconnect
+        self.connected = False
+        self.reconnects = 0
+        self.down_since_s: float | None = None
+        self._connections = 0
 
     def _drain_subscriptions(self) -> None:
         while self._sock.poll(0):
             event = self._sock.recv()
             if event[:1] == b"\x01":
                 self._prefixes.add(event[1:])
+                if event[1:] == LATCHED and not self.connected:
+                    self._forwarder_connected()
             elif event[:1] == b"\x00":
                 self._prefixes.discard(event[1:])
+                if event[1:] == LATCHED and self.connected:
+                    self.connected = False
+                    self.down_since_s = time.monotonic()
+                    log.debug("%s: forwarder %s gone", self.node, self.address.url)
+
+    def _forwarder_connected(self) -> None:
+        self.connected = True
+        self.down_since_s = None
+        self._connections += 1
+        if self._connections == 1:
+            return
+        self.reconnects += 1
+        for env, frames in self._latched.items():
+            self._send([env, *frames])
+        log.debug("%s: forwarder %s back (reconnect %d); %d latched messages re-sent", self.node,
+                  self.address.url, self.reconnects, len(self._latched))
+
+    def update(self) -> None:
+        """Process the forwarder's subscription events: track the connection and re-send
+        latched messages after a reconnect. Every publish does this; a publisher that may
+        stay idle calls it periodically (the node runtime does, from its status thread)."""
+        with self._lock:
+            self._drain_subscriptions()
 
     def wait_connected(self, timeout_s: float = 2.0) -> bool:
         """Block until the forwarder has subscribed (it always asks for latched topics)."""
         deadline = time.monotonic() + timeout_s
         with self._lock:
-            while LATCHED not in self._prefixes:
+            self._drain_subscriptions()
+            while not self.connected:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0 or not self._sock.poll(int(remaining * 1000)):
                     return False
@@ -115,11 +169,7 @@ class PublisherSocket:
             msg.seq = seq
             msg.node = self.node
             msg.pub_ns = time.time_ns()
-            frames = [envelope(topic, self.node, latched), *msgs.encode(msg)]
-            try:
-                self._sock.send_multipart(frames, copy=False, flags=zmq.NOBLOCK)
-            except zmq.Again:
-                pass  # forwarder gone or HWM reached: dropping beats blocking the publisher
+            self._send_new([envelope(topic, self.node, latched), *msgs.encode(msg)], latched)
             return seq
 
     def publish_raw(self, topic: str, node: str, latched: bool, frames: list[Any]) -> None:
@@ -129,10 +179,19 @@ class PublisherSocket:
         as that publisher. Never blocks (dropped when the forwarder is gone)."""
         with self._lock:
             self._drain_subscriptions()
-            try:
-                self._sock.send_multipart([envelope(topic, node, latched), *frames], copy=False, flags=zmq.NOBLOCK)
-            except zmq.Again:
-                pass
+            self._send_new([envelope(topic, node, latched), *frames], latched)
+
+    def _send_new(self, frames: list[Any], latched: bool) -> None:
+        """Send a new message; a latched one is also kept (copied) for re-sending."""
+        if latched:
+            self._latched[frames[0]] = [bytes(f) for f in frames[1:]]
+        self._send(frames)
+
+    def _send(self, frames: list[Any]) -> None:
+        try:
+            self._sock.send_multipart(frames, copy=False, flags=zmq.NOBLOCK)
+        except zmq.Again:
+            pass  # HWM reached: dropping beats blocking the publisher
 
     def close(self) -> None:
         with self._lock:
@@ -143,24 +202,30 @@ class PublisherSocket:
 class SeqTracker:
     """Counts sequence gaps per (topic, publisher node) and drops latched replays.
 
-    A latched message is replayed by the forwarder to every new subscriber; a subscriber
-    that already saw it sees its seq again and drops it. A seq that goes back for a
-    volatile message means the publisher restarted: the count starts over.
+    A latched message is replayed by the forwarder to every new subscriber (and re-sent
+    by its publisher after a forwarder restart); a subscriber that already saw it sees
+    the same message again and drops it. A seq that goes back otherwise means the
+    publisher restarted: the count starts over. With `pub_ns` given, a replay is told
+    from a restarted publisher's new latched message by its publish time (a replay is
+    byte-identical); without it, any latched seq that goes back counts as a replay.
     """
 
     last: dict[tuple[str, str], int] = field(default_factory=dict)
+    last_pub_ns: dict[tuple[str, str], int] = field(default_factory=dict)
     gaps: int = 0
 
-    def accept(self, topic: str, node: str, seq: int, latched: bool) -> bool:
+    def accept(self, topic: str, node: str, seq: int, latched: bool, pub_ns: int | None = None) -> bool:
         key = (topic, node)
         prev = self.last.get(key)
         if prev is not None and seq <= prev:
-            if latched:
+            if latched and (pub_ns is None or pub_ns == self.last_pub_ns.get(key)):
                 return False
             prev = None
         if prev is not None and seq > prev + 1:
             self.gaps += seq - prev - 1
         self.last[key] = seq
+        if pub_ns is not None:
+            self.last_pub_ns[key] = pub_ns
         return True
 
 
@@ -186,8 +251,7 @@ class TopicReader:
         self._sock = (ctx or new_context()).socket(zmq.SUB)
         self._sock.linger = LINGER_MS
         self._sock.rcvhwm = hwm
-        secure_client(self._sock, self.address)
-        self._sock.connect(self.address.sub)
+        connect_client(self._sock, self.address, self.address.sub)
         for topic in topics:
             for prefix in subscription_prefixes(topic if topic == ALL_TOPICS else validate_topic(topic)):
                 self._sock.setsockopt(zmq.SUBSCRIBE, prefix)
@@ -212,7 +276,7 @@ class TopicReader:
                 self.malformed += 1
                 log.debug("dropped malformed message: %s", exc)
                 continue
-            if self.seq.accept(topic, node, header["seq"], latched):
+            if self.seq.accept(topic, node, header["seq"], latched, header["pub_ns"]):
                 return topic, node, latched, frames[1:]
 
     def recv(self, timeout_s: float | None = None) -> Received | None:

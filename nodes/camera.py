@@ -113,15 +113,18 @@ class CameraNode(Node):
             if getattr(self.source, "finished", False):
                 self.warn(f"{self.source.name}: end of input")
                 return
-            self._lost("no frame")
+            self._lost(f"{self.source.name}: no frame")
             return
         self.publish_frame(frame)
 
     def _lost(self, why: str) -> None:
-        self.counters["lost"] += 1
+        """Report the source lost (`why` names it: a SourceError's text) and retry with
+        backoff; counters["lost"] counts losses, not the failed retries that follow."""
+        if not self.retry_at:
+            self.counters["lost"] += 1
         self.backoff_s = min(8.0, max(self.params.reopen_backoff_s, 2 * self.backoff_s))
         self.retry_at = time.monotonic() + self.backoff_s
-        self.warn(f"{self.source.name}: {why}; reopening in {self.backoff_s:.1f} s")
+        self.warn(f"{why}; reopening in {self.backoff_s:.1f} s")
         self.source.close()
 
     def _reopen(self) -> None:

@@ -1,10 +1,17 @@
 """Frame sources for the camera node: a video file, a folder of images, a V4L2 device,
 and the simulated sensor. Each is a small class with `open()`, `read()` and `close()`;
-`read()` returns the frame and its capture stamp, or None when no frame came (the node
-then reports the source lost and reopens it with backoff)."""
+`read()` returns the frame and its capture stamp, or None when no frame came, or raises
+`SourceError` naming the source and why; either way the node reports the source lost and
+reopens it with backoff.
+
+"Unplugged" means the same for every source: a V4L2 device whose read fails (or times
+out after `V4L2_READ_TIMEOUT_S`), a video file or an image that is removed (checked on
+each read, so a deleted file that the open handle could still read counts as gone), a
+folder that is removed or emptied. Plugged back, the next reopen succeeds."""
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +23,7 @@ import numpy as np
 from fv_algos.calibration import image_files
 
 log = logging.getLogger("fv.camera")
+V4L2_READ_TIMEOUT_S = 1  # a V4L2 read that waits longer fails (a stalled or unplugged camera); OpenCV's default: 10
 
 
 class SourceError(RuntimeError):
@@ -41,29 +49,39 @@ class FrameSource(Protocol):
 
 
 class VideoFileSource:
-    """Frames of a video file, optionally looping; a file that vanishes is reported
-    as lost, not fatal."""
+    """Frames of a video file, optionally looping. A file removed or replaced while open
+    raises SourceError at the next read (one stat() per frame): the node reports it lost
+    and reopens it when it is back, as with an unplugged camera."""
 
     def __init__(self, path: str, loop: bool = True) -> None:
         self.path = Path(path)
         self.loop = loop
         self.name = f"video {self.path}"
         self._cap: cv2.VideoCapture | None = None
+        self._identity: tuple[int, int] | None = None  # (st_dev, st_ino) of the file opened
         self.file_fps = 0.0
         self.finished = False
 
     def open(self) -> None:
         if not self.path.is_file():
             raise SourceError(f"{self.name}: no such file")
+        identity = _identity(self.path)
         cap = cv2.VideoCapture(str(self.path))
         if not cap.isOpened():
             raise SourceError(f"{self.name}: OpenCV cannot decode it")
         self._cap = cap
+        self._identity = identity
         self.file_fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
 
     def read(self) -> Frame | None:
         if self._cap is None:
             return None
+        try:
+            identity = _identity(self.path)
+        except OSError:
+            raise SourceError(f"{self.name}: file removed") from None
+        if identity != self._identity:
+            raise SourceError(f"{self.name}: file replaced")
         ok, image = self._cap.read()
         stamp = time.time_ns()
         if ok:
@@ -82,14 +100,22 @@ class VideoFileSource:
             self._cap = None
 
 
+def _identity(path: Path) -> tuple[int, int]:
+    """(device, inode) of `path`: tells the file opened from one put in its place."""
+    st = os.stat(path)
+    return st.st_dev, st.st_ino
+
+
 class FolderSource:
-    """Images of a folder in name order, optionally looping."""
+    """Images of a folder in name order, optionally looping. An unreadable image is
+    skipped (logged once); a removed one raises SourceError (the folder is reopened)."""
 
     def __init__(self, path: str, loop: bool = True) -> None:
         self.path = Path(path)
         self.loop = loop
         self.name = f"folder {self.path}"
         self._files: list[Path] = []
+        self._unreadable: set[Path] = set()
         self._index = 0
         self.finished = False
 
@@ -101,23 +127,33 @@ class FolderSource:
         self._index = 0
 
     def read(self) -> Frame | None:
-        if self._index >= len(self._files):
-            if not self.loop:
-                self.finished = True
-                return None
-            self._index = 0
-        path = self._files[self._index]
-        self._index += 1
-        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if image is None:
-            log.warning("%s: cannot read %s, skipped", self.name, path.name)
-            return None
-        if image.dtype != np.uint8:
-            image = cv2.convertScaleAbs(image, alpha=255.0 / max(float(image.max()), 1.0))
-        return Frame(image, time.time_ns())
+        for _ in range(len(self._files)):  # at most one pass over unreadable images
+            if self._index >= len(self._files):
+                if not self.loop:
+                    self.finished = True
+                    return None
+                self._index = 0
+            path = self._files[self._index]
+            self._index += 1
+            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            if image is not None:
+                return Frame(_as_uint8(image), time.time_ns())
+            if not path.is_file():
+                raise SourceError(f"{self.name}: {path.name} removed")
+            if path not in self._unreadable:
+                self._unreadable.add(path)
+                log.warning("%s: cannot read %s, skipped", self.name, path.name)
+        return None
 
     def close(self) -> None:
         self._files = []
+
+
+def _as_uint8(image: np.ndarray) -> np.ndarray:
+    """`image` scaled to uint8 (16-bit and float images)."""
+    if image.dtype != np.uint8:
+        image = cv2.convertScaleAbs(image, alpha=255.0 / max(float(image.max()), 1.0))
+    return image
 
 
 class V4L2Source:
@@ -132,6 +168,8 @@ class V4L2Source:
         self._cap: cv2.VideoCapture | None = None
 
     def open(self) -> None:
+        # OpenCV's V4L2 backend ignores CAP_PROP_READ_TIMEOUT_MSEC; it reads this once, at the first capture
+        os.environ.setdefault("OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT", str(V4L2_READ_TIMEOUT_S))
         cap = cv2.VideoCapture(self.device, cv2.CAP_V4L2)
         if not cap.isOpened():
             raise SourceError(f"{self.name}: cannot open the device (missing, busy or no permission)")

@@ -4,6 +4,10 @@ It forwards every message, caches the last latched message per (topic, node) and
 replays it to each new subscriber, and answers pings on the control socket. Locally it
 binds IPC only; with `tcp` it also listens for other hosts, and then only with CURVE
 encryption and authenticated client keys.
+
+A forwarder may be restarted while nodes run (the launcher restarts the one it started):
+nodes reconnect by themselves, and each publisher re-sends its latched messages to fill
+the new forwarder's cache (`nodes.bus.PublisherSocket`).
 """
 from __future__ import annotations
 

@@ -5,6 +5,13 @@ Ctrl-C, SIGTERM or the exit of a required node (`fv launch FILE [name:=value ...
 Each node runs in its own process group, so a terminal's Ctrl-C reaches only the
 launcher, which then stops the nodes in order: SIGTERM to each group, SIGKILL after
 `GRACE_S`, then the forwarder it started.
+
+The launcher supervises the forwarder it started (restarted when it dies; nodes
+reconnect by themselves and re-send their latched messages) and publishes its own
+`NodeStatus` on `/status` as `launch_<file stem>`: counters `respawns`,
+`<node>.respawns`, `forwarder_restarts`, `running`, and state "error" naming a node
+whose process is stopped (SIGSTOP) or whose NodeStatus has been missing for
+`SILENT_AFTER_S`, "warn" for a node waiting to respawn or gone with an error code.
 """
 from __future__ import annotations
 
@@ -23,18 +30,30 @@ from nodes.launch_file import NodeSpec, load_launch, parse_arg_overrides
 
 GRACE_S = 1.2
 FORWARDER_GRACE_S = 0.5
+FORWARDER_RETRY_S = 1.0  # wait between failed forwarder restarts
 POLL_S = 0.05
+STATUS_PERIOD_S = 1.0  # the launcher's own NodeStatus period
+SILENT_AFTER_S = 3.0  # a running node whose NodeStatus stopped this long is reported (nodes send one per second)
+STATUS_TOPIC = "/status"
 
 
 @dataclass
 class Child:
-    """A node's current process and its supervision state."""
+    """A node's current process and its supervision state.
+
+    retries: respawns so far. exit_code: the last exit's code. last_status_s: monotonic
+    time of the current process's last NodeStatus (None before its first). fault: the
+    kind of problem last said for it ("stopped", "silent" or ""), so each is said once.
+    """
 
     spec: NodeSpec
     proc: subprocess.Popen | None = None
     retries: int = 0
     restart_at: float | None = None
     reader: threading.Thread | None = None
+    exit_code: int | None = None
+    last_status_s: float | None = None
+    fault: str = ""
 
 
 class Launch:
@@ -44,13 +63,21 @@ class Launch:
     >>> launch.start(); ...; launch.stop()
     """
 
-    def __init__(self, specs: list[NodeSpec], output: TextIO | None = None) -> None:
-        """specs: the validated nodes; output: where prefixed node output goes (default stdout)."""
+    def __init__(self, specs: list[NodeSpec], output: TextIO | None = None, name: str = "launch") -> None:
+        """specs: the validated nodes; output: where prefixed node output goes (default
+        stdout); name: the node name of the launcher's own NodeStatus."""
         self.specs = specs
         self.output = output or sys.stdout
+        self.name = name
         self.children = [Child(spec) for spec in specs]
         self.exit_code = 0
+        self.forwarder_restarts = 0
         self._forwarder: subprocess.Popen | None = None
+        self._forwarder_retry_at: float | None = None  # when to (re)try starting the forwarder; None = not needed
+        self._address = None
+        self._status_pub = None
+        self._status_reader = None
+        self._started = time.monotonic()
         self._out_lock = threading.Lock()
         self._stop = threading.Event()
         self._done = threading.Event()
@@ -59,7 +86,7 @@ class Launch:
     @classmethod
     def from_file(cls, path: str | Path, args: dict[str, Any] | None = None, output: TextIO | None = None) -> "Launch":
         """Parse and validate `path` with launch arguments `args`; LaunchError names file, line and key."""
-        return cls(load_launch(path, args), output)
+        return cls(load_launch(path, args), output, name=f"launch_{Path(path).stem}")
 
     # -- output ----------------------------------------------------------------------
     def say(self, text: str, who: str = "launch") -> None:
@@ -83,6 +110,7 @@ class Launch:
                                       stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                       text=True, bufsize=1, start_new_session=True)
         child.restart_at = None
+        child.last_status_s = None
         child.reader = threading.Thread(target=self._pump, args=(spec.name, child.proc.stdout),
                                         name=f"out-{spec.name}", daemon=True)
         child.reader.start()
@@ -102,10 +130,11 @@ class Launch:
 
     def start(self) -> None:
         """Start the forwarder (when none answers) and every node; supervise in a thread."""
+        from nodes.bus import PublisherSocket, TopicReader
         from nodes.endpoints import bus_address
         from nodes.forwarder import ensure_forwarder, ping
 
-        address = bus_address()
+        self._address = address = bus_address()
         if address.is_tcp:
             if ping(address, 1.0) is None:
                 raise RuntimeError(f"no forwarder answers at {address.url}; start `fv forwarder --tcp ...` there")
@@ -113,6 +142,8 @@ class Launch:
             self._forwarder = ensure_forwarder(address)
             if self._forwarder is not None:
                 self.say(f"started forwarder on {address.url} pid {self._forwarder.pid}")
+        self._status_pub = PublisherSocket(self.name, address)
+        self._status_reader = TopicReader([STATUS_TOPIC], address)
         try:
             for child in self.children:
                 self._spawn(child)
@@ -149,9 +180,11 @@ class Launch:
 
     # -- supervision -----------------------------------------------------------------
     def _supervise(self) -> None:
+        next_status_s = time.monotonic()
         try:
             while not self._stop.is_set():
                 now = time.monotonic()
+                self._watch_forwarder(now)
                 for child in self.children:
                     if child.proc is not None and child.proc.poll() is not None:
                         self._exited(child, now)
@@ -160,13 +193,90 @@ class Launch:
                 if not any(c.proc is not None or c.restart_at is not None for c in self.children):
                     self.say("all nodes have exited")
                     break
+                self._read_statuses(now)
+                if now >= next_status_s:
+                    self._publish_status(now)
+                    next_status_s = now + STATUS_PERIOD_S
                 self._stop.wait(POLL_S)
         finally:
             self._shutdown()
             self._done.set()
 
+    def _watch_forwarder(self, now: float) -> None:
+        """Restart the forwarder this launch started when it has died (retrying every
+        FORWARDER_RETRY_S while it fails to start)."""
+        from nodes.forwarder import ensure_forwarder
+
+        if self._forwarder is not None and self._forwarder.poll() is not None:
+            dead = self._forwarder
+            self.say(f"forwarder pid {dead.pid} exited with code {dead.returncode}; restarting it")
+            self._forwarder = None
+            self._forwarder_retry_at = now
+        if self._forwarder_retry_at is None or now < self._forwarder_retry_at or self._stop.is_set():
+            return
+        try:
+            proc = ensure_forwarder(self._address)
+        except RuntimeError as exc:
+            self.say(f"forwarder restart failed: {exc}; retrying in {FORWARDER_RETRY_S:g} s")
+            self._forwarder_retry_at = time.monotonic() + FORWARDER_RETRY_S
+            return
+        self._forwarder_retry_at = None
+        self.forwarder_restarts += 1
+        if proc is None:
+            self.say(f"another forwarder now serves {self._address.url}; this launch does not supervise it")
+            return
+        self._forwarder = proc
+        self.say(f"restarted forwarder on {self._address.url} pid {proc.pid} (restart {self.forwarder_restarts})")
+
+    def _read_statuses(self, now: float) -> None:
+        """Note the NodeStatus messages of the current processes of this launch's nodes."""
+        by_name = {c.spec.name: c for c in self.children}
+        while (item := self._status_reader.recv(0.0)) is not None:
+            child = by_name.get(item.msg.node)
+            if child is not None and child.proc is not None and item.msg.pid == child.proc.pid:
+                child.last_status_s = now
+
+    def _check_nodes(self, now: float) -> list[tuple[str, str]]:
+        """(state, message) per node in trouble: its process stopped or its NodeStatus
+        missing for SILENT_AFTER_S (error; said once when it starts), waiting to respawn
+        or exited with an error code (warn)."""
+        faults = []
+        for child in self.children:
+            name, kind, fault, state = child.spec.name, "", "", "warn"
+            if child.proc is not None:
+                silent_s = None if child.last_status_s is None else now - child.last_status_s
+                if _process_state(child.proc.pid) in ("T", "t"):
+                    kind, fault, state = "stopped", f"{name} is stopped (SIGSTOP?)", "error"
+                elif silent_s is not None and silent_s > SILENT_AFTER_S:
+                    kind, fault, state = "silent", f"{name} sent no /status for {silent_s:.0f} s (hung?)", "error"
+            elif child.restart_at is not None:
+                fault = f"{name} exited with code {child.exit_code}; respawning"
+            elif child.exit_code:
+                fault = f"{name} exited with code {child.exit_code}"
+            if kind and kind != child.fault:
+                self.say(fault)
+            child.fault = kind
+            if fault:
+                faults.append((state, fault))
+        return faults
+
+    def _publish_status(self, now: float) -> None:
+        """The launcher's NodeStatus: node faults, respawn and forwarder restart counts."""
+        from msgs import NodeStatus
+
+        faults = self._check_nodes(now)
+        state = "error" if any(s == "error" for s, _ in faults) else ("warn" if faults else "ok")
+        counters = {"respawns": sum(c.retries for c in self.children), "forwarder_restarts": self.forwarder_restarts,
+                    "running": sum(c.proc is not None for c in self.children),
+                    **{f"{c.spec.name}.respawns": c.retries for c in self.children if c.retries}}
+        self._status_pub.publish(STATUS_TOPIC, NodeStatus(
+            stamp_ns=time.time_ns(), state=state, message="; ".join(m for _, m in faults), pid=os.getpid(),
+            uptime_s=now - self._started, publishes=[[STATUS_TOPIC, "NodeStatus"]],
+            subscribes=[[STATUS_TOPIC, "NodeStatus"]], counters=counters), latched=True)
+
     def _exited(self, child: Child, now: float) -> None:
         spec, code = child.spec, child.proc.returncode
+        child.exit_code = code
         child.proc = None
         if child.reader is not None:
             child.reader.join(1.0)
@@ -200,6 +310,10 @@ class Launch:
             child.proc = None
         for child in self.children:
             child.restart_at = None
+        for sock in (self._status_reader, self._status_pub):
+            if sock is not None:
+                sock.close()
+        self._status_reader = self._status_pub = None
         if self._forwarder is not None:
             self._forwarder.terminate()
             try:
@@ -208,6 +322,15 @@ class Launch:
                 self._forwarder.kill()
                 self._forwarder.wait()
             self._forwarder = None
+
+
+def _process_state(pid: int) -> str:
+    """The state letter of process `pid` from /proc (R, S, D, T stopped...; "" if gone)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rpartition(")")[2].split()[0]
+    except (OSError, IndexError):
+        return ""
 
 
 def _signal_group(proc: subprocess.Popen, sig: int) -> None:

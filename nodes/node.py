@@ -6,6 +6,17 @@ queues (so ZeroMQ buffers never fill and a slow callback never slows a publisher
 `spin()` runs callbacks and timers one at a time on the calling thread. A queue of depth
 N keeps the last N messages (depth 1 = latest only, for camera frames) and counts what
 it drops; depth None keeps all (up to `KEEP_ALL_CAP`).
+
+A third thread, the status thread, publishes `NodeStatus` every `STATUS_PERIOD_S` and at
+once when the node's health changes, so a node whose callback hangs still reports. It is
+also the watchdog: besides the node's own `warn()`, the status reports
+- error "callback on_image (/camera/image) stuck for 6.2 s": a callback or timer has run
+  longer than `STUCK_AFTER_S` (counted in counters["stuck_callbacks"]);
+- warn "no /camera/image for 2.1 s": a subscription made with `stale_after_s` got no
+  message for that long (cleared when messages flow again);
+- warn "forwarder ipc://... unreachable for 1.0 s": the bus forwarder went away (seen in
+  the logs; the status itself cannot travel then). When it is back, latched messages are
+  re-sent and counters["bus_reconnects"] counts it.
 """
 from __future__ import annotations
 
@@ -23,14 +34,15 @@ import zmq
 
 import msgs
 from msgs import Message, MessageError, NodeStatus
-from nodes.bus import (ALL_TOPICS, LINGER_MS, SUB_HWM, PublisherSocket, SeqTracker, new_context,
+from nodes.bus import (ALL_TOPICS, LINGER_MS, SUB_HWM, PublisherSocket, SeqTracker, connect_client, new_context,
                        parse_envelope, subscription_prefixes, validate_topic)
-from nodes.endpoints import BusAddress, bus_address, secure_client
+from nodes.endpoints import BusAddress, bus_address
 from nodes.params import build_params
 
 STATUS_TOPIC = "/status"
 KEEP_ALL_CAP = 10_000
 _PAGE = os.sysconf("SC_PAGE_SIZE")
+_SEVERITY = {"ok": 0, "warn": 1, "error": 2}
 
 
 @dataclass
@@ -59,19 +71,37 @@ class Publisher:
 
 
 class Subscription:
-    """A callback on one topic with its queue (depth None = keep all)."""
+    """A callback on one topic with its queue (depth None = keep all).
+
+    stale_after_s: report "no <topic> for N s" in NodeStatus when no message came for
+    this long (None = never: the topic may legitimately stay quiet). last_rx_s: monotonic
+    time of the last message received (or of the subscription / node start).
+    """
 
     def __init__(self, topic: str, msg_type: type[Message] | None, callback: Callable[[Message], None],
-                 depth: int | None) -> None:
+                 depth: int | None, stale_after_s: float | None = None) -> None:
         if depth is not None and depth < 1:
             raise ValueError(f"subscription {topic}: depth {depth} must be >= 1 or None (keep all)")
+        if stale_after_s is not None and stale_after_s <= 0:
+            raise ValueError(f"subscription {topic}: stale_after_s {stale_after_s} must be > 0 or None")
         self.topic = topic
         self.msg_type = msg_type
         self.callback = callback
         self.depth = depth
+        self.stale_after_s = stale_after_s
         self.queue: collections.deque = collections.deque()
         self.drops = 0
         self.received = 0
+        self.last_rx_s = time.monotonic()
+
+    def staleness(self, now_s: float) -> str | None:
+        """The "no <topic> for N s" warning when the input is overdue at `now_s`, else None."""
+        if self.stale_after_s is None:
+            return None
+        age_s = now_s - self.last_rx_s
+        if age_s <= self.stale_after_s:
+            return None
+        return f"no {self.topic} for {age_s:.1f} s" if self.received else f"no {self.topic} yet ({age_s:.1f} s)"
 
 
 @dataclass
@@ -96,10 +126,20 @@ class _Stats:
 
 class Node:
     """Base class of every node. Subclasses set `Params` (a dataclass) and override
-    `setup()` to create publishers, subscriptions and timers from `self.params`."""
+    `setup()` to create publishers, subscriptions and timers from `self.params`.
+
+    STATUS_PERIOD_S: NodeStatus period (s). STUCK_AFTER_S: a callback running longer is
+    reported stuck (s): pipeline callbacks take milliseconds, but a first call that
+    initialises libraries lazily can take seconds on a loaded machine (the interpolator's
+    first RBF solve: 0.4 s idle, 2.4 s at a load average of 8); raise it in a node whose
+    callbacks legitimately take longer.
+    WATCH_PERIOD_S: how often the status thread checks the node's health (s).
+    """
 
     Params: ClassVar[type] = NoParams
     STATUS_PERIOD_S: ClassVar[float] = 1.0
+    STUCK_AFTER_S: ClassVar[float] = 5.0
+    WATCH_PERIOD_S: ClassVar[float] = 0.2
 
     def __init__(self, name: str, params: dict[str, Any] | None = None, *, namespace: str = "",
                  remap: dict[str, str] | None = None, address: BusAddress | None = None) -> None:
@@ -125,12 +165,14 @@ class Node:
         self.message = ""
         self.counters: dict[str, int] = {}
         self._receiver: threading.Thread | None = None
+        self._watcher: threading.Thread | None = None
+        self._busy: tuple[str, float] | None = None  # (callback label, monotonic start) while one runs
+        self._stuck_count = 0
         self._ctl_addr = f"inproc://fv-node-{id(self)}"
         self._ctl_out = self.ctx.socket(zmq.PAIR)
         self._ctl_out.bind(self._ctl_addr)
         self._started = time.monotonic()
         self._status_pub = self.publisher(STATUS_TOPIC, NodeStatus, latched=True)
-        self.timer(self.STATUS_PERIOD_S, self._publish_status)
 
     # -- names ---------------------------------------------------------------------
     def resolve(self, topic: str) -> str:
@@ -147,9 +189,11 @@ class Node:
         return pub
 
     def subscribe(self, topic: str, msg_type: type[Message] | None, callback: Callable[[Message], None],
-                  depth: int | None = 10) -> Subscription:
-        """Call `callback(msg)` for each message on `topic` (msg_type None = any type)."""
-        sub = Subscription(self.resolve(topic), msg_type, callback, depth)
+                  depth: int | None = 10, stale_after_s: float | None = None) -> Subscription:
+        """Call `callback(msg)` for each message on `topic` (msg_type None = any type).
+        With `stale_after_s` (s), NodeStatus warns when no message came for that long: give
+        it for inputs that should stream (camera frames), not for occasional commands."""
+        sub = Subscription(self.resolve(topic), msg_type, callback, depth, stale_after_s)
         with self._cond:
             first = sub.topic not in self._subs
             self._subs.setdefault(sub.topic, []).append(sub)
@@ -201,7 +245,8 @@ class Node:
         self._pub_sock.wait_connected(2.0)
         try:
             self.setup()
-            self._publish_status()
+            self._watcher = threading.Thread(target=self._watch_loop, name=f"{self.name}-status", daemon=True)
+            self._watcher.start()
             self._executor_loop()
         finally:
             self.close()
@@ -211,6 +256,8 @@ class Node:
         try:
             self.teardown()
         finally:
+            if self._watcher is not None:
+                self._watcher.join(2.0)
             if self._receiver is not None and self._receiver.is_alive():
                 self._ctl_out.send_string("stop")
                 self._receiver.join(2.0)
@@ -222,8 +269,7 @@ class Node:
         sub = self.ctx.socket(zmq.SUB)
         sub.linger = LINGER_MS
         sub.rcvhwm = SUB_HWM
-        secure_client(sub, self.address)
-        sub.connect(self.address.sub)
+        connect_client(sub, self.address, self.address.sub)
         ctl = self.ctx.socket(zmq.PAIR)
         ctl.connect(self._ctl_addr)
         with self._cond:
@@ -260,11 +306,13 @@ class Node:
             self._malformed(exc)
             return
         with self._cond:
-            if not self._seq.accept(topic, node, header["seq"], latched):
+            if not self._seq.accept(topic, node, header["seq"], latched, header["pub_ns"]):
                 return
             targets = list(self._subs.get(topic, ())) + list(self._subs.get(ALL_TOPICS, ()))
+            now = time.monotonic()
             for s in targets:
                 s.received += 1
+                s.last_rx_s = now
                 s.queue.append((topic, frames[1:]))
                 limit = s.depth or KEEP_ALL_CAP
                 while len(s.queue) > limit:
@@ -298,7 +346,7 @@ class Node:
             if work is None:
                 return
             if isinstance(work, Timer):
-                self._run(work.callback, counted=work.callback != self._publish_status)
+                self._run(work.callback, label=f"timer {_name(work.callback)}")
                 continue
             sub, topic, frames = work
             try:
@@ -308,23 +356,25 @@ class Node:
             except MessageError as exc:
                 self._malformed(exc)
                 continue
-            self._run(sub.callback, msg)
+            self._run(sub.callback, msg, label=f"callback {_name(sub.callback)} ({topic})")
 
-    def _run(self, fn: Callable, *args: Any, counted: bool = True) -> None:
-        """Call fn(*args), timing it for NodeStatus when `counted`; an exception is
-        counted and logged once per kind, never raised."""
+    def _run(self, fn: Callable, *args: Any, label: str) -> None:
+        """Call fn(*args), timing it for NodeStatus and showing it to the watchdog as
+        `label` while it runs; an exception is counted and logged once per kind, never raised."""
         t0 = time.perf_counter()
+        self._busy = (label, time.monotonic())
         try:
             fn(*args)
         except Exception as exc:  # a node never dies on one bad callback
             self._stats.errors += 1
             self._totals["errors"] += 1
-            self._log_once(f"err:{type(exc).__name__}:{getattr(fn, '__name__', fn)}", logging.ERROR,
-                           f"{getattr(fn, '__name__', fn)} raised {type(exc).__name__}: {exc} (counted; repeats not logged)",
+            self._log_once(f"err:{type(exc).__name__}:{_name(fn)}", logging.ERROR,
+                           f"{_name(fn)} raised {type(exc).__name__}: {exc} (counted; repeats not logged)",
                            exc_info=True)
-        if counted:
-            self._stats.calls += 1
-            self._stats.proc_ms.append((time.perf_counter() - t0) * 1e3)
+        finally:
+            self._busy = None
+        self._stats.calls += 1
+        self._stats.proc_ms.append((time.perf_counter() - t0) * 1e3)
 
     def _malformed(self, exc: Exception) -> None:
         with self._cond:  # counted from the receiver and the executor thread
@@ -338,26 +388,94 @@ class Node:
             self.log.log(level, text, exc_info=exc_info)
 
     # -- status --------------------------------------------------------------------
+    def _faults(self, now_s: float) -> list[tuple[str, str, str]]:
+        """(state, kind, message) of each runtime fault at `now_s`: a stuck callback,
+        overdue inputs, an unreachable forwarder (the node's own warn() comes on top).
+        `kind` names the fault without its duration."""
+        faults = []
+        busy = self._busy
+        if busy is not None and now_s - busy[1] > self.STUCK_AFTER_S:
+            faults.append(("error", f"stuck {busy[0]}", f"{busy[0]} stuck for {now_s - busy[1]:.1f} s"))
+        with self._cond:
+            subs = [s for ss in self._subs.values() for s in ss]
+        faults += [("warn", f"stale {s.topic}", text) for s in subs if (text := s.staleness(now_s)) is not None]
+        down_since = self._pub_sock.down_since_s
+        if down_since is not None:
+            faults.append(("warn", "bus", f"forwarder {self.address.url} unreachable for {now_s - down_since:.1f} s"))
+        return faults
+
+    def health(self, now_s: float | None = None) -> tuple[str, str]:
+        """The (state, message) NodeStatus reports at `now_s` (monotonic, default now):
+        the worst of the node's own state and the runtime faults; the messages joined by
+        "; ", worst first."""
+        now_s = time.monotonic() if now_s is None else now_s
+        reports = [(self.state, self.message)] + [(state, text) for state, _, text in self._faults(now_s)]
+        reports.sort(key=lambda r: -_SEVERITY.get(r[0], 2))
+        state = reports[0][0] if _SEVERITY.get(reports[0][0], 2) > 0 else "ok"
+        return state, "; ".join(text for _, text in reports if text)
+
     def status(self) -> NodeStatus:
         """The NodeStatus for the period since the last call (resets period stats)."""
         st, self._stats = self._stats, _Stats()
-        wall = max(time.monotonic() - st.wall0, 1e-9)
+        now = time.monotonic()
+        wall = max(now - st.wall0, 1e-9)
         proc = np.asarray(st.proc_ms) if st.proc_ms else np.zeros(1)
         try:
             with open("/proc/self/statm") as f:
                 rss = int(f.read().split()[1]) * _PAGE
         except OSError:
             rss = 0
-        subs = [[t, (s.msg_type.TYPE if s.msg_type else "*")] for t, ss in self._subs.items() for s in ss]
+        with self._cond:
+            subs = [[t, (s.msg_type.TYPE if s.msg_type else "*")] for t, ss in self._subs.items() for s in ss]
+        state, message = self.health(now)
         return NodeStatus(
-            stamp_ns=time.time_ns(), state=self.state, message=self.message, pid=os.getpid(),
-            uptime_s=time.monotonic() - self._started, rate_hz=st.calls / wall,
+            stamp_ns=time.time_ns(), state=state, message=message, pid=os.getpid(),
+            uptime_s=now - self._started, rate_hz=st.calls / wall,
             proc_ms_mean=float(proc.mean()), proc_ms_p99=float(np.percentile(proc, 99)),
             drops=self._totals["drops"], gaps=self._seq.gaps, malformed=self._totals["malformed"],
             errors=self._totals["errors"], cpu_percent=100.0 * (time.process_time() - st.cpu0) / wall,
             rss_bytes=rss, publishes=[[p.topic, p.msg_type.TYPE] for p in self._publishers],
-            subscribes=subs, counters=dict(self.counters))
+            subscribes=subs, counters={**self.counters, "bus_reconnects": self._pub_sock.reconnects,
+                                       "stuck_callbacks": self._stuck_count})
 
     def _publish_status(self) -> None:
         self._status_pub.publish(self.status())
 
+    def _watch_loop(self) -> None:
+        """The status thread: NodeStatus every STATUS_PERIOD_S and at once when the health
+        changes (which fault, not how long it has lasted); logs stuck callbacks and the
+        forwarder going and coming back."""
+        now = time.monotonic()
+        with self._cond:
+            for s in (s for ss in self._subs.values() for s in ss if not s.received):
+                s.last_rx_s = now  # overdue counts from the start of spinning, not from setup
+        next_status_s, last_kinds, stuck_since, down_since = now, None, None, None
+        while True:
+            self._pub_sock.update()
+            now = time.monotonic()
+            busy = self._busy
+            stuck = busy if busy is not None and now - busy[1] > self.STUCK_AFTER_S else None
+            if stuck is not None and stuck != stuck_since:
+                self._stuck_count += 1
+                self.log.error("%s stuck for %.1f s (watchdog; reported in NodeStatus)", stuck[0], now - stuck[1])
+            elif stuck is None and stuck_since is not None:
+                self.log.warning("%s returned after %.1f s", stuck_since[0], now - stuck_since[1])
+            stuck_since = stuck
+            down = self._pub_sock.down_since_s
+            if down is not None and down_since is None:
+                self.log.warning("forwarder %s gone; reconnecting", self.address.url)
+            elif down is None and down_since is not None:
+                self.log.info("forwarder %s back after %.1f s (reconnect %d); latched messages re-sent",
+                              self.address.url, now - down_since, self._pub_sock.reconnects)
+            down_since = down
+            kinds = (self.state, self.message, [kind for _, kind, _ in self._faults(now)])
+            if now >= next_status_s or kinds != last_kinds:
+                self._publish_status()
+                next_status_s, last_kinds = now + self.STATUS_PERIOD_S, kinds
+            if self._stop.wait(self.WATCH_PERIOD_S):
+                return
+
+
+def _name(fn: Callable) -> str:
+    """A callable's name for messages (on_image, tick)."""
+    return getattr(fn, "__name__", repr(fn))

@@ -35,7 +35,9 @@ class Bus:
         self._thread: threading.Thread | None = None
 
     def start_forwarder(self, **kwargs: object) -> Forwarder:
-        """Serve this bus from a thread of the test process (kwargs: Forwarder's tcp_url, keys)."""
+        """Serve this bus from a thread of the test process (kwargs: Forwarder's tcp_url, keys);
+        again after stop_forwarder() to restart it."""
+        self._stop = threading.Event()
         self.forwarder = Forwarder(self.address, **kwargs)
         self._thread = threading.Thread(target=self.forwarder.run, args=(self._stop,), daemon=True)
         self._thread.start()
