@@ -106,6 +106,25 @@ class Perception:
         self.interpolator = FieldInterpolator(reference.centres_px, self.params.interpolation)
         return self.tracker.state
 
+    def resume(self, image: np.ndarray, reference_px: np.ndarray) -> TrackState:
+        """Go on tracking against markers taken as the reference earlier (e.g. by a tracker
+        process that has since restarted), with `image` possibly showing the skin deformed.
+
+        reference_px: (N, 2) undeformed marker positions in px, N >= 3. The markers of
+        `image` are matched to them as one tracking step (motions up to the tracker's
+        one-frame limit, about 1.5 marker pitches, are followed).
+        """
+        ref = np.asarray(reference_px, dtype=np.float64).reshape(-1, 2)
+        if ref.shape[0] < 3 or not np.all(np.isfinite(ref)):
+            raise ValueError(f"reference_px: need >= 3 finite markers, got shape {ref.shape}")
+        if self.params.marker is None:
+            self.marker = estimate_marker_params(image)
+        detections = self.detect(image)
+        area = float(np.median(detections.areas_px2)) if len(detections) else 1.0
+        self.tracker = Tracker(Detections(ref, np.full(ref.shape[0], area)), self.params.tracking)
+        self.interpolator = FieldInterpolator(ref, self.params.interpolation)
+        return self.tracker.step(detections)
+
     def step(self, image: np.ndarray) -> tuple[TrackState, DisplacementField]:
         """Track one frame; returns the `TrackState` and the `DisplacementField`."""
         if self.tracker is None or self.interpolator is None:

@@ -23,6 +23,7 @@ class InterpolatorParams:
     width_px: float = 0.0  # kernel width for multiquadric / gaussian; 0 = marker spacing
     contact: bool = True  # also publish /contact
     contact_threshold_px: float = 1.0
+    input_timeout_s: float = 2.0  # warn in NodeStatus after this long without markers (0 = never)
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -45,7 +46,8 @@ class InterpolatorNode(Node):
         self.reference_key = b""
         self.field_pub = self.publisher("/field", DisplacementField)
         self.contact_pub = self.publisher("/contact", ContactSummary) if p.contact else None
-        self.subscribe("/markers", MarkerArray, self.on_markers, depth=5)
+        self.subscribe("/markers", MarkerArray, self.on_markers, depth=5,
+                       stale_after_s=p.input_timeout_s or None)
         self.counters.update(invalid_fields=0)
 
     def on_markers(self, msg: MarkerArray) -> None:

@@ -39,6 +39,7 @@ class SlipDetectorParams:
     hysteresis: float = 0.0  # slip turns on above threshold + h and off below threshold - h
     threads: int = 1  # torch threads for inference
     device: str = "cpu"  # cpu | cuda
+    input_timeout_s: float = 2.0  # warn in NodeStatus after this long without a field (0 = never)
 
     def __post_init__(self) -> None:
         if not 0.0 < self.threshold < 1.0:
@@ -60,7 +61,8 @@ class SlipDetectorNode(Node):
         self.window: collections.deque = collections.deque(maxlen=cfg.window)
         self.slip = False
         self.slip_pub = self.publisher("/slip", SlipState)
-        self.field_sub = self.subscribe("/field", DisplacementField, self.on_field, depth=cfg.window)
+        self.field_sub = self.subscribe("/field", DisplacementField, self.on_field, depth=cfg.window,
+                                        stale_after_s=p.input_timeout_s or None)
         self.counters.update(decisions=0, invalid_windows=0, skipped=0)
         self.log.info("model %s: window %d, grid %d", p.model, cfg.window, cfg.grid)
 

@@ -2,9 +2,15 @@
 
 The frame number `reference_frame` (frame 0 of a real camera is often stale) becomes the
 reference: its markers are published latched on `/markers/reference`. Any message on
-`/tracker/reset` makes the next frame the new reference."""
+`/tracker/reset` makes the next frame the new reference.
+
+A tracker that restarts (respawned after a crash) while the skin may be deformed must not
+take a deformed frame as the reference: with `resume`, it first waits up to
+`resume_wait_s` for the latched `/markers/reference` of its previous process (same node
+name, same image size) and goes on tracking against it."""
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,12 +26,17 @@ PRESETS = ("paper", "default", "fastest")
 class TrackerNodeParams:
     preset: str = "default"  # paper (SimpleBlobDetector + nearest neighbour) | default | fastest
     reference_frame: int = 1  # frames to skip before taking the reference (frame 0 may be stale)
+    resume: bool = True  # after a restart, adopt the previous process's latched reference
+    resume_wait_s: float = 0.3  # how long to wait for it before taking a new reference
+    input_timeout_s: float = 2.0  # warn in NodeStatus after this long without a frame (0 = never)
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
             raise ValueError(f"preset {self.preset!r} is not one of {PRESETS}")
         if self.reference_frame < 0:
             raise ValueError(f"reference_frame {self.reference_frame} must be >= 0")
+        if self.resume_wait_s < 0 or self.input_timeout_s < 0:
+            raise ValueError(f"resume_wait_s {self.resume_wait_s} and input_timeout_s {self.input_timeout_s} must be >= 0")
 
 
 def marker_array(state, image: Image) -> MarkerArray:
@@ -42,27 +53,47 @@ class TrackerNode(Node):
     Params = TrackerNodeParams
 
     def setup(self) -> None:
-        self.perception = Perception(PerceptionParams.preset(self.params.preset))
+        p = self.params
+        self.perception = Perception(PerceptionParams.preset(p.preset))
         self.frames_seen = 0
         self.needs_reference = True
+        self.started_ns = time.time_ns()
+        self.resume_until = time.monotonic() + (p.resume_wait_s if p.resume else 0.0)
+        self.inherited: MarkerArray | None = None
         self.markers_pub = self.publisher("/markers", MarkerArray)
         self.reference_pub = self.publisher("/markers/reference", MarkerArray, latched=True)
-        self.subscribe("/camera/image", Image, self.on_image, depth=1)
+        self.subscribe("/camera/image", Image, self.on_image, depth=1, stale_after_s=p.input_timeout_s or None)
         self.subscribe("/tracker/reset", None, self.on_reset, depth=1)
-        self.counters.update(references=0)
+        if p.resume:
+            self.subscribe("/markers/reference", MarkerArray, self.on_reference, depth=1)
+        self.counters.update(references=0, resumed=0)
 
     def on_reset(self, _msg) -> None:
         self.needs_reference = True
+        self.resume_until = 0.0
+        self.inherited = None
         self.frames_seen = self.params.reference_frame
+
+    def on_reference(self, msg: MarkerArray) -> None:
+        """Keep the reference a previous process of this node published (latched)."""
+        if self.needs_reference and msg.node == self.name and msg.pub_ns < self.started_ns:
+            self.inherited = msg
 
     def on_image(self, msg: Image) -> None:
         self.frames_seen += 1
         if self.needs_reference:
-            if self.frames_seen <= self.params.reference_frame:
+            old = self.inherited
+            if old is not None and (old.width, old.height) == (msg.width, msg.height):
+                state = self.perception.resume(msg.data, old.ref_px)
+                self.counters["resumed"] += 1
+                self.log.info("resumed with the previous process's reference (%d markers)", len(old.ref_px))
+            elif time.monotonic() < self.resume_until or self.frames_seen <= self.params.reference_frame:
                 return
-            state = self.perception.reset(msg.data)
+            else:
+                state = self.perception.reset(msg.data)
+                self.counters["references"] += 1
             self.needs_reference = False
-            self.counters["references"] += 1
+            self.inherited = None
             self.reference_pub.publish(marker_array(state, msg))
         tracker = self.perception.tracker
         state = tracker.step(self.perception.detect(msg.data))

@@ -2,6 +2,8 @@
 flow at camera rate, and a press shows up in the field where the truth says."""
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from nodes.bus import TopicReader
@@ -36,3 +38,47 @@ def test_sim_press_reaches_field_and_contact(bus, spawn) -> None:
     assert stamps == sorted(stamps)
     # each field carries the capture stamp of the frame its markers came from
     assert {x.stamp_ns for x in fields[5:]} <= {x.stamp_ns for x in markers}
+
+
+def dots_image(shift_px: float) -> np.ndarray:
+    """(240, 320) uint8: a 12x9 grid of dark dots (pitch 24 px) moved `shift_px` in x."""
+    import cv2
+    image = np.full((240, 320), 200, np.uint8)
+    for y in range(24, 240 - 12, 24):
+        for x in range(28, 320 - 20, 24):
+            cv2.circle(image, (int(round(x + shift_px)), y), 5, 40, -1, cv2.LINE_AA)
+    return image
+
+
+def test_restarted_tracker_adopts_the_previous_reference(bus, spawn) -> None:
+    """A tracker respawned while the skin is sheared must go on measuring against the
+    undeformed reference of its previous process, not take the sheared frame as rest."""
+    from msgs import Image
+    from nodes.bus import PublisherSocket
+    from tests.nodes.conftest import kill_group, wait_status
+
+    camera = PublisherSocket("fake_camera", bus.address)
+    assert camera.wait_connected(2.0)
+
+    def frames_until(reader: TopicReader, image: np.ndarray, done) -> object:
+        for _ in range(200):
+            camera.publish("/camera/image", Image(stamp_ns=time.time_ns(), data=image))
+            item = reader.recv(0.05)
+            if item is not None and done(item):
+                return item
+        raise AssertionError("the tracker never answered")
+
+    with TopicReader(["/markers", "/markers/reference"]) as reader:
+        first = spawn("node", "tracker")
+        reference = frames_until(reader, dots_image(0.0), lambda it: it.topic == "/markers/reference").msg
+        kill_group(first)
+        restarted_ns = time.time_ns()
+        spawn("node", "tracker")
+        item = frames_until(reader, dots_image(3.0),
+                            lambda it: it.topic == "/markers" and it.msg.pub_ns > restarted_ns)
+    m = item.msg
+    assert np.allclose(m.ref_px, reference.ref_px)
+    shift = np.median(m.cur_px[m.valid] - m.ref_px[m.valid], axis=0)
+    assert abs(shift[0] - 3.0) < 0.3 and abs(shift[1]) < 0.3, shift
+    assert wait_status("tracker", lambda st: st.counters.get("resumed") == 1).counters["references"] == 0
+    camera.close()
