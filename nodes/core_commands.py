@@ -22,6 +22,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--remap", "-r", action="append", default=[], metavar="FROM:=TO", help="rename a topic")
     p.add_argument("--json", action="store_true", help="with `list`: JSON output")
     p.add_argument("--wait", type=float, default=0.3, help="with `list`: seconds to collect node status")
+    p.add_argument("--standby", action="store_true",
+                   help="import the node's code, print a ready line and wait; run the node on SIGUSR1 "
+                        "(the launcher's spare for `standby: true`)")
     p.set_defaults(func=_node)
 
     p = sub.add_parser("keys", help="create CURVE keys for a TCP bus")
@@ -55,10 +58,27 @@ def _node(args: argparse.Namespace) -> int:
         return node_list(args)
     params = json.loads(args.params_json) if args.params_json else {}
     params.update(parse_assignments(args.param))
-    node = node_class(args.kind)(args.name or args.kind, params, namespace=args.ns,
-                                 remap=parse_remaps(args.remap))
+    cls = node_class(args.kind)
+    if args.standby and not _wait_for_takeover(cls):
+        return 0
+    node = cls(args.name or args.kind, params, namespace=args.ns, remap=parse_remaps(args.remap))
     node.spin()
     return 0
+
+
+def _wait_for_takeover(cls: type) -> bool:
+    """Preload `cls`, print STANDBY_READY and block: True on SIGUSR1 (take over), False on
+    SIGTERM / SIGINT (the launch is stopping)."""
+    import signal
+
+    from nodes.node import STANDBY_READY
+    cls.preload()
+    signals = {signal.SIGUSR1, signal.SIGTERM, signal.SIGINT}
+    signal.pthread_sigmask(signal.SIG_BLOCK, signals)
+    print(STANDBY_READY, flush=True)
+    received = signal.sigwait(signals)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, signals)
+    return received == signal.SIGUSR1
 
 
 def _keys(args: argparse.Namespace) -> int:

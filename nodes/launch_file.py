@@ -20,6 +20,7 @@ Format (every key but `nodes[].kind` optional)::
         respawn: true            # restart when it exits...
         respawn_delay: 1.0       # ...after this many seconds (default 1.0)
         max_retries: 5           # ...at most this often (default: no limit)
+        standby: true            # keep a spare process, imports done, to take over at once
         required: false          # its final exit stops the whole launch
 
 ``$(arg name)`` is replaced by the argument's value: a whole-string substitution keeps the
@@ -41,7 +42,7 @@ from nodes.params import ParamError, build_params, parse_text
 
 TOP_KEYS = {"args", "include", "nodes"}
 NODE_KEYS = {"kind", "name", "namespace", "params", "remap", "env", "respawn", "respawn_delay", "max_retries",
-             "required"}
+             "standby", "required"}
 INCLUDE_KEYS = {"file", "args"}
 ARG_KEYS = {"default", "description"}
 DEFAULT_RESPAWN_DELAY_S = 1.0
@@ -101,7 +102,9 @@ class NodeSpec:
     """One node of a launch, validated: what `fv node` needs plus the supervision policy.
 
     respawn_delay_s: seconds between an exit and the restart. max_retries: restarts
-    allowed (None = no limit). source: "file:line" of the entry, for messages.
+    allowed (None = no limit). standby: a respawning node keeps a spare process that has
+    done its imports and takes over at once when the node exits. source: "file:line" of
+    the entry, for messages.
     """
 
     kind: str
@@ -113,6 +116,7 @@ class NodeSpec:
     respawn: bool = False
     respawn_delay_s: float = DEFAULT_RESPAWN_DELAY_S
     max_retries: int | None = None
+    standby: bool = False
     required: bool = False
     source: str = ""
 
@@ -324,14 +328,18 @@ def _node_spec(f: _File, entry: _Dict, line: int, key: str, node_class: Any) -> 
         f.expect(retries, int, lines["max_retries"], f"{key}.max_retries", "a whole number")
         if retries < 0:
             raise f.error(lines["max_retries"], f"{key}.max_retries", f"{retries} is not >= 0")
+    respawn = f.expect(entry.get("respawn", False), bool, lines.get("respawn", line), f"{key}.respawn",
+                       "true or false")
+    standby = f.expect(entry.get("standby", False), bool, lines.get("standby", line), f"{key}.standby",
+                       "true or false")
+    if standby and not respawn:
+        raise f.error(lines["standby"], f"{key}.standby", "a standby process needs respawn: true")
     return NodeSpec(
         kind=kind, name=name, params=dict(params), remap=dict(remap),
         namespace=f.expect(entry.get("namespace", ""), str, lines.get("namespace", line), f"{key}.namespace",
                            "a namespace"),
         env={var: str(val) for var, val in env.items()},
-        respawn=f.expect(entry.get("respawn", False), bool, lines.get("respawn", line), f"{key}.respawn",
-                         "true or false"),
-        respawn_delay_s=float(delay), max_retries=retries,
+        respawn=respawn, respawn_delay_s=float(delay), max_retries=retries, standby=standby,
         required=f.expect(entry.get("required", False), bool, lines.get("required", line), f"{key}.required",
                           "true or false"),
         source=f"{f.path}:{line}")

@@ -12,6 +12,11 @@ reconnect by themselves and re-send their latched messages) and publishes its ow
 `<node>.respawns`, `forwarder_restarts`, `running`, and state "error" naming a node
 whose process is stopped (SIGSTOP) or whose NodeStatus has been missing for
 `SILENT_AFTER_S`, "warn" for a node waiting to respawn or gone with an error code.
+
+A node with `standby: true` also gets a spare process (`fv node KIND --standby`) that has
+done its imports and waits; when the node exits, the spare takes over at once (SIGUSR1)
+and a new spare is started after `respawn_delay`. Without a ready spare the node is
+respawned as usual.
 """
 from __future__ import annotations
 
@@ -27,6 +32,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from nodes.launch_file import NodeSpec, load_launch, parse_arg_overrides
+from nodes.node import STANDBY_READY
 
 GRACE_S = 1.2
 FORWARDER_GRACE_S = 0.5
@@ -44,6 +50,8 @@ class Child:
     retries: respawns so far. exit_code: the last exit's code. last_status_s: monotonic
     time of the current process's last NodeStatus (None before its first). fault: the
     kind of problem last said for it ("stopped", "silent" or ""), so each is said once.
+    spare: the standby process (standby nodes), spare_ready: it said STANDBY_READY,
+    spare_at: when to start the next spare.
     """
 
     spec: NodeSpec
@@ -54,6 +62,10 @@ class Child:
     exit_code: int | None = None
     last_status_s: float | None = None
     fault: str = ""
+    spare: subprocess.Popen | None = None
+    spare_reader: threading.Thread | None = None
+    spare_ready: bool = False
+    spare_at: float | None = None
 
 
 class Launch:
@@ -97,24 +109,66 @@ class Launch:
             self.output.write(line.rstrip("\n") + "\n")
             self.output.flush()
 
-    def _pump(self, name: str, stream: TextIO) -> None:
+    def _pump(self, name: str, stream: TextIO, child: Child | None = None) -> None:
+        """Echo a process's output; for a spare (`child` given) note its STANDBY_READY line."""
         for line in stream:  # node log lines already start with "[name] ": say() keeps one prefix
+            if child is not None and line.strip() == STANDBY_READY:
+                child.spare_ready = True
+                continue
             self.say(line, name)
         stream.close()
 
     # -- processes -------------------------------------------------------------------
+    def _popen(self, spec: NodeSpec, *extra: str) -> subprocess.Popen:
+        env = dict(os.environ, PYTHONUNBUFFERED="1", **spec.env)
+        return subprocess.Popen([sys.executable, "-m", "nodes.cli", *spec.argv(), *extra], env=env,
+                                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                text=True, bufsize=1, start_new_session=True)
+
     def _spawn(self, child: Child) -> None:
         spec = child.spec
-        env = dict(os.environ, PYTHONUNBUFFERED="1", **spec.env)
-        child.proc = subprocess.Popen([sys.executable, "-m", "nodes.cli", *spec.argv()], env=env,
-                                      stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                      text=True, bufsize=1, start_new_session=True)
+        child.proc = self._popen(spec)
         child.restart_at = None
         child.last_status_s = None
         child.reader = threading.Thread(target=self._pump, args=(spec.name, child.proc.stdout),
                                         name=f"out-{spec.name}", daemon=True)
         child.reader.start()
         self.say(f"started {spec.name} ({spec.kind}) pid {child.proc.pid}")
+        if spec.standby and child.spare is None:
+            child.spare_at = time.monotonic()
+
+    def _spawn_spare(self, child: Child) -> None:
+        spec = child.spec
+        child.spare_ready = False
+        child.spare_at = None
+        child.spare = self._popen(spec, "--standby")
+        child.spare_reader = threading.Thread(target=self._pump, args=(spec.name, child.spare.stdout, child),
+                                              name=f"out-{spec.name}-spare", daemon=True)
+        child.spare_reader.start()
+        self.say(f"started a spare {spec.name} pid {child.spare.pid}")
+
+    def _watch_spare(self, child: Child, now: float) -> None:
+        """Start a standby node's next spare when due; notice a spare that died."""
+        if child.spare is not None and child.spare.poll() is not None:
+            self.say(f"spare {child.spec.name} pid {child.spare.pid} exited with code {child.spare.returncode}")
+            child.spare = None
+            child.spare_at = now + max(child.spec.respawn_delay_s, FORWARDER_RETRY_S)
+        if child.spare is None and child.spare_at is not None and now >= child.spare_at and child.proc is not None:
+            self._spawn_spare(child)
+
+    def _promote_spare(self, child: Child, now: float) -> bool:
+        """Let a ready spare take over the exited node; False when there is none."""
+        spare = child.spare
+        if spare is None or not child.spare_ready or spare.poll() is not None:
+            return False
+        os.kill(spare.pid, signal.SIGUSR1)
+        child.proc, child.reader = spare, child.spare_reader
+        child.spare, child.spare_reader, child.spare_ready = None, None, False
+        child.last_status_s = None
+        child.spare_at = now + child.spec.respawn_delay_s
+        self.say(f"{child.spec.name} exited with code {child.exit_code}; spare pid {spare.pid} took over "
+                 f"(respawn {child.retries})")
+        return True
 
     def pid(self, name: str) -> int | None:
         """The pid of node `name`'s running process, None when it is not running."""
@@ -190,6 +244,8 @@ class Launch:
                         self._exited(child, now)
                     if child.restart_at is not None and now >= child.restart_at and not self._stop.is_set():
                         self._spawn(child)
+                    if child.spec.standby and not self._stop.is_set():
+                        self._watch_spare(child, now)
                 if not any(c.proc is not None or c.restart_at is not None for c in self.children):
                     self.say("all nodes have exited")
                     break
@@ -284,6 +340,8 @@ class Launch:
             return
         if spec.respawn and (spec.max_retries is None or child.retries < spec.max_retries):
             child.retries += 1
+            if self._promote_spare(child, now):
+                return
             child.restart_at = now + spec.respawn_delay_s
             self.say(f"{spec.name} exited with code {code}; respawn {child.retries} in {spec.respawn_delay_s:g} s")
             return
@@ -294,6 +352,9 @@ class Launch:
             self._stop.set()
 
     def _shutdown(self) -> None:
+        for child in self.children:
+            if child.spare is not None:
+                _signal_group(child.spare, signal.SIGTERM)
         running = [c for c in self.children if c.proc is not None]
         for child in running:
             _signal_group(child.proc, signal.SIGTERM)
@@ -309,7 +370,14 @@ class Launch:
                 child.reader.join(1.0)
             child.proc = None
         for child in self.children:
-            child.restart_at = None
+            child.restart_at = child.spare_at = None
+            if child.spare is not None:
+                try:
+                    child.spare.wait(max(0.0, deadline - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    _signal_group(child.spare, signal.SIGKILL)
+                    child.spare.wait()
+                child.spare = None
         for sock in (self._status_reader, self._status_pub):
             if sock is not None:
                 sock.close()

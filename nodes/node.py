@@ -40,6 +40,7 @@ from nodes.endpoints import BusAddress, bus_address
 from nodes.params import build_params
 
 STATUS_TOPIC = "/status"
+STANDBY_READY = "fv-standby-ready"  # the line a standby process prints once it waits to take over
 KEEP_ALL_CAP = 10_000
 _PAGE = os.sysconf("SC_PAGE_SIZE")
 _SEVERITY = {"ok": 0, "warn": 1, "error": 2}
@@ -212,6 +213,11 @@ class Node:
         return t
 
     # -- life cycle ----------------------------------------------------------------
+    @classmethod
+    def preload(cls) -> None:
+        """Import what `setup()` will need, so a standby process (`fv node KIND --standby`)
+        can take over at once; override when setup imports heavy modules (torch)."""
+
     def setup(self) -> None:
         """Create the node's publishers, subscriptions and timers (override)."""
 

@@ -53,6 +53,10 @@ class SlipDetectorNode(Node):
 
     Params = SlipDetectorParams
 
+    @classmethod
+    def preload(cls) -> None:
+        import fv_algos.slip.classifier  # noqa: F401  (torch: the bulk of a cold start)
+
     def setup(self) -> None:
         from fv_algos.slip.classifier import SlipClassifier
         p = self.params

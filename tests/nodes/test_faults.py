@@ -23,7 +23,7 @@ from nodes.camera_sources import FolderSource, SourceError, VideoFileSource
 from nodes.forwarder import ping
 from nodes.launcher import Launch
 from nodes.node import Node
-from tests.nodes.conftest import Bus, wait_status
+from tests.nodes.conftest import Bus, pid_alive, wait_status
 
 RECOVERY_S = 2.0  # a killed node's output is back within this, on an idle machine
 IDLE_COLD_START_S = 0.9  # the tracker's cold start (Python, imports, setup) on an idle 2-core machine
@@ -366,3 +366,38 @@ def test_killed_tracker_respawns_and_pipeline_resumes(bus_env: Bus, tmp_path: Pa
     print(f"tracker killed: respawned after {spawned_s:.2f} s, cold start {cold_start_s:.2f} s, /markers back "
           f"after {back['/markers']:.2f} s, /field after {back['/field']:.2f} s (slowdown {slowdown:.1f})")
     assert back["/markers"] < RECOVERY_S * slowdown, f"/markers back {back['/markers']:.2f} s after the kill"
+
+
+def test_standby_spare_takes_over_a_killed_node_at_once(bus_env: Bus, tmp_path: Path) -> None:
+    """With `standby: true` a spare process, imports done, takes over when the node is
+    killed (no cold start), and a new spare is started for the next time."""
+    run, out = launch(tmp_path, "nodes:\n"
+                                "  - {kind: talker, params: {rate_hz: 50}, respawn: true, respawn_delay: 0.2,"
+                                " standby: true}\n")
+    run.start()
+    try:
+        child = run.children[0]
+        wait_for(lambda: child.spare is not None and child.spare_ready, 20.0, "spare ready")
+        first_after("/chatter", 0, 10.0)
+        pid, spare = run.pid("talker"), child.spare.pid
+        with TopicReader(["/chatter"]) as reader:
+            kill_ns = time.time_ns()
+            os.kill(pid, signal.SIGKILL)
+            back_s = first_after("/chatter", kill_ns, 10.0, reader)
+        assert run.pid("talker") == spare
+        wait_for(lambda: child.spare is not None and child.spare.pid != spare and child.spare_ready, 20.0,
+                 "the next spare")
+    finally:
+        run.stop()
+    assert f"talker exited with code -9; spare pid {spare} took over (respawn 1)" in out.getvalue()
+    assert child.spare is None and not any(pid_alive(p) for p in (pid, spare))
+    slowdown = max(1.0, os.getloadavg()[0] / os.cpu_count())
+    assert back_s < 0.5 * slowdown, f"/chatter back {back_s:.2f} s after the kill"
+
+
+def test_standby_needs_respawn(tmp_path: Path) -> None:
+    from nodes.launch_file import LaunchError
+    path = tmp_path / "bad.yaml"
+    path.write_text("nodes:\n  - {kind: talker, standby: true}\n")
+    with pytest.raises(LaunchError, match="standby.*needs respawn"):
+        Launch.from_file(path)
