@@ -1,6 +1,12 @@
 """`fv real ...` (fields, cross-validation and training on real labelled grasp trials) and
 `fv eval-trials` (a trained slip model judged on a folder of real trials, video to decision).
 
+Two methods (`--method`): `features` (default), the trial-level logistic regression on contact-motion
+and field features of :mod:`fv_algos.trial_features`, shipped as `fv_algos/weights/slip_gelsight_trial.pt`;
+`windows`, the paper's window classifiers (ConvLSTM and variants, :mod:`fv_algos.trial_eval`), shipped
+as `fv_algos/weights/slip_gelsight.pt`. `fv eval --trials DIR --model NAME` uses the shipped
+trial-level model `slip_NAME_trial.pt` when there is one, else the window model `slip_NAME.pt`.
+
 A trials folder holds `labels.csv` (columns trial, object, label = slip / no_slip) and per trial
 `<trial>/camera_0.avi` (+ `camera_2.avi`). Fields are cached per video under `--cache`
 (default ~/.cache/fingervision/real_fields), never inside the repository."""
@@ -28,7 +34,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = verbs.add_parser("cv", help="object-held-out cross-validation (window and trial accuracy per fold)")
     _data_args(p)
     _fit_args(p, steps=300)
-    p.add_argument("--folds", type=int, default=5, help="object folds (default 5)")
+    p.add_argument("--folds", type=int, default=5, help="object folds (default 5; the number of objects, "
+                   "e.g. 29, leaves one object out)")
     p.add_argument("--init", default=None, help="fine-tune every fold from this checkpoint or shipped model name (e.g. sim); "
                    "its architecture is used and --steps counts the extra steps")
     p.add_argument("--out", type=Path, default=None, help="also write the full report (JSON) here")
@@ -58,6 +65,9 @@ def _data_args(p: argparse.ArgumentParser) -> None:
 
 
 def _fit_args(p: argparse.ArgumentParser, steps: int) -> None:
+    p.add_argument("--method", choices=("features", "windows"), default="features",
+                   help="features: trial-level logistic regression (default); windows: window classifier (--arch)")
+    p.add_argument("--l2", type=float, default=1.0, help="features: L2 penalty of the logistic regression (default 1)")
     p.add_argument("--arch", default="convlstm", help="convlstm (the paper), cnn_lstm or lstm (default convlstm)")
     p.add_argument("--hidden", type=int, default=16, help="hidden channels / units (default 16)")
     p.add_argument("--steps", type=int, default=steps, help=f"optimizer steps (default {steps})")
@@ -106,15 +116,30 @@ def _fit_config(args: argparse.Namespace):
     return fit_config(args.arch, args.hidden, args.steps, args.batch_size, args.lr, args.seed, _rule(args))
 
 
-def _cv(args: argparse.Namespace) -> int:
-    from fv_algos.trial_eval import cross_validate, trial_windows
-    from nodes.slip_detector import model_path
-    config = _fit_config(args)
+def _features(args: argparse.Namespace):
+    """(trials, trial feature matrix (n_trials, D), labels (n_trials,)) of ``args.trials``."""
+    import numpy as np
+    from fv_algos.trial_features import trial_features, trial_series
     trials, fields, _ = _load(args.trials, args.cache, args.workers)
-    data = trial_windows(trials, fields, config.train.model.window, config.rule)
+    series = trial_series(trials, args.cache)
+    return trials, trial_features(trials, series, fields), np.array([t.label for t in trials])
+
+
+def _cv(args: argparse.Namespace) -> int:
     started = time.perf_counter()
-    init = None if args.init is None else str(model_path(args.init))
-    report = cross_validate(data, config, args.folds, args.seed, init)
+    if args.method == "features":
+        from fv_algos.trial_features import cross_validate_features
+        trials, x, labels = _features(args)
+        report = cross_validate_features(x, labels, [t.object for t in trials], args.folds, args.seed, args.l2)
+        report["config"] = {"method": "features", "l2": args.l2, "folds": args.folds, "seed": args.seed}
+    else:
+        from fv_algos.trial_eval import cross_validate, trial_windows
+        from nodes.slip_detector import model_path
+        config = _fit_config(args)
+        trials, fields, _ = _load(args.trials, args.cache, args.workers)
+        data = trial_windows(trials, fields, config.train.model.window, config.rule)
+        init = None if args.init is None else str(model_path(args.init))
+        report = cross_validate(data, config, args.folds, args.seed, init)
     report["wall_s"] = time.perf_counter() - started
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -123,16 +148,21 @@ def _cv(args: argparse.Namespace) -> int:
         print(json.dumps(report, indent=2))
     else:
         for r in report["folds"]:
-            print(f"fold {r['fold']}: trials {r['n_trials']:3d}  window acc {r['window_accuracy']:.3f}  "
+            window = f"window acc {r['window_accuracy']:.3f}  " if "window_accuracy" in r else ""
+            print(f"fold {r['fold']}: trials {r['n_trials']:3d}  {window}"
                   f"trial acc {r['trial_accuracy']:.3f}  objects {', '.join(r['objects'])}")
         s = report["summary"]
-        print(f"trial accuracy {s['trial_accuracy_mean']:.3f} +/- {s['trial_accuracy_std']:.3f} "
-              f"(worst fold {s['worst_fold']}: {s['trial_accuracy_min']:.3f}); window accuracy "
-              f"{s['window_accuracy_mean']:.3f} +/- {s['window_accuracy_std']:.3f}")
+        window = (f"; window accuracy {s['window_accuracy_mean']:.3f} +/- {s['window_accuracy_std']:.3f}"
+                  if "window_accuracy_mean" in s else "")
+        print(f"object-held-out trial accuracy {s['trial_accuracy_mean']:.3f} +/- {s['trial_accuracy_std']:.3f} "
+              f"(worst fold {s['worst_fold']}: {s['trial_accuracy_min']:.3f}; pooled {s['pooled_trial_accuracy']:.3f})"
+              f"{window}")
     return 0
 
 
 def _train(args: argparse.Namespace) -> int:
+    if args.method == "features":
+        return _train_features(args)
     import numpy as np
     from fv_algos.slip.classifier import Checkpoint, save_checkpoint
     from fv_algos.slip.models import count_parameters
@@ -163,6 +193,55 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _train_features(args: argparse.Namespace) -> int:
+    from fv_algos.trial_features import TrialLogistic, feature_names, judge_trials, save_trial_model
+    started = time.perf_counter()
+    trials, x, labels = _features(args)
+    model = TrialLogistic.fit(x, labels, args.l2)
+    path = save_trial_model(args.out, model)
+    info = {
+        "model": path.stem.removeprefix("slip_"),
+        "kind": "trial-level logistic regression on contact-motion and field features (fv_algos.trial_features)",
+        "trained_on": {"trials_dir": str(args.trials), "trials": len(trials), "slip": int(labels.sum()),
+                       "objects": len({t.object for t in trials})},
+        "l2": args.l2, "decision": "slip when p >= 0.5",
+        "features": dict(zip(feature_names(), model.weights.round(4).tolist())),
+        "training_trial_accuracy": judge_trials(model, x, labels)["trial_accuracy"],
+        "seconds": time.perf_counter() - started,
+        "command": " ".join(["fv", *sys.argv[1:]]),
+    }
+    if args.cv_report is not None:
+        info["cross_validation"] = json.loads(args.cv_report.read_text())["summary"]
+    path.with_suffix(".json").write_text(json.dumps(info, indent=1))
+    print(f"wrote {path} and {path.with_suffix('.json')} (training trial accuracy "
+          f"{info['training_trial_accuracy']:.3f})")
+    return 0
+
+
+def resolve_trial_model(name: str) -> Path:
+    """The model `fv eval --trials` uses for ``name``: the shipped trial-level model
+    `slip_<name>_trial.pt` when there is one, else :func:`nodes.slip_detector.model_path`."""
+    from nodes.slip_detector import WEIGHTS_DIR, model_path
+    shipped = WEIGHTS_DIR / f"slip_{name}_trial.pt"
+    return shipped if shipped.is_file() else model_path(name)
+
+
+def _eval_features(args: argparse.Namespace, path: Path) -> dict[str, object]:
+    """Report of the trial-level model at ``path`` on ``args.trials`` (video to decision)."""
+    import numpy as np
+    from fv_algos.real_trials import tracking_quality
+    from fv_algos.trial_features import judge_trials, load_trial_model, trial_features, trial_series
+    model, params = load_trial_model(path)
+    trials, fields, field_s = _load(args.trials, getattr(args, "cache", None), getattr(args, "workers", 1))
+    series = trial_series(trials, getattr(args, "cache", None), params=params)
+    labels = np.array([t.label for t in trials])
+    report = judge_trials(model, trial_features(trials, series, fields), labels)
+    return {"trial_accuracy": report["trial_accuracy"], "n_trials": report["n_trials"], "window_accuracy": None,
+            "n_windows": 0, "confusion": report["confusion"], "trial_f1": report["trial_f1"], "threshold": 0.5,
+            "method": "features (trial-level: no windows, window_accuracy is null)", "fields_s": field_s,
+            "frames": int(sum(v.fields.shape[0] for v in fields.values())), "tracking": tracking_quality(fields)}
+
+
 def eval_trials_command(args: argparse.Namespace) -> int:
     """Judge a slip model on a folder of real trials, the whole way from video to decision.
 
@@ -170,16 +249,34 @@ def eval_trials_command(args: argparse.Namespace) -> int:
     args.cache (None: fields are computed, not cached) and args.workers. The window stride, top-k
     and trial threshold come from the model's JSON sidecar (`slip_<name>.json`) when it has them,
     else the TrialRule defaults and threshold 0.5. Prints trial_accuracy, n_trials,
-    window_accuracy, confusion ([[TN, FP], [FN, TP]] at trial level), the timing and tracking quality."""
-    import numpy as np
+    window_accuracy, confusion ([[TN, FP], [FN, TP]] at trial level), the timing and tracking quality.
+    A trial-level model (:func:`resolve_trial_model`) has no windows: its window_accuracy is null."""
+    import cv2
     import torch
+    from fv_algos.trial_features import is_trial_model
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    started = time.perf_counter()
+    path = resolve_trial_model(args.model)
+    out = _eval_features(args, path) if is_trial_model(path) else _eval_windows(args, path)
+    wall = time.perf_counter() - started
+    out = {"model": str(path), **out, "wall_s": wall, "s_per_trial": wall / out["n_trials"],
+           "ms_per_frame": 1e3 * wall / out.pop("frames")}
+    if args.json:
+        print(json.dumps(out, indent=2))
+    else:
+        window = "n/a" if out["window_accuracy"] is None else f"{out['window_accuracy']:.3f}"
+        print(f"{out['n_trials']} trials: trial accuracy {out['trial_accuracy']:.3f}, window accuracy "
+              f"{window}, confusion {out['confusion']} ({wall:.0f} s, {out['s_per_trial']:.2f} s/trial)")
+    return 0
+
+
+def _eval_windows(args: argparse.Namespace, path: Path) -> dict[str, object]:
+    """Report of the window classifier checkpoint at ``path`` on ``args.trials`` (video to decision)."""
+    import numpy as np
     from fv_algos.real_trials import tracking_quality
     from fv_algos.slip.classifier import SlipClassifier
     from fv_algos.trial_eval import TrialRule, judge, trial_windows
-    from nodes.slip_detector import model_path
-    torch.set_num_threads(1)
-    started = time.perf_counter()
-    path = model_path(args.model)
     sidecar = path.with_suffix(".json")
     info = json.loads(sidecar.read_text()) if sidecar.is_file() else {}
     rule = TrialRule(**info["fit"]["rule"]) if "fit" in info else TrialRule()
@@ -188,16 +285,8 @@ def eval_trials_command(args: argparse.Namespace) -> int:
     trials, fields, field_s = _load(args.trials, getattr(args, "cache", None), getattr(args, "workers", 1))
     data = trial_windows(trials, fields, classifier.config.window, rule)
     report = judge(classifier.model, data, np.arange(len(trials)), threshold, rule.top_k)
-    wall = time.perf_counter() - started
-    frames = int(sum(v.fields.shape[0] for v in fields.values()))
-    out = {"model": str(path), "trial_accuracy": report["trial_accuracy"], "n_trials": report["n_trials"],
-           "window_accuracy": report["window_accuracy"], "n_windows": report["n_windows"],
-           "confusion": report["confusion"], "trial_f1": report["trial_f1"], "threshold": threshold,
-           "rule": asdict(rule), "wall_s": wall, "fields_s": field_s, "s_per_trial": wall / len(trials),
-           "ms_per_frame": 1e3 * wall / frames, "tracking": tracking_quality(fields)}
-    if args.json:
-        print(json.dumps(out, indent=2))
-    else:
-        print(f"{out['n_trials']} trials: trial accuracy {out['trial_accuracy']:.3f}, window accuracy "
-              f"{out['window_accuracy']:.3f}, confusion {out['confusion']} ({wall:.0f} s, {out['s_per_trial']:.2f} s/trial)")
-    return 0
+    return {"trial_accuracy": report["trial_accuracy"], "n_trials": report["n_trials"],
+            "window_accuracy": report["window_accuracy"], "n_windows": report["n_windows"],
+            "confusion": report["confusion"], "trial_f1": report["trial_f1"], "threshold": threshold,
+            "rule": asdict(rule), "method": "windows", "fields_s": field_s,
+            "frames": int(sum(v.fields.shape[0] for v in fields.values())), "tracking": tracking_quality(fields)}

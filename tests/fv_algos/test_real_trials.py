@@ -143,3 +143,18 @@ def test_fit_fine_tunes_from_a_checkpoint(isd_data: Path, tmp_path: Path) -> Non
     model, threshold, record = fit(data, np.arange(3), fit_config("convlstm", 16, steps=3, batch_size=4), init=str(start))
     assert model.config == config and record["steps"] == 10
     assert 0.0 <= threshold <= 1.0
+
+
+def test_eval_trials_command_with_a_trial_level_model(isd_data: Path, tmp_path: Path, capsys) -> None:
+    from fv_algos.trial_features import TrialLogistic, feature_names, save_trial_model
+    from nodes.real_commands import eval_trials_command
+    root = _subset(isd_data, tmp_path / "trials")
+    d = len(feature_names())
+    model = TrialLogistic(np.zeros(d), np.ones(d), np.zeros(d), 1.0)  # p = sigmoid(1) > 0.5: always slip
+    path = save_trial_model(tmp_path / "trial.pt", model)
+    args = argparse.Namespace(model=str(path), trials=root, cache=tmp_path / "cache", workers=1, json=True)
+    assert eval_trials_command(args) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["n_trials"] == 3 and report["window_accuracy"] is None
+    assert report["confusion"] == [[0, 1], [0, 2]] and report["trial_accuracy"] == pytest.approx(2 / 3)
+    assert len(list((tmp_path / "cache").glob("*__contact__*.npy"))) == 6

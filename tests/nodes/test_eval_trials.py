@@ -20,8 +20,9 @@ def test_eval_trials_on_two_real_trials(isd_data: Path, tmp_path: Path) -> None:
     result = run_fv("eval", "--trials", str(tmp_path), "--model", "gelsight", "--json", timeout_s=240)
     assert result.returncode == 0, result.stderr[-2000:]
     report = json.loads(result.stdout)
-    assert report["n_trials"] == 2
-    assert 0.0 <= report["trial_accuracy"] <= 1.0 and 0.0 <= report["window_accuracy"] <= 1.0
+    assert report["n_trials"] == 2 and report["model"].endswith("slip_gelsight_trial.pt")
+    assert 0.0 <= report["trial_accuracy"] <= 1.0
+    assert report["window_accuracy"] is None  # the shipped gelsight decision is trial-level: no windows
     assert sum(map(sum, report["confusion"])) == 2
     assert report["tracking"]["videos"] == 4 and report["tracking"]["valid_share_mean"] > 0.9
 
