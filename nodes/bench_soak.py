@@ -34,6 +34,7 @@ GROWTH_SPAN = 0.1  # share of a process's samples at each end compared for its g
 MIN_SERIES_SHARE = 0.3  # a series shorter than this share of the run gets no growth figure
 GOAL_GROWTH_PERCENT = 1.0
 GOAL_RECOVERY_S = 2.0
+KILL_MARGIN_S = 15.0  # no kill this close to the end: its recovery must be seen
 
 
 def memory_growth(series: dict[tuple[str, int], list[tuple[float, int]]], run_s: float) -> list[dict[str, Any]]:
@@ -55,11 +56,14 @@ def memory_growth(series: dict[tuple[str, int], list[tuple[float, int]]], run_s:
 
 
 def run_soak(minutes: float, fps: float, kill_every_s: float, sample_s: float, threads: int,
-             log: Any) -> dict[str, Any]:
-    """Run the soak and return its report (see module doc)."""
+             log: Any, model: str | None = None) -> dict[str, Any]:
+    """Run the soak and return its report (see module doc); `model` replaces the default
+    configuration's slip model."""
     from nodes.proc_stats import memory_bytes
 
     args = dict(CONFIGS["default"], fps=fps, scene=str(SCENE), prerender=True, threads=threads)
+    if model:
+        args["model"] = model
     series: dict[tuple[str, int], list[tuple[float, int]]] = {}
     per_minute: dict[int, int] = {}
     last_status: dict[tuple[str, int], Any] = {}
@@ -89,7 +93,7 @@ def run_soak(minutes: float, fps: float, kill_every_s: float, sample_s: float, t
                         series.setdefault((name, pid), []).append((now - t0, memory_bytes(pid)[0]))
                     except (OSError, TypeError):  # between a kill and the respawn
                         pass
-            if now >= next_kill and pending is None:
+            if now >= next_kill and pending is None and end - now > KILL_MARGIN_S:
                 next_kill += kill_every_s
                 victim = next(victims)
                 pid = launch.pid(victim)
@@ -103,7 +107,7 @@ def run_soak(minutes: float, fps: float, kill_every_s: float, sample_s: float, t
     statuses = list(last_status.values())
     recoveries = [k["recovery_s"] for k in kills]
     return {
-        "minutes": minutes, "fps": fps, "threads": threads,
+        "minutes": minutes, "fps": fps, "threads": threads, "model": args["model"],
         "slip_hz_per_minute": [round(v, 2) for v in minutes_done],
         "slip_hz_min": round(min(minutes_done), 2) if minutes_done else None,
         "slip_hz_max": round(max(minutes_done), 2) if minutes_done else None,
@@ -126,10 +130,11 @@ def add_parser(kinds: argparse._SubParsersAction, name: str) -> None:
     p = kinds.add_parser(name, help="the default pipeline for a long run: memory, /slip rate, drops, kill + respawn")
     p.add_argument("--minutes", type=float, default=30.0, help="run length (default 30)")
     p.add_argument("--fps", type=float, default=60.0, help="camera rate in Hz (default 60)")
-    p.add_argument("--kill-every", type=float, default=300.0,
+    p.add_argument("--kill-every", type=float, default=600.0,
                    help="seconds between SIGKILLs of a node, in turn tracker, interpolator, slip_detector (0 = none)")
     p.add_argument("--sample", type=float, default=5.0, help="seconds between memory samples (default 5)")
     p.add_argument("--threads", type=int, default=1, help="torch threads of the slip detector (default 1)")
+    p.add_argument("--model", default=None, help="slip model instead of the default configuration's")
     p.add_argument("--log", default=os.devnull, help="write the nodes' output here (default: discarded)")
     p.add_argument("--json", action="store_true", help="print the report as JSON (default: a summary)")
     p.set_defaults(func=_bench_soak)
@@ -139,7 +144,7 @@ def _bench_soak(args: argparse.Namespace) -> int:
     if args.minutes <= 0 or args.fps <= 0 or args.sample <= 0 or args.kill_every < 0:
         raise ValueError("--minutes, --fps and --sample must be > 0 and --kill-every >= 0")
     with open(args.log, "w") as log:
-        report = run_soak(args.minutes, args.fps, args.kill_every, args.sample, args.threads, log)
+        report = run_soak(args.minutes, args.fps, args.kill_every, args.sample, args.threads, log, args.model)
     if args.json:
         print(json.dumps(report, indent=1))
     else:
