@@ -73,6 +73,9 @@ def _model_flags(p: argparse.ArgumentParser, single_run: bool = True) -> None:
     p.add_argument("--window", type=int, default=10, help="frames per window (default 10)")
     p.add_argument("--lr", type=float, default=None, help="Adam learning rate (default: TrainConfig's)")
     p.add_argument("--batch", type=int, default=None, help="global batch (default: TrainConfig's)")
+    p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default=None,
+                   help="training arithmetic: auto = bf16 autocast on CPUs with native bf16 (AMX/AVX512-BF16), "
+                        "else fp32 (default: TrainConfig's)")
     p.add_argument("--seed", type=int, default=0, help="training and split seed (default 0)")
     p.add_argument("--test-fraction", type=float, default=0.1, help="held-out share (default 0.1)")
     p.add_argument("--threads", type=int, default=None, help="torch threads for training")
@@ -118,10 +121,14 @@ CURVE_PNG = "curve.png"
 
 def _write_run(out: Path, *, command: str, data: Path, fingerprint: str, split: str, seed: int, test_fraction: float,
                model_config: dict, params: int, history: list[dict], wall_s: float, windows_per_s: float,
-               dataset_metadata: dict, resumed_from: Path | None = None) -> dict:
+               dataset_metadata: dict, resumed_from: Path | None = None, windows_per_cpu_s: float | None = None,
+               autocast: str | None = None) -> dict:
     """Write run.json (provenance and final metrics) and curve.png (accuracy and loss vs step,
     like the paper's Fig. 7) into ``out``; returns the record. wall_s is this invocation's time;
-    wall_s_total adds the wall_s_total of the run resumed from (its folder's run.json)."""
+    wall_s_total adds the wall_s_total of the run resumed from (its folder's run.json).
+    windows_per_cpu_s (training windows per CPU-second per torch thread) estimates the
+    quiet-machine windows_per_s when other processes share the cores; autocast is the training
+    autocast dtype (None: fp32)."""
     from nodes.plots import curve_plot
     if not history:
         raise ValueError(f"training in {out} recorded no evaluation")
@@ -134,6 +141,7 @@ def _write_run(out: Path, *, command: str, data: Path, fingerprint: str, split: 
         "test_accuracy": final["test_accuracy"], "test_windows": final["test_windows"],
         "train_accuracy": final["train_accuracy"], "wall_s": round(wall_s, 1),
         "wall_s_total": round(wall_s + _previous_wall_s(resumed_from), 1), "windows_per_s": round(windows_per_s, 2),
+        "windows_per_cpu_s": None if windows_per_cpu_s is None else round(windows_per_cpu_s, 2), "autocast": autocast,
         "resumed_from": None if resumed_from is None else str(resumed_from),
     }
     out.mkdir(parents=True, exist_ok=True)
@@ -184,7 +192,7 @@ def _train(args: argparse.Namespace) -> int:
     # validate here: train.main's own parser would exit instead of raising a clear ValueError
     ModelConfig(arch=args.model, hidden=args.hidden, kernel=args.kernel, window=args.window, grid=sequences.grid)
     optional = {"--steps": args.steps, "--lr": args.lr, "--batch-size": args.batch, "--eval-every": args.eval_every,
-                "--threads": args.threads, "--resume": args.resume}
+                "--threads": args.threads, "--resume": args.resume, "--precision": args.precision}
     argv = ["--data", str(args.data), "--out", str(args.out), "--split", SPLITS[args.split], "--arch", args.model,
             "--hidden", str(args.hidden), "--kernel", str(args.kernel), "--window", str(args.window),
             "--seed", str(args.seed), "--test-fraction", str(args.test_fraction),
@@ -202,7 +210,8 @@ def _train(args: argparse.Namespace) -> int:
         args.out, command=command_line(args), data=args.data, fingerprint=dataset_fingerprint(sequences),
         split=args.split, seed=args.seed, test_fraction=args.test_fraction, model_config=checkpoint.model_config.to_dict(),
         params=count_parameters(build_model(checkpoint.model_config)), history=checkpoint.history, wall_s=wall_s,
-        windows_per_s=result["windows_per_s"], dataset_metadata=sequences.metadata, resumed_from=args.resume)
+        windows_per_s=result["windows_per_s"], dataset_metadata=sequences.metadata, resumed_from=args.resume,
+        windows_per_cpu_s=result.get("windows_per_cpu_s"), autocast=result.get("autocast"))
     print(f"{record['model_config']['arch']} on the {args.split} split: test accuracy "
           f"{record['test_accuracy']:.4f} on {record['test_windows']} windows after {record['steps']} steps, "
           f"{wall_s:.0f} s -> {args.out}")
@@ -261,7 +270,7 @@ class _ModelStore:
             self.sources[key] = f"checkpoint {run_dir / CHECKPOINT_NAME}"
             self.models[key] = model_from_checkpoint(load_checkpoint(run_dir / CHECKPOINT_NAME, expected=config))
             return self.models[key]
-        given = {"steps": a.steps, "batch_size": a.batch, "lr": a.lr, "threads": a.threads}
+        given = {"steps": a.steps, "batch_size": a.batch, "lr": a.lr, "threads": a.threads, "precision": a.precision}
         train_config = TrainConfig(model=config, seed=a.seed, out_dir=str(run_dir), progress=not a.no_progress,
                                    **{k: v for k, v in given.items() if v is not None})
         started = time.perf_counter()
@@ -270,7 +279,8 @@ class _ModelStore:
                    seed=a.seed, test_fraction=a.test_fraction, model_config=config.to_dict(),
                    params=count_parameters(result.model),
                    history=result.history, wall_s=time.perf_counter() - started, windows_per_s=result.windows_per_s,
-                   dataset_metadata=self.sequences.metadata)
+                   dataset_metadata=self.sequences.metadata, windows_per_cpu_s=result.windows_per_cpu_s,
+                   autocast=result.autocast)
         self.sources[key] = f"trained {train_config.steps} steps -> {run_dir}"
         self.models[key] = result.model
         return result.model

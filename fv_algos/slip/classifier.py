@@ -17,7 +17,14 @@ import numpy as np
 import torch
 from torch import nn
 
-from fv_algos.slip.models import ModelConfig, build_model, to_model_input
+from fv_algos.slip.models import (
+    ModelConfig,
+    autocast_context,
+    autocast_dtype,
+    build_model,
+    fast_layout,
+    to_model_input,
+)
 
 CHECKPOINT_FORMAT = "fv-slip-checkpoint"
 CHECKPOINT_VERSION = 1
@@ -61,7 +68,7 @@ def save_checkpoint(path: str | Path, checkpoint: Checkpoint) -> Path:
         "software_version": checkpoint.software_version,
         "torch_version": str(torch.__version__),
         "model_config": checkpoint.model_config.to_dict(),
-        "model_state": {k: v.detach().cpu() for k, v in checkpoint.model_state.items()},
+        "model_state": {k: v.detach().cpu().contiguous() for k, v in checkpoint.model_state.items()},
         "step": int(checkpoint.step),
         "optimizer_state": checkpoint.optimizer_state,
         "train_config": checkpoint.train_config,
@@ -150,12 +157,8 @@ def predict_proba(
     """
     x = to_model_input(validate_windows(windows, model.config)).to(device)
     with torch.inference_mode():
-        if autocast is None:
-            logits = model(x)
-        else:
-            with torch.autocast(device_type=torch.device(device).type, dtype=autocast):
-                logits = model(x)
-        logits = logits.float()
+        with autocast_context(device, autocast):
+            logits = model(x).float()
         if not torch.isfinite(logits).all():
             raise ValueError("model produced non-finite logits; refusing to report a probability")
         prob = torch.softmax(logits, dim=1)[:, 1]
@@ -168,6 +171,8 @@ class SlipClassifier:
     source: a checkpoint path or a model built by :func:`fv_algos.slip.models.build_model`.
     expected: if given, the checkpoint's model config must equal it.
     threads: torch intra-op threads to use (None leaves torch's setting alone).
+    precision: "auto" (bf16 autocast on a CPU with native bf16 hardware, about 2x faster than
+        fp32 there, else fp32), "fp32" or "bf16" (see :func:`fv_algos.slip.models.autocast_dtype`).
     """
 
     def __init__(
@@ -176,6 +181,7 @@ class SlipClassifier:
         expected: ModelConfig | None = None,
         device: str = "cpu",
         threads: int | None = None,
+        precision: str = "auto",
     ) -> None:
         if isinstance(source, nn.Module):
             if not isinstance(getattr(source, "config", None), ModelConfig):
@@ -188,7 +194,8 @@ class SlipClassifier:
         if threads is not None:
             torch.set_num_threads(threads)
         self.device = torch.device(device)
-        self.model = model.to(self.device)
+        self.autocast = autocast_dtype(precision, self.device)
+        self.model = fast_layout(model.to(self.device), self.autocast)
 
     @property
     def config(self) -> ModelConfig:
@@ -200,4 +207,4 @@ class SlipClassifier:
         arr = np.asarray(window)
         if arr.ndim != 4:
             raise ValueError(f"window must have shape (T, H, W, 3), got {arr.shape}")
-        return float(predict_proba(self.model, arr[None], device=self.device)[0])
+        return float(predict_proba(self.model, arr[None], autocast=self.autocast, device=self.device)[0])

@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from fv_algos.slip.classifier import predict_proba
-from fv_algos.slip.models import count_parameters
+from fv_algos.slip.models import count_parameters, fast_layout
 from fv_algos.slip.windows import Split, WindowSet
 
 Predictor = Callable[[np.ndarray], np.ndarray]
@@ -89,7 +89,7 @@ def variant_predictor(model: nn.Module, variant: str = "fp32") -> Predictor:
     """Wrap a CPU model as a predictor in one of VARIANTS.
 
     fp32: as is. bf16: forward under torch.autocast(bfloat16) (convolutions and linear layers in
-    bf16). int8: torch.ao.quantization.quantize_dynamic on nn.Linear and nn.LSTM (weights int8,
+    bf16) on a channels-last copy of the model. int8: torch.ao.quantization.quantize_dynamic on nn.Linear and nn.LSTM (weights int8,
     activations quantised on the fly); convolutions stay fp32 because dynamic quantisation has no
     conv kernels. compile: torch.compile (inductor; needs a C++ compiler, compiles on first call).
     """
@@ -97,7 +97,7 @@ def variant_predictor(model: nn.Module, variant: str = "fp32") -> Predictor:
         raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
     model = model.eval()
     if variant == "bf16":
-        return partial(predict_proba, model, autocast=torch.bfloat16)
+        return partial(predict_proba, fast_layout(copy.deepcopy(model), torch.bfloat16), autocast=torch.bfloat16)
     if variant == "int8":
         quantized = torch.ao.quantization.quantize_dynamic(copy.deepcopy(model), {nn.Linear, nn.LSTM}, dtype=torch.qint8)
         return partial(predict_proba, quantized)

@@ -19,6 +19,7 @@ from torch import nn
 from torch.nn import functional as F
 
 ARCHS = ("convlstm", "cnn_lstm", "lstm")
+PRECISIONS = ("auto", "fp32", "bf16")
 N_CLASSES = 2
 N_CHANNELS = 3
 
@@ -85,6 +86,43 @@ class ModelConfig:
         ]
 
 
+def bf16_fast_on_cpu() -> bool:
+    """True when this CPU has native bf16 matrix hardware (AVX512-BF16 or AMX) that oneDNN uses,
+    so bf16 convolutions beat fp32 ones; False on CPUs that would only emulate bf16."""
+    if not torch.backends.mkldnn.is_available():
+        return False
+    probes = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")  # private torch.cpu probes
+    return any(bool(getattr(torch.cpu, name)()) for name in probes if hasattr(torch.cpu, name))
+
+
+def autocast_dtype(precision: str, device: str | torch.device = "cpu") -> torch.dtype | None:
+    """torch.autocast dtype for a precision name in PRECISIONS: "fp32" -> None (no autocast),
+    "bf16" -> torch.bfloat16, "auto" -> torch.bfloat16 on a CPU with native bf16 hardware
+    (:func:`bf16_fast_on_cpu`), else None (fp32; also on CUDA)."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+    if precision == "bf16":
+        return torch.bfloat16
+    if precision == "auto" and torch.device(device).type == "cpu" and bf16_fast_on_cpu():
+        return torch.bfloat16
+    return None
+
+
+def autocast_context(device: str | torch.device, dtype: torch.dtype | None) -> torch.autocast:
+    """``torch.autocast`` to ``dtype`` on ``device``'s type; a disabled one when dtype is None (fp32)."""
+    return torch.autocast(torch.device(device).type, dtype=dtype or torch.bfloat16, enabled=dtype is not None)
+
+
+def fast_layout(model: nn.Module, dtype: torch.dtype | None) -> nn.Module:
+    """``model`` (changed in place) in the memory layout fastest under autocast ``dtype``:
+    channels-last convolution weights for bf16 (oneDNN's bf16 kernels; on an AMX CPU about 1.5x
+    faster at batch 1 and 3x in training than channels-first bf16), unchanged otherwise. Weights
+    and results are unchanged."""
+    if dtype == torch.bfloat16:
+        return model.to(memory_format=torch.channels_last)
+    return model
+
+
 def to_model_input(windows: np.ndarray | torch.Tensor) -> torch.Tensor:
     """(B, T, H, W, 3) channel-last windows (px) -> (B, T, 3, H, W) float32 tensor (px)."""
     x = torch.as_tensor(windows)
@@ -131,19 +169,21 @@ class ConvLSTMClassifier(nn.Module):
         """x (B, T, 3, H, W) float32 px -> logits (B, 2)."""
         _check_input(x, self.config)
         b, t, _, hgt, wid = x.shape
-        pad = self.config.kernel // 2
-        x = self.normalise(x)
+        hidden, pad = self.config.hidden, self.config.kernel // 2
+        x = self.normalise(x).transpose(0, 1).reshape(t * b, N_CHANNELS, hgt, wid)  # time-major
         w_x = self.gates.weight[:, :N_CHANNELS]
         w_h = self.gates.weight[:, N_CHANNELS:]
-        gates_x = F.conv2d(x.reshape(b * t, N_CHANNELS, hgt, wid), w_x, self.gates.bias, padding=pad)
-        gates_x = gates_x.reshape(b, t, -1, hgt, wid)
+        gates_x = F.conv2d(x, w_x, self.gates.bias, padding=pad)
+        # unbind (not indexing) so autograd stacks the T gradients once instead of scattering
+        # each into a zero tensor the size of all T frames
         h = c = None
-        for step in range(t):
-            g = gates_x[:, step] if h is None else gates_x[:, step] + F.conv2d(h, w_h, padding=pad)
-            i, f, o, cand = torch.chunk(g, 4, dim=1)
-            new = torch.sigmoid(i) * torch.tanh(cand)
-            c = new if c is None else torch.sigmoid(f) * c + new
-            h = torch.sigmoid(o) * torch.tanh(c)
+        for g in gates_x.reshape(t, b, 4 * hidden, hgt, wid).unbind(0):
+            if h is not None:
+                g = g + F.conv2d(h, w_h, padding=pad)
+            ifo = torch.sigmoid(g[:, : 3 * hidden])  # input, forget, output gates in one call
+            new = ifo[:, :hidden] * torch.tanh(g[:, 3 * hidden :])
+            c = new if c is None else ifo[:, hidden : 2 * hidden] * c + new
+            h = ifo[:, 2 * hidden :] * torch.tanh(c)
         assert h is not None
         return self.head(h.flatten(1))
 

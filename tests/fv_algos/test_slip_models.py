@@ -16,7 +16,14 @@ from fv_algos.slip.evaluate import (
     variant_predictor,
     variant_rows,
 )
-from fv_algos.slip.models import ModelConfig, build_model, count_parameters, to_model_input
+from fv_algos.slip.models import (
+    ModelConfig,
+    autocast_dtype,
+    bf16_fast_on_cpu,
+    build_model,
+    count_parameters,
+    to_model_input,
+)
 from fv_algos.slip.windows import SyntheticConfig, make_windows, split_windows, synthetic_sequences
 
 torch.set_num_threads(1)
@@ -117,6 +124,24 @@ def test_nan_or_bad_shape_raises_clear_error() -> None:
         classifier.predict(np.zeros((8, 8, 3), dtype=np.float32))
     with pytest.raises(ValueError, match="floating point"):
         classifier.predict(np.zeros((4, 8, 8, 3), dtype=np.int32))
+
+
+def test_precision_names_map_to_autocast_dtypes() -> None:
+    assert autocast_dtype("fp32") is None
+    assert autocast_dtype("bf16") == torch.bfloat16
+    assert autocast_dtype("auto") == (torch.bfloat16 if bf16_fast_on_cpu() else None)
+    assert autocast_dtype("auto", "cuda") is None
+    with pytest.raises(ValueError, match="precision must be one of"):
+        autocast_dtype("fp8")
+
+
+def test_classifier_precisions_agree() -> None:
+    windows = np.random.default_rng(4).normal(scale=3.0, size=(6, 4, 8, 8, 3)).astype(np.float32)
+    fp32, bf16 = SlipClassifier(_model(), precision="fp32"), SlipClassifier(_model(), precision="bf16")
+    assert fp32.autocast is None and bf16.autocast == torch.bfloat16
+    assert SlipClassifier(_model()).autocast == autocast_dtype("auto")
+    for window in windows:
+        assert bf16.predict(window) == pytest.approx(fp32.predict(window), abs=0.05)
 
 
 def test_classifier_rejects_model_with_other_config() -> None:

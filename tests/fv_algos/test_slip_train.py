@@ -13,7 +13,7 @@ import torch
 
 from fv_algos.slip.classifier import SlipClassifier, load_checkpoint, model_from_checkpoint, save_checkpoint, Checkpoint
 from fv_algos.slip.models import ModelConfig, build_model
-from fv_algos.slip.train import TrainConfig, batch_rows, main, parameter_digest, train
+from fv_algos.slip.train import TrainConfig, batch_rows, lr_at, main, parameter_digest, train
 from fv_algos.slip.windows import Split, SyntheticConfig, make_windows, save_sequences, split_windows, synthetic_sequences
 
 torch.set_num_threads(1)
@@ -29,7 +29,7 @@ def split() -> Split:
 
 
 def _config(tmp: Path | None = None, **kw: object) -> TrainConfig:
-    base = {"model": TINY, "steps": 6, "batch_size": 8, "lr": 1e-2, "eval_every": 3, "progress": False}
+    base = {"model": TINY, "steps": 6, "batch_size": 8, "lr": 1e-2, "warmup_steps": 2, "eval_every": 3, "progress": False}
     base.update(kw)
     return TrainConfig(out_dir=None if tmp is None else str(tmp), **base)
 
@@ -44,8 +44,28 @@ def test_batch_rows_cover_each_epoch_once_and_are_reproducible() -> None:
         batch_rows(rows[:3], 5, 1, 0)
 
 
-def test_training_fits_training_windows(split: Split) -> None:
-    result = train(_config(steps=80, eval_every=40), split)
+def test_lr_warms_up_then_decays_to_the_floor() -> None:
+    config = TrainConfig(steps=100, lr=1e-3, warmup_steps=10, min_lr_fraction=0.1)
+    lrs = np.array([lr_at(config, s) for s in range(100)])
+    assert lrs[0] == pytest.approx(1e-4) and lrs[9] == pytest.approx(1e-3)
+    assert np.all(np.diff(lrs[:10]) > 0) and np.all(np.diff(lrs[10:]) <= 0)
+    assert lrs[-1] == pytest.approx(1e-4, rel=0.01) and lr_at(config, 100) == pytest.approx(1e-4)
+    constant = TrainConfig(steps=100, lr=1e-3, warmup_steps=0, schedule="constant")
+    assert {lr_at(constant, s) for s in (0, 50, 99)} == {1e-3}
+
+
+@pytest.mark.parametrize(("field", "value"), [("schedule", "linear"), ("precision", "fp8"), ("grad_clip", 0.0),
+                                              ("warmup_steps", -1), ("min_lr_fraction", 1.5)])
+def test_bad_optimisation_settings_are_rejected(field: str, value: object) -> None:
+    with pytest.raises(ValueError, match=field):
+        TrainConfig(**{field: value})
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_training_fits_training_windows(split: Split, precision: str) -> None:
+    result = train(_config(steps=80, eval_every=40, precision=precision), split)
+    assert result.autocast == (None if precision == "fp32" else "bfloat16")
+    assert result.windows_per_cpu_s > 0
     assert [r["step"] for r in result.history] == [40, 80]
     final = result.history[-1]
     assert final["test_windows"] == split.test.size
@@ -61,12 +81,13 @@ def test_same_seed_same_weights_other_seed_differs(split: Split) -> None:
 
 
 def test_resume_continues_exactly(split: Split, tmp_path: Path) -> None:
-    straight = train(_config(tmp_path / "straight"), split)
-    first = train(_config(tmp_path / "part", steps=3), split)
+    # a constant schedule: a cosine one depends on `steps`, which the two parts here change
+    straight = train(_config(tmp_path / "straight", schedule="constant"), split)
+    first = train(_config(tmp_path / "part", steps=3, schedule="constant"), split)
     ckpt = load_checkpoint(first.checkpoint_path)
     assert ckpt.step == 3 and ckpt.model_config == TINY and ckpt.optimizer_state is not None
     assert ckpt.software_version and ckpt.train_config["lr"] == 1e-2
-    resumed = train(_config(tmp_path / "part"), split, resume=first.checkpoint_path)
+    resumed = train(_config(tmp_path / "part", schedule="constant"), split, resume=first.checkpoint_path)
     assert resumed.step == 6
     assert resumed.param_digest == straight.param_digest
     metrics = json.loads((tmp_path / "part" / "metrics.json").read_text())
@@ -131,7 +152,8 @@ def test_main_single_process(split: Split, tmp_path: Path) -> None:
 def test_ddp_two_cpu_ranks_stay_identical(split: Split, tmp_path: Path) -> None:
     data = save_sequences(tmp_path / "seq", split.windows.sequences)
     common = ["--data", str(data), "--hidden", "8", "--window", "4", "--steps", "4", "--batch-size", "8",
-              "--eval-every", "4", "--no-progress", "--threads", "1", "--per-sequence", "3", "--lr", "0.01"]
+              "--eval-every", "4", "--no-progress", "--threads", "1", "--per-sequence", "3", "--lr", "0.01",
+              "--precision", "fp32"]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
            "-m", "fv_algos.slip.train", "--out", str(tmp_path / "ddp"), *common]

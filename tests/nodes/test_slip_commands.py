@@ -37,11 +37,14 @@ def test_dataset_sim_writes_a_loadable_file(tmp_path: Path) -> None:
 
 def test_train_writes_checkpoint_metrics_curve_and_resumes(data: Path, tmp_path: Path) -> None:
     run = tmp_path / "run"
-    assert main(["train", "--data", str(data), "--out", str(run), "--steps", "4", "--eval-every", "2", *TINY]) == 0
+    assert main(["train", "--data", str(data), "--out", str(run), "--steps", "4", "--eval-every", "2", *TINY,
+                 "--precision", "fp32"]) == 0
     for name in ("checkpoint.pt", "metrics.json", "run.json", "curve.png"):
         assert (run / name).is_file(), name
     record = json.loads((run / "run.json").read_text())
     assert record["split"] == "sequence" and record["steps"] == 4 and 0.0 <= record["test_accuracy"] <= 1.0
+    assert record["autocast"] is None and record["windows_per_cpu_s"] > 0
+    assert "--precision fp32" in record["command"]
     export = tmp_path / "ship.pt"
     assert main(["train", "--data", str(data), "--out", str(run), "--steps", "6", "--eval-every", "2", *TINY,
                  "--resume", str(run / "checkpoint.pt"), "--export", str(export)]) == 0
