@@ -57,3 +57,13 @@ def test_decisions_per_field_with_window_stamps(bus, spawn) -> None:
         st = wait_status("slip_detector", lambda st: st.errors >= 1, 10.0)
         assert st.counters["invalid_windows"] >= 1
     pub.close()
+
+
+def test_trial_level_model_is_refused_with_a_clear_error() -> None:
+    from nodes.slip_detector import SlipDetectorNode
+    node = SlipDetectorNode("slip_detector", {"model": "gelsight_trial"})
+    try:
+        with pytest.raises(ValueError, match="once per grasp"):
+            node.setup()
+    finally:
+        node.close()
