@@ -185,12 +185,17 @@ def _train(args: argparse.Namespace) -> int:
         "parameters": count_parameters(model),
         "command": " ".join(["fv", *sys.argv[1:]]),
     }
-    if args.cv_report is not None:
-        info["cross_validation"] = json.loads(args.cv_report.read_text())["summary"]
-    path.with_suffix(".json").write_text(json.dumps(info, indent=1))
+    _write_sidecar(path, info, args.cv_report)
     print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KiB, {info['parameters']} parameters, "
           f"trial threshold {threshold:.3f}) and {path.with_suffix('.json')}")
     return 0
+
+
+def _write_sidecar(path: Path, info: dict, cv_report: Path | None) -> None:
+    """Write `info` (plus the summary of an `fv real cv --out` report) beside the model as JSON."""
+    if cv_report is not None:
+        info["cross_validation"] = json.loads(cv_report.read_text())["summary"]
+    path.with_suffix(".json").write_text(json.dumps(info, indent=1))
 
 
 def _train_features(args: argparse.Namespace) -> int:
@@ -210,9 +215,7 @@ def _train_features(args: argparse.Namespace) -> int:
         "seconds": time.perf_counter() - started,
         "command": " ".join(["fv", *sys.argv[1:]]),
     }
-    if args.cv_report is not None:
-        info["cross_validation"] = json.loads(args.cv_report.read_text())["summary"]
-    path.with_suffix(".json").write_text(json.dumps(info, indent=1))
+    _write_sidecar(path, info, args.cv_report)
     print(f"wrote {path} and {path.with_suffix('.json')} (training trial accuracy "
           f"{info['training_trial_accuracy']:.3f})")
     return 0
