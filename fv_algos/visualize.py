@@ -4,7 +4,7 @@ and their displacement arrows, the dense displacement field as a colour map with
 
 Every drawing function takes plain arrays and returns a new (H, W, 3) uint8 BGR image on a
 dark background; inputs are never modified. Non-finite values (NaN, inf) are skipped and
-empty inputs give a labelled placeholder: a live view must never die on one bad message.
+empty inputs give a labelled notice panel: a live view must never die on one bad message.
 `fit`, `titled`, `hstack` and `vstack` assemble panels into one picture.
 """
 from __future__ import annotations
@@ -67,7 +67,7 @@ def as_bgr(image: np.ndarray, encoding: str = "") -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if encoding == "rgb8" else image.copy()
 
 
-def placeholder(text: str, height_px: int = 240, width_px: int = 320) -> np.ndarray:
+def notice_panel(text: str, height_px: int = 240, width_px: int = 320) -> np.ndarray:
     """A blank panel with `text` centred: what to show when there is nothing to draw.
 
     Returns:
@@ -114,11 +114,11 @@ def draw_markers(image: np.ndarray, ref_px: np.ndarray, cur_px: np.ndarray, vali
         encoding: the image's encoding ("rgb8" for RGB).
         legend: write the tracked count and the arrow scale along the bottom edge.
     Returns:
-        (round(H * zoom), round(W * zoom), 3) uint8 BGR; a 240x320 placeholder for an
+        (round(H * zoom), round(W * zoom), 3) uint8 BGR; a 240x320 notice panel for an
         empty image.
     """
     if np.asarray(image).size == 0:
-        return placeholder("empty image")
+        return notice_panel("empty image")
     out = as_bgr(image, encoding)
     if zoom <= 0 or not math.isfinite(zoom):
         raise ValueError(f"zoom {zoom} must be a positive number")
@@ -209,7 +209,7 @@ def render_field(field: np.ndarray, grid_x_px: np.ndarray | None = None, grid_y_
     natural_w = pad + map_w + pad + bar_w + label_w
     width_px = width_px or natural_w
     if gh == 0 or gw == 0 or map_h < 8:
-        return placeholder("empty field", height_px, width_px)
+        return notice_panel("empty field", height_px, width_px)
     out = np.empty((height_px, natural_w, 3), np.uint8)
     out[:] = BACKGROUND
     mag = field[..., 2]

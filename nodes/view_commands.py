@@ -166,7 +166,7 @@ class _Session:
         field_w = round(1.2 * h)  # a square map, its colour bar and labels
         field = self.timelines[t.field].at(stamp)
         if field is None:
-            field_panel = viz.placeholder(self._absent(t.field), h, field_w)
+            field_panel = viz.notice_panel(self._absent(t.field), h, field_w)
         else:
             field_panel = field_picture(field, s.field_range_px, h, field_w)
         t_s = (stamp - self.bag.start_ns) / 1e9
@@ -174,7 +174,7 @@ class _Session:
                           viz.titled(field_panel, f"{t.field}  |d| and direction", ui)])
         chart_h = max(120, h * 2 // 5)
         if t.slip in self.missing:
-            chart = viz.placeholder(self._absent(t.slip), chart_h, top.shape[1])
+            chart = viz.notice_panel(self._absent(t.slip), chart_h, top.shape[1])
         else:
             history = self.timelines[t.slip].between(stamp - round(s.history_s * 1e9), stamp)
             chart = viz.render_slip_strip(np.array([(m.stamp_ns - stamp) / 1e9 for m in history]),

@@ -156,4 +156,4 @@ def test_layout_helpers() -> None:
     fitted = viz.fit(a, 40, 40)
     assert fitted.shape == (40, 40, 3) and (fitted[15:25, :] == 255).all() and (fitted[0] != 255).any()
     assert viz.titled(a, "x").shape == (34, 20, 3)
-    assert viz.placeholder("nothing", 50, 60).shape == (50, 60, 3)
+    assert viz.notice_panel("nothing", 50, 60).shape == (50, 60, 3)
