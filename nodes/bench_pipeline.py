@@ -116,6 +116,12 @@ def pipeline_launch(args: dict[str, Any], log: io.TextIOBase) -> Iterator[tuple[
         shutil.rmtree(folder, ignore_errors=True)
 
 
+def pipeline_args(config: str, fps: float, threads: int) -> dict[str, Any]:
+    """`launch/pipeline.yaml` arguments of configuration `config` at `fps`, the camera
+    replaying the pre-rendered benchmark scene."""
+    return dict(CONFIGS[config], fps=fps, scene=str(SCENE), prerender=True, threads=threads)
+
+
 def process_ids(launch: Any) -> dict[str, int]:
     """name -> pid of the pipeline's node processes and of the forwarder the launch started."""
     pids = {name: launch.pid(name) for name in PIPELINE_NODES}
@@ -129,8 +135,7 @@ def run_once(config: str, fps: float, duration_s: float, warmup_s: float, thread
     """Launch the pipeline with `CONFIGS[config]` at `fps` on a private bus and measure it."""
     from nodes.proc_stats import cpu_seconds, memory_bytes
 
-    args = dict(CONFIGS[config], fps=fps, scene=str(SCENE), prerender=True, threads=threads)
-    with pipeline_launch(args, log) as (launch, reader):
+    with pipeline_launch(pipeline_args(config, fps, threads), log) as (launch, reader):
         pids = process_ids(launch)
         warm_end = time.monotonic() + warmup_s
         first_status: dict[str, Any] = {}

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from nodes.bench_pipeline import CONFIGS, SCENE, pipeline_launch, process_ids
+from nodes.bench_pipeline import pipeline_args, pipeline_launch, process_ids
 
 VICTIMS = ("tracker", "interpolator", "slip_detector")
 WARMUP_S = 60.0  # at most this much of each process series is left out as warm-up (<= 1/5 of the run)
@@ -61,7 +61,7 @@ def run_soak(minutes: float, fps: float, kill_every_s: float, sample_s: float, t
     configuration's slip model."""
     from nodes.proc_stats import memory_bytes
 
-    args = dict(CONFIGS["default"], fps=fps, scene=str(SCENE), prerender=True, threads=threads)
+    args = pipeline_args("default", fps, threads)
     if model:
         args["model"] = model
     series: dict[tuple[str, int], list[tuple[float, int]]] = {}

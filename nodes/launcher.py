@@ -37,6 +37,7 @@ from nodes.node import STANDBY_READY
 GRACE_S = 1.2
 FORWARDER_GRACE_S = 0.5
 FORWARDER_RETRY_S = 1.0  # wait between failed forwarder restarts
+SPARE_RETRY_S = 1.0  # at least this long before replacing a spare that died (a spare that cannot start loops slowly)
 POLL_S = 0.05
 STATUS_PERIOD_S = 1.0  # the launcher's own NodeStatus period
 SILENT_AFTER_S = 3.0  # a running node whose NodeStatus stopped this long is reported (nodes send one per second)
@@ -152,7 +153,7 @@ class Launch:
         if child.spare is not None and child.spare.poll() is not None:
             self.say(f"spare {child.spec.name} pid {child.spare.pid} exited with code {child.spare.returncode}")
             child.spare = None
-            child.spare_at = now + max(child.spec.respawn_delay_s, FORWARDER_RETRY_S)
+            child.spare_at = now + max(child.spec.respawn_delay_s, SPARE_RETRY_S)
         if child.spare is None and child.spare_at is not None and now >= child.spare_at and child.proc is not None:
             self._spawn_spare(child)
 

@@ -60,12 +60,7 @@ class SlipDetectorNode(Node):
     def setup(self) -> None:
         from fv_algos.slip.classifier import SlipClassifier
         p = self.params
-        from fv_algos.trial_features import is_trial_model
-        path = model_path(p.model)
-        if is_trial_model(path):
-            raise ValueError(f"model {p.model!r} decides once per grasp from whole trials (fv eval --trials); "
-                             "the slip_detector judges windows of fields: use sim, gelsight or a window checkpoint")
-        self.classifier = SlipClassifier(path, device=p.device, threads=p.threads)
+        self.classifier = SlipClassifier(model_path(p.model), device=p.device, threads=p.threads)
         cfg = self.classifier.config
         self.window: collections.deque = collections.deque(maxlen=cfg.window)
         self.slip = False

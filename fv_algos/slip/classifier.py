@@ -94,6 +94,9 @@ def load_checkpoint(path: str | Path, expected: ModelConfig | None = None) -> Ch
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except (pickle.UnpicklingError, zipfile.BadZipFile, RuntimeError, EOFError, OSError) as exc:
         raise ValueError(f"{path} is not a slip checkpoint (torch.load failed: {exc})") from exc
+    if isinstance(payload, dict) and "kind" in payload and "format" not in payload:
+        raise ValueError(f"{path} holds a {payload['kind']!r} model, which decides once per grasp from whole "
+                         "trials (fv eval --trials), not a classifier of windows of fields")
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path} is not a slip checkpoint (no {CHECKPOINT_FORMAT!r} format tag)")
     if payload.get("format_version") != CHECKPOINT_VERSION:
