@@ -33,6 +33,7 @@ from torch import nn
 from torch.nn import functional as F
 from tqdm import tqdm
 
+from fv_algos.allocator import steady_malloc
 from fv_algos.slip.classifier import Checkpoint, load_checkpoint, save_checkpoint
 from fv_algos.slip.models import (
     ARCHS,
@@ -74,7 +75,7 @@ class TrainConfig:
     """
 
     model: ModelConfig = field(default_factory=ModelConfig)
-    steps: int = 400
+    steps: int = 600
     batch_size: int = 32
     lr: float = 1e-3
     schedule: str = "cosine"
@@ -193,6 +194,7 @@ def train(config: TrainConfig, data: Split, resume: str | Path | None = None) ->
     ``data.test``. ``resume``: a checkpoint to continue from (its model config must equal
     ``config.model``, else ValueError naming the differing fields). Works inside a
     ``torch.distributed`` process group (DDP) when one is initialised."""
+    steady_malloc()
     if config.threads is not None:
         torch.set_num_threads(config.threads)
     distributed = dist.is_available() and dist.is_initialized()
