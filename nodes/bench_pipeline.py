@@ -18,8 +18,8 @@ Measured per run, over `duration_s` after the first `/slip` and `warmup_s`:
 - CPU per process (% of one core, from /proc) and peak resident memory (MB).
 The report's ratios are each configuration's sustained `/slip` rate over the
 paper-faithful one's at the highest camera rate, measured in the same run. `default` is
-the default perception with the paper's ConvLSTM (`launch/pipeline.yaml`'s defaults),
-`fast` the same with the small ConvLSTM `sim_fast`.
+`launch/pipeline.yaml`'s defaults (default perception, the CNN+LSTM `sim_cnn_lstm`);
+`paper_model` the default perception with the paper's ConvLSTM `sim`, to show the model's share.
 """
 from __future__ import annotations
 
@@ -42,8 +42,8 @@ PIPELINE = REPO / "launch" / "pipeline.yaml"
 SCENE = REPO / "launch" / "scenes" / "press_shear_slide.yaml"
 CONFIGS: dict[str, dict[str, str]] = {
     "paper": {"preset": "paper", "field": "rbf_refit", "model": "sim"},
-    "default": {"preset": "default", "field": "rbf_operator", "model": "sim"},
-    "fast": {"preset": "default", "field": "rbf_operator", "model": "sim_fast"},
+    "default": {"preset": "default", "field": "rbf_operator", "model": "sim_cnn_lstm"},
+    "paper_model": {"preset": "default", "field": "rbf_operator", "model": "sim"},
 }
 PIPELINE_NODES = ("camera", "tracker", "interpolator", "slip_detector")
 STAGE_TOPICS = ("/markers", "/field", "/slip")

@@ -3,8 +3,10 @@
 It keeps the last `window` fields (the model's window length), asks the ConvLSTM for
 P(slip), and decides with a threshold and optional hysteresis. Every field enters the
 window, but when the model falls behind (newer fields already queued) only the newest
-window is judged: the skipped decisions are counted, and latency stays one model call. `model` is a shipped
-model name (`sim`, `gelsight`) or a checkpoint path."""
+window is judged: the skipped decisions are counted, and latency stays one model call.
+`model` is a shipped model name (`sim_cnn_lstm`: per-field CNN then LSTM, the default and
+the fastest; `sim_fast`: the ConvLSTM with 16 hidden channels; `sim`: the paper's ConvLSTM;
+`gelsight`) or a checkpoint path."""
 from __future__ import annotations
 
 import collections
@@ -34,7 +36,7 @@ def model_path(name: str) -> Path:
 
 @dataclass
 class SlipDetectorParams:
-    model: str = "sim"  # shipped model name (sim, gelsight) or checkpoint path
+    model: str = "sim_cnn_lstm"  # shipped model name (sim_cnn_lstm, sim_fast, sim, gelsight) or checkpoint path
     threshold: float = 0.5  # P(slip) above which the state is slip
     hysteresis: float = 0.0  # slip turns on above threshold + h and off below threshold - h
     threads: int = 1  # torch threads for inference

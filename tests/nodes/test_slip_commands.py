@@ -88,11 +88,23 @@ def test_bench_slip_times_the_shipped_model(capsys: pytest.CaptureFixture) -> No
     assert row["params"] == 269_826 and row["ms_per_window"] > 0
 
 
-def test_shipped_sim_model_loads_with_the_node_config_and_separates_slip() -> None:
-    classifier = SlipClassifier(model_path(SlipDetectorParams().model))
-    assert classifier.config == ModelConfig(arch="convlstm", hidden=64, kernel=3, window=10, grid=30)
+SHIPPED_SIM = {
+    "sim": ModelConfig(arch="convlstm", hidden=64, kernel=3, window=10, grid=30),
+    "sim_fast": ModelConfig(arch="convlstm", hidden=16, kernel=3, window=10, grid=30),
+    "sim_cnn_lstm": ModelConfig(arch="cnn_lstm", hidden=64, kernel=3, window=10, grid=30),
+}
+
+
+def test_the_node_uses_a_shipped_sim_model_by_default() -> None:
+    assert SlipDetectorParams().model in SHIPPED_SIM
+
+
+@pytest.mark.parametrize("name", sorted(SHIPPED_SIM))
+def test_shipped_sim_models_load_and_separate_slip(name: str) -> None:
+    classifier = SlipClassifier(model_path(name))
+    assert classifier.config == SHIPPED_SIM[name]
     assert 0.0 <= classifier.predict(np.zeros((10, 30, 30, 3), np.float32)) <= 1.0
-    held_out = SimDatasetConfig(n_sequences=2, seed=987_654)  # the shipped model saw seed 0
+    held_out = SimDatasetConfig(n_sequences=2, seed=987_654)  # the shipped models saw seed 0
     slip = simulate_sequence(held_out, 0, "translational").fields[:10]
     stuck = simulate_sequence(held_out, 1, "holding").fields[:10]
     assert classifier.predict(slip) > classifier.predict(stuck)
