@@ -7,6 +7,8 @@ ConvLSTM's training step: 7.8 million minor faults and 14 s of system time in 40
 the wall time). The dynamic threshold also moves as block sizes vary, which lets the heap grow
 by fragmentation over hours. :func:`steady_malloc` fixes both thresholds, so freed memory is
 kept and reused: resident memory settles at the working set's peak and stays there.
+Process entry points call it: the `fv` command (so every node, training run and benchmark)
+and `python -m fv_algos.slip.train` (what torchrun starts).
 """
 from __future__ import annotations
 
@@ -27,7 +29,7 @@ def steady_malloc() -> bool:
     name = ctypes.util.find_library("c")
     try:
         mallopt = ctypes.CDLL(name).mallopt
-    except (OSError, AttributeError, TypeError):
+    except (OSError, AttributeError):
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
     return bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))

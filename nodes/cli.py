@@ -8,6 +8,8 @@ import importlib
 import logging
 import sys
 
+from fv_algos.allocator import steady_malloc
+
 COMMAND_MODULES = [
     "nodes.core_commands",
     "nodes.sim_commands",
@@ -32,6 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    steady_malloc()  # every fv process: nodes, training, benchmarks
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="[%(name)s] %(levelname)s: %(message)s", stream=sys.stderr)
     try:

@@ -48,7 +48,6 @@ def parse_remaps(items: list[str]) -> dict[str, str]:
 
 
 def _node(args: argparse.Namespace) -> int:
-    from fv_algos.allocator import steady_malloc
     from nodes.params import parse_assignments
     from nodes.registry import NODES, node_class
     if args.kind == "kinds":
@@ -60,7 +59,6 @@ def _node(args: argparse.Namespace) -> int:
     params = json.loads(args.params_json) if args.params_json else {}
     params.update(parse_assignments(args.param))
     cls = node_class(args.kind)
-    steady_malloc()
     if args.standby and not _wait_for_takeover(cls):
         return 0
     node = cls(args.name or args.kind, params, namespace=args.ns, remap=parse_remaps(args.remap))

@@ -194,7 +194,6 @@ def train(config: TrainConfig, data: Split, resume: str | Path | None = None) ->
     ``data.test``. ``resume``: a checkpoint to continue from (its model config must equal
     ``config.model``, else ValueError naming the differing fields). Works inside a
     ``torch.distributed`` process group (DDP) when one is initialised."""
-    steady_malloc()
     if config.threads is not None:
         torch.set_num_threads(config.threads)
     distributed = dist.is_available() and dist.is_initialized()
@@ -319,6 +318,7 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry (also what torchrun runs); writes result_rank<r>.json with the
     parameter digest and final metrics for every rank. Returns the exit status."""
+    steady_malloc()  # this is the process entry under torchrun
     args = _parse(argv)
     sequences = load_sequences(args.data)
     model_config = ModelConfig(
