@@ -22,8 +22,9 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
+import os
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import nullcontext
 from dataclasses import dataclass, field
@@ -212,13 +213,24 @@ def cache_path(cache_dir: str | Path, video: Path, reference_frame: int = 1) -> 
     return Path(cache_dir) / f"{stem}__{_cache_key(video, reference_frame)}.npz"
 
 
+def write_atomically(path: Path, write: Callable[[Path], None]) -> None:
+    """Create ``path`` through ``write(tmp)`` on a temporary file beside it (named after this process,
+    so processes sharing a cache never write the same file), then rename it into place: a reader sees
+    the whole file or none."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    try:
+        write(tmp)
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def save_video_fields(path: Path, value: VideoFields) -> None:
     """Write ``value`` to ``path`` (.npz, atomically)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.npz")
-    np.savez_compressed(tmp, fields=value.fields, field_valid=value.field_valid, valid_share=value.valid_share,
-                        swaps=value.swaps, n_markers=value.n_markers, seconds=value.seconds)
-    tmp.replace(path)
+    write_atomically(path, lambda tmp: np.savez_compressed(
+        tmp, fields=value.fields, field_valid=value.field_valid, valid_share=value.valid_share,
+        swaps=value.swaps, n_markers=value.n_markers, seconds=value.seconds))
 
 
 def load_video_fields(path: Path) -> VideoFields:

@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 import torch
 
-from fv_algos.real_trials import CAMERAS, VIDEO_SUFFIX, Trial, TrialFields, read_frames
+from fv_algos.real_trials import CAMERAS, VIDEO_SUFFIX, Trial, TrialFields, read_frames, write_atomically
 from fv_algos.slip.evaluate import classification_metrics
 from fv_algos.trial_eval import object_folds
 
@@ -149,8 +149,7 @@ def trial_series(trials: Sequence[Trial], cache_dir: str | Path | None = None, r
             except ValueError as exc:
                 raise ValueError(f"{video}: {exc}") from exc
             if cached is not None:
-                cached.parent.mkdir(parents=True, exist_ok=True)
-                np.save(cached, series)
+                write_atomically(cached, lambda tmp: np.save(tmp, series))
             out[(trial.name, cam)] = series
     return out
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from fv_algos.real_trials import read_trials, trial_fields, tracking_quality, video_fields
+from fv_algos.real_trials import read_trials, trial_fields, tracking_quality, video_fields, write_atomically
 from fv_algos.slip.classifier import Checkpoint, save_checkpoint
 from fv_algos.slip.models import ModelConfig, build_model
 from fv_algos.trial_eval import (
@@ -84,6 +84,20 @@ def test_field_cache_round_trip(isd_data: Path, tmp_path: Path) -> None:
         np.testing.assert_array_equal(value.fields, again[key].fields)
     quality = tracking_quality(first)
     assert quality["videos"] == 2 and quality["frames"] == 96
+
+
+def test_cache_files_are_written_whole_or_not_at_all(tmp_path: Path) -> None:
+    target = tmp_path / "cache" / "a.npy"
+    write_atomically(target, lambda tmp: np.save(tmp, np.arange(3)))
+    np.testing.assert_array_equal(np.load(target), np.arange(3))
+
+    def fail(tmp: Path) -> None:
+        tmp.write_bytes(b"half")
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        write_atomically(tmp_path / "cache" / "b.npy", fail)
+    assert sorted(p.name for p in (tmp_path / "cache").iterdir()) == ["a.npy"]  # no partial file, no temporary
 
 
 def test_window_activity_of_uniform_motion() -> None:
