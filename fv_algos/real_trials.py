@@ -28,7 +28,9 @@ from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import nullcontext
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
+from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -38,6 +40,8 @@ from fv_algos import detection, perception, tracking
 from fv_algos import field as field_module
 from fv_algos.perception import Perception, PerceptionParams
 from fv_algos.tracking import neighbour_consistency
+
+T = TypeVar("T")
 
 LABELS_FILE = "labels.csv"
 CAMERAS = ("camera_0", "camera_2")
@@ -240,9 +244,9 @@ def load_video_fields(path: Path) -> VideoFields:
                            int(data["n_markers"]), float(data["seconds"]))
 
 
-def _cached_fields(job: tuple[Path, Path | None, int]) -> VideoFields:
-    """Fields of one video, read from / written to the cache when a cache file is given."""
-    video, cached, reference_frame = job
+def _cached_fields(video: Path, cache_dir: str | Path | None, reference_frame: int) -> VideoFields:
+    """Fields of one video, read from / written to the cache when there is a cache folder."""
+    cached = None if cache_dir is None else cache_path(cache_dir, video, reference_frame)
     if cached is not None and cached.is_file():
         return load_video_fields(cached)
     value = video_fields(video, reference_frame=reference_frame)
@@ -251,7 +255,27 @@ def _cached_fields(job: tuple[Path, Path | None, int]) -> VideoFields:
     return value
 
 
-TrialFields = dict[tuple[str, str], VideoFields]
+VideoKey = tuple[str, str]  # (trial name, camera)
+TrialFields = dict[VideoKey, VideoFields]
+
+
+def map_videos(trials: Sequence[Trial], compute: Callable[[Path], T], workers: int = 1, progress: bool = True,
+               desc: str = "videos") -> dict[VideoKey, T]:
+    """``compute(video)`` of every camera of every trial, keyed (trial name, camera), in ``workers``
+    processes (1 = this one; ``compute`` must then be picklable: a module-level function or a
+    functools.partial of one). One progress bar (in frames) covers the whole set."""
+    videos = [(t.name, cam, path) for t in trials for cam, path in t.videos.items()]
+    sizes = [frame_count(path) for _, _, path in videos]
+    out: dict[VideoKey, T] = {}
+    with tqdm(total=sum(sizes), unit="frame", desc=desc, disable=not progress) as bar, (
+        ProcessPoolExecutor(workers) if workers > 1 else nullcontext()
+    ) as pool:
+        paths = [path for _, _, path in videos]
+        results = map(compute, paths) if pool is None else pool.map(compute, paths)
+        for (name, cam, _), size, value in zip(videos, sizes, results):
+            out[(name, cam)] = value
+            bar.update(size)
+    return out
 
 
 def trial_fields(
@@ -266,19 +290,8 @@ def trial_fields(
     cache_dir: folder for one .npz per video (None: no cache). workers: processes (1 = this one).
     One progress bar (in frames) covers the whole set.
     """
-    videos = [(t.name, cam, path) for t in trials for cam, path in t.videos.items()]
-    jobs = [(path, None if cache_dir is None else cache_path(cache_dir, path, reference_frame), reference_frame)
-            for _, _, path in videos]
-    sizes = [frame_count(path) for _, _, path in videos]
-    out: TrialFields = {}
-    with tqdm(total=sum(sizes), unit="frame", desc="fields", disable=not progress) as bar, (
-        ProcessPoolExecutor(workers) if workers > 1 else nullcontext()
-    ) as pool:
-        results = map(_cached_fields, jobs) if pool is None else pool.map(_cached_fields, jobs)
-        for (name, cam, _), size, value in zip(videos, sizes, results):
-            out[(name, cam)] = value
-            bar.update(size)
-    return out
+    return map_videos(trials, partial(_cached_fields, cache_dir=cache_dir, reference_frame=reference_frame),
+                      workers, progress, "fields")
 
 
 def tracking_quality(fields: TrialFields) -> dict[str, float]:

@@ -1,9 +1,9 @@
 """`fv real ...` (fields, cross-validation and training on real labelled grasp trials) and
 `fv eval-trials` (a trained slip model judged on a folder of real trials, video to decision).
 
-Two methods (`--method`): `features` (default), the trial-level logistic regression on contact-motion
-and field features of :mod:`fv_algos.trial_features`, shipped as `fv_algos/weights/slip_gelsight_trial.pt`;
-`windows`, the paper's window classifiers (ConvLSTM and variants, :mod:`fv_algos.trial_eval`), shipped
+Two methods (`--method`): `trial` (default), the trial-level temporal network on per-frame
+contact-motion and field descriptors of :mod:`fv_algos.trial_net`, shipped as
+`fv_algos/weights/slip_gelsight_trial.pt`; `windows`, the paper's window classifiers (ConvLSTM and variants, :mod:`fv_algos.trial_eval`), shipped
 as `fv_algos/weights/slip_gelsight.pt`. `fv eval --trials DIR --model NAME` uses the shipped
 trial-level model `slip_NAME_trial.pt` when there is one, else the window model `slip_NAME.pt`.
 
@@ -33,7 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = verbs.add_parser("cv", help="object-held-out cross-validation (window and trial accuracy per fold)")
     _data_args(p)
-    _fit_args(p, steps=300)
+    _fit_args(p, window_steps=300)
     p.add_argument("--folds", type=int, default=5, help="object folds (default 5; the number of objects, "
                    "e.g. 29, leaves one object out)")
     p.add_argument("--init", default=None, help="fine-tune every fold from this checkpoint or shipped model name (e.g. sim); "
@@ -44,7 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = verbs.add_parser("train", help="train on all trials and write a shipped-model checkpoint + JSON")
     _data_args(p)
-    _fit_args(p, steps=600)
+    _fit_args(p, window_steps=600)
     p.add_argument("--out", type=Path, required=True, help="checkpoint path, e.g. fv_algos/weights/slip_gelsight.pt")
     p.add_argument("--cv-report", type=Path, default=None, help="`fv real cv --out` report to record beside it")
     p.set_defaults(func=_train)
@@ -64,15 +64,17 @@ def _data_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=1, help="processes for the fields (default 1)")
 
 
-def _fit_args(p: argparse.ArgumentParser, steps: int) -> None:
-    p.add_argument("--method", choices=("features", "windows"), default="features",
-                   help="features: trial-level logistic regression (default); windows: window classifier (--arch)")
-    p.add_argument("--l2", type=float, default=1.0, help="features: L2 penalty of the logistic regression (default 1)")
-    p.add_argument("--arch", default="convlstm", help="convlstm (the paper), cnn_lstm or lstm (default convlstm)")
+def _fit_args(p: argparse.ArgumentParser, window_steps: int) -> None:
+    p.set_defaults(window_steps=window_steps)
+    p.add_argument("--method", choices=("trial", "windows"), default="trial",
+                   help="trial: trial-level temporal network on per-frame descriptors (default); "
+                        "windows: window classifier (--arch)")
+    p.add_argument("--arch", default="convlstm", help="windows: convlstm (the paper), cnn_lstm or lstm (default convlstm)")
     p.add_argument("--hidden", type=int, default=16, help="hidden channels / units (default 16)")
-    p.add_argument("--steps", type=int, default=steps, help=f"optimizer steps (default {steps})")
-    p.add_argument("--batch-size", type=int, default=32)
-    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--steps", type=int, default=None,
+                   help=f"optimizer steps (default: trial: TrialNetConfig's, windows: {window_steps})")
+    p.add_argument("--batch-size", type=int, default=None, help="default: trial: TrialNetConfig's, windows: 32")
+    p.add_argument("--lr", type=float, default=None, help="default: trial: TrialNetConfig's, windows: 1e-3")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--stride", type=int, default=5, help="frames between window starts (default 5)")
     p.add_argument("--activity-px", type=float, default=None, help="activity (px/frame) from which a slip "
@@ -113,25 +115,42 @@ def _fit_config(args: argparse.Namespace):
     import torch
     from fv_algos.trial_eval import fit_config
     torch.set_num_threads(1)
-    return fit_config(args.arch, args.hidden, args.steps, args.batch_size, args.lr, args.seed, _rule(args))
+    return fit_config(args.arch, args.hidden, _given(args.steps, args.window_steps), _given(args.batch_size, 32),
+                      _given(args.lr, 1e-3), args.seed, _rule(args))
 
 
-def _features(args: argparse.Namespace):
-    """(trials, trial feature matrix (n_trials, D), labels (n_trials,)) of ``args.trials``."""
+def _given(value, default):
+    """``value`` unless it was not given (None)."""
+    return default if value is None else value
+
+
+def _trial_config(args: argparse.Namespace):
+    import torch
+    from fv_algos.trial_net import TrialNetConfig
+    torch.set_num_threads(1)
+    default = TrialNetConfig()
+    return TrialNetConfig(hidden=args.hidden, steps=_given(args.steps, default.steps),
+                          batch=_given(args.batch_size, default.batch), lr=_given(args.lr, default.lr), seed=args.seed)
+
+
+def _trial_inputs(args: argparse.Namespace):
+    """(trials, per-trial descriptor inputs, labels (n_trials,)) of ``args.trials``."""
     import numpy as np
-    from fv_algos.trial_features import trial_features, trial_series
+    from fv_algos.contact_motion import trial_series
+    from fv_algos.trial_net import trial_inputs
     trials, fields, _ = _load(args.trials, args.cache, args.workers)
-    series = trial_series(trials, args.cache)
-    return trials, trial_features(trials, series, fields), np.array([t.label for t in trials])
+    series = trial_series(trials, args.cache, workers=args.workers)
+    return trials, trial_inputs(trials, series, fields), np.array([t.label for t in trials])
 
 
 def _cv(args: argparse.Namespace) -> int:
     started = time.perf_counter()
-    if args.method == "features":
-        from fv_algos.trial_features import cross_validate_features
-        trials, x, labels = _features(args)
-        report = cross_validate_features(x, labels, [t.object for t in trials], args.folds, args.seed, args.l2)
-        report["config"] = {"method": "features", "l2": args.l2, "folds": args.folds, "seed": args.seed}
+    if args.method == "trial":
+        from fv_algos.trial_net import cross_validate_trials
+        config = _trial_config(args)
+        trials, inputs, labels = _trial_inputs(args)
+        report = cross_validate_trials(inputs, labels, [t.object for t in trials], args.folds, args.seed, config)
+        report["config"] = {"method": "trial", **asdict(config), "folds": args.folds}
     else:
         from fv_algos.trial_eval import cross_validate, trial_windows
         from nodes.slip_detector import model_path
@@ -161,8 +180,8 @@ def _cv(args: argparse.Namespace) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
-    if args.method == "features":
-        return _train_features(args)
+    if args.method == "trial":
+        return _train_trial(args)
     import numpy as np
     from fv_algos.slip.classifier import Checkpoint, save_checkpoint
     from fv_algos.slip.models import count_parameters
@@ -198,20 +217,22 @@ def _write_sidecar(path: Path, info: dict, cv_report: Path | None) -> None:
     path.with_suffix(".json").write_text(json.dumps(info, indent=1))
 
 
-def _train_features(args: argparse.Namespace) -> int:
-    from fv_algos.trial_features import TrialLogistic, feature_names, judge_trials, save_trial_model
+def _train_trial(args: argparse.Namespace) -> int:
+    from fv_algos.slip.models import count_parameters
+    from fv_algos.trial_net import DESCRIPTORS, fit_trial_net, judge_trials, save_trial_model, trial_probability
     started = time.perf_counter()
-    trials, x, labels = _features(args)
-    model = TrialLogistic.fit(x, labels, args.l2)
-    path = save_trial_model(args.out, model)
+    config = _trial_config(args)
+    trials, inputs, labels = _trial_inputs(args)
+    net = fit_trial_net(inputs, labels, config)
+    path = save_trial_model(args.out, net, config)
     info = {
         "model": path.stem.removeprefix("slip_"),
-        "kind": "trial-level logistic regression on contact-motion and field features (fv_algos.trial_features)",
+        "kind": "trial-level temporal network on per-frame contact-motion and field descriptors (fv_algos.trial_net)",
         "trained_on": {"trials_dir": str(args.trials), "trials": len(trials), "slip": int(labels.sum()),
                        "objects": len({t.object for t in trials})},
-        "l2": args.l2, "decision": "slip when p >= 0.5",
-        "features": dict(zip(feature_names(), model.weights.round(4).tolist())),
-        "training_trial_accuracy": judge_trials(model, x, labels)["trial_accuracy"],
+        "config": asdict(config), "parameters": count_parameters(net), "descriptors": list(DESCRIPTORS),
+        "decision": "slip when p >= 0.5",
+        "training_trial_accuracy": judge_trials(trial_probability(net, inputs), labels)["trial_accuracy"],
         "seconds": time.perf_counter() - started,
         "command": " ".join(["fv", *sys.argv[1:]]),
     }
@@ -229,19 +250,20 @@ def resolve_trial_model(name: str) -> Path:
     return shipped if shipped.is_file() else model_path(name)
 
 
-def _eval_features(args: argparse.Namespace, path: Path) -> dict[str, object]:
+def _eval_trial_net(args: argparse.Namespace, path: Path) -> dict[str, object]:
     """Report of the trial-level model at ``path`` on ``args.trials`` (video to decision)."""
     import numpy as np
     from fv_algos.real_trials import tracking_quality
-    from fv_algos.trial_features import judge_trials, load_trial_model, trial_features, trial_series
-    model, params = load_trial_model(path)
+    from fv_algos.contact_motion import trial_series
+    from fv_algos.trial_net import judge_trials, load_trial_model, trial_inputs, trial_probability
+    net, params = load_trial_model(path)
     trials, fields, field_s = _load(args.trials, getattr(args, "cache", None), getattr(args, "workers", 1))
-    series = trial_series(trials, getattr(args, "cache", None), params=params)
+    series = trial_series(trials, getattr(args, "cache", None), params=params, workers=getattr(args, "workers", 1))
     labels = np.array([t.label for t in trials])
-    report = judge_trials(model, trial_features(trials, series, fields), labels)
+    report = judge_trials(trial_probability(net, trial_inputs(trials, series, fields)), labels)
     return {"trial_accuracy": report["trial_accuracy"], "n_trials": report["n_trials"], "window_accuracy": None,
             "n_windows": 0, "confusion": report["confusion"], "trial_f1": report["trial_f1"], "threshold": 0.5,
-            "method": "features (trial-level: no windows, window_accuracy is null)", "fields_s": field_s,
+            "method": "trial (trial-level: no windows, window_accuracy is null)", "fields_s": field_s,
             "frames": int(sum(v.fields.shape[0] for v in fields.values())), "tracking": tracking_quality(fields)}
 
 
@@ -256,12 +278,12 @@ def eval_trials_command(args: argparse.Namespace) -> int:
     A trial-level model (:func:`resolve_trial_model`) has no windows: its window_accuracy is null."""
     import cv2
     import torch
-    from fv_algos.trial_features import is_trial_model
+    from fv_algos.trial_net import is_trial_model
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     started = time.perf_counter()
     path = resolve_trial_model(args.model)
-    out = _eval_features(args, path) if is_trial_model(path) else _eval_windows(args, path)
+    out = _eval_trial_net(args, path) if is_trial_model(path) else _eval_windows(args, path)
     wall = time.perf_counter() - started
     out = {"model": str(path), **out, "wall_s": wall, "s_per_trial": wall / out["n_trials"],
            "ms_per_frame": 1e3 * wall / out.pop("frames")}

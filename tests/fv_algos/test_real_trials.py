@@ -160,15 +160,32 @@ def test_fit_fine_tunes_from_a_checkpoint(isd_data: Path, tmp_path: Path) -> Non
 
 
 def test_eval_trials_command_with_a_trial_level_model(isd_data: Path, tmp_path: Path, capsys) -> None:
-    from fv_algos.trial_features import TrialLogistic, feature_names, save_trial_model
+    from fv_algos.trial_net import TrialNet, TrialNetConfig, save_trial_model
     from nodes.real_commands import eval_trials_command
     root = _subset(isd_data, tmp_path / "trials")
-    d = len(feature_names())
-    model = TrialLogistic(np.zeros(d), np.ones(d), np.zeros(d), 1.0)  # p = sigmoid(1) > 0.5: always slip
-    path = save_trial_model(tmp_path / "trial.pt", model)
+    net = TrialNet(4)
+    with torch.no_grad():  # p = sigmoid(1) > 0.5: always slip
+        for p in net.parameters():
+            p.zero_()
+        net.head.bias.fill_(1.0)
+    path = save_trial_model(tmp_path / "trial.pt", net, TrialNetConfig(hidden=4))
     args = argparse.Namespace(model=str(path), trials=root, cache=tmp_path / "cache", workers=1, json=True)
     assert eval_trials_command(args) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["n_trials"] == 3 and report["window_accuracy"] is None
     assert report["confusion"] == [[0, 1], [0, 2]] and report["trial_accuracy"] == pytest.approx(2 / 3)
     assert len(list((tmp_path / "cache").glob("*__contact__*.npy"))) == 6
+
+
+def test_real_train_writes_a_trial_model_that_fv_eval_reads(isd_data: Path, tmp_path: Path, capsys) -> None:
+    from nodes.cli import main
+    root = _subset(isd_data, tmp_path / "trials")
+    out = tmp_path / "slip_mine_trial.pt"
+    assert main(["real", "train", "--trials", str(root), "--cache", str(tmp_path / "cache"), "--steps", "5",
+                 "--hidden", "4", "--out", str(out)]) == 0
+    info = json.loads(out.with_suffix(".json").read_text())
+    assert info["trained_on"]["trials"] == 3 and info["config"]["steps"] == 5 and info["parameters"] > 0
+    capsys.readouterr()
+    assert main(["eval", "--trials", str(root), "--model", str(out), "--cache", str(tmp_path / "cache"), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["n_trials"] == 3 and report["method"].startswith("trial") and report["window_accuracy"] is None

@@ -1,0 +1,151 @@
+"""Per-frame contact motion of a GelSight-type camera (imprint vs markers), cached per video.
+
+Physics: slip is the object moving relative to the skin. A GelSight-type image shows two things
+that move: the dark markers (the skin) and the shading of the object's imprint. Per frame pair
+:class:`ContactMotion` measures, on a small image (``size_px``), the ``SERIES``:
+
+- ``relative_px``: texture-weighted mean |flow of the marker-free image - flow of the raw image|,
+  i.e. imprint motion not explained by skin motion (markers removed by a grey closing of
+  ``close_px``), px/frame at ``size_px`` scale;
+- ``marker_px``: mean optical-flow speed of the raw image (dominated by the markers), px/frame at
+  ``size_px`` scale;
+- ``contact``: mean high-pass energy of the marker-free colour image (imprint shading), grey levels;
+- ``imprint_change``: mean |marker-free colour image - that of the reference frame| (summed over
+  B, G, R), grey levels: how far the imprint is from where the trial started (an object that
+  slips away or out of the grasp changes it for good);
+- ``imprint_step``: the same against the previous frame, grey levels per frame.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Iterable, Sequence
+from dataclasses import asdict, dataclass
+from functools import partial
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from fv_algos.real_trials import VIDEO_SUFFIX, Trial, VideoKey, map_videos, read_frames, write_atomically
+
+SERIES = ("relative_px", "marker_px", "contact", "imprint_change", "imprint_step")
+SERIES_CACHE_VERSION = 2
+
+
+@dataclass(frozen=True)
+class ContactMotionParams:
+    """size_px: (width, height) the frame is resized to (area averaging). close_px: diameter of the
+    grey closing that removes the dark markers (> a marker's diameter at ``size_px``). sigma_px:
+    Gaussian high-pass scale of the contact shading. texture_floor: high-pass energy (grey levels,
+    summed over BGR) below which a pixel has no imprint texture and gets no weight."""
+
+    size_px: tuple[int, int] = (80, 60)
+    close_px: int = 7
+    sigma_px: float = 4.0
+    texture_floor: float = 4.0
+
+
+@dataclass(frozen=True)
+class _Prepared:
+    """One frame at ``size_px``: grey and marker-free grey (h, w) uint8, marker-free colour
+    (h, w, 3) float32 and its texture energy (h, w) float32."""
+
+    grey: np.ndarray
+    closed_grey: np.ndarray
+    closed: np.ndarray
+    texture: np.ndarray
+
+
+class ContactMotion:
+    """Per-frame ``SERIES`` of one camera, online: ``reset`` with the reference image, then ``step``
+    every frame."""
+
+    def __init__(self, params: ContactMotionParams = ContactMotionParams()) -> None:
+        self.params = params
+        self._kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (params.close_px, params.close_px))
+        self._reference: _Prepared | None = None
+        self._previous: _Prepared | None = None
+
+    def _prepare(self, image: np.ndarray) -> _Prepared:
+        small = cv2.resize(image, self.params.size_px, interpolation=cv2.INTER_AREA)
+        closed = cv2.morphologyEx(small, cv2.MORPH_CLOSE, self._kernel)
+        closed_f = closed.astype(np.float32)
+        texture = np.abs(closed_f - cv2.GaussianBlur(closed_f, (0, 0), self.params.sigma_px)).sum(axis=-1)
+        return _Prepared(cv2.cvtColor(small, cv2.COLOR_BGR2GRAY), cv2.cvtColor(closed, cv2.COLOR_BGR2GRAY),
+                         closed_f, texture)
+
+    def reset(self, image: np.ndarray) -> np.ndarray:
+        """Start from ``image`` (H, W, 3) BGR uint8; returns its row (0, 0, contact, 0, 0) float32."""
+        self._reference = self._previous = self._prepare(image)
+        return np.array([0.0, 0.0, self._reference.texture.mean(), 0.0, 0.0], np.float32)
+
+    def step(self, image: np.ndarray) -> np.ndarray:
+        """``SERIES`` (5,) float32 of ``image`` against the previous frame and the reference."""
+        if self._previous is None or self._reference is None:
+            return self.reset(image)
+        now, old = self._prepare(image), self._previous
+        raw_flow = _flow(old.grey, now.grey)
+        imprint_flow = _flow(old.closed_grey, now.closed_grey)
+        weight = np.clip(np.maximum(now.texture, old.texture) - self.params.texture_floor, 0.0, None)
+        relative = float((np.linalg.norm(imprint_flow - raw_flow, axis=-1) * weight).sum() / (weight.sum() + 1e-6))
+        self._previous = now
+        return np.array([relative, np.linalg.norm(raw_flow, axis=-1).mean(), now.texture.mean(),
+                         np.abs(now.closed - self._reference.closed).sum(axis=-1).mean(),
+                         np.abs(now.closed - old.closed).sum(axis=-1).mean()], np.float32)
+
+
+def _flow(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Farneback optical flow (h, w, 2) px/frame from grey ``a`` to ``b``."""
+    return cv2.calcOpticalFlowFarneback(a, b, None, 0.5, 2, 9, 3, 5, 1.1, 0)
+
+
+def contact_series(frames: Iterable[np.ndarray], params: ContactMotionParams = ContactMotionParams(),
+                   reference_frame: int = 1) -> np.ndarray:
+    """(F, 5) float32 ``SERIES`` of BGR ``frames`` from ``reference_frame`` on (the frames
+    :func:`fv_algos.real_trials.video_fields` keeps); ValueError when there is no such frame."""
+    core, rows = ContactMotion(params), []
+    for index, frame in enumerate(frames):
+        if index == reference_frame:
+            rows.append(core.reset(frame))
+        elif index > reference_frame:
+            rows.append(core.step(frame))
+    if not rows:
+        raise ValueError(f"no frame at reference_frame={reference_frame}")
+    return np.stack(rows)
+
+
+def _series_cache_path(cache_dir: Path, video: Path, reference_frame: int, params: ContactMotionParams) -> Path:
+    stat = video.stat()
+    text = json.dumps([SERIES_CACHE_VERSION, str(video.resolve()), stat.st_size, stat.st_mtime_ns, reference_frame,
+                       asdict(params), hashlib.sha256(Path(__file__).read_bytes()).hexdigest()])
+    stem = "__".join(video.parts[-3:]).removesuffix(VIDEO_SUFFIX)
+    return cache_dir / f"{stem}__contact__{hashlib.sha256(text.encode()).hexdigest()[:16]}.npy"
+
+
+TrialSeries = dict[VideoKey, np.ndarray]
+
+
+def _cached_series(video: Path, cache_dir: str | Path | None, reference_frame: int,
+                   params: ContactMotionParams) -> np.ndarray:
+    """:func:`contact_series` of one video, read from / written to the cache when there is a cache folder."""
+    cached = None if cache_dir is None else _series_cache_path(Path(cache_dir), video, reference_frame, params)
+    if cached is not None and cached.is_file():
+        return np.load(cached)
+    try:
+        series = contact_series(read_frames(video), params, reference_frame)
+    except ValueError as exc:
+        raise ValueError(f"{video}: {exc}") from exc
+    if cached is not None:
+        write_atomically(cached, lambda tmp: np.save(tmp, series))
+    return series
+
+
+def trial_series(trials: Sequence[Trial], cache_dir: str | Path | None = None, reference_frame: int = 1,
+                 params: ContactMotionParams = ContactMotionParams(), workers: int = 1,
+                 progress: bool = True) -> TrialSeries:
+    """:func:`contact_series` of every camera of every trial, keyed (trial name, camera), in
+    ``workers`` processes with one progress bar; cached as one .npy per video under ``cache_dir``
+    (None: no cache), keyed by the video, the parameters and this module's code."""
+    return map_videos(trials, partial(_cached_series, cache_dir=cache_dir, reference_frame=reference_frame,
+                                      params=params), workers, progress, "contact motion")

@@ -1,0 +1,206 @@
+"""Trial-level slip classifier: a small temporal network on per-frame descriptors of both cameras.
+
+:func:`camera_descriptors` joins the contact-motion ``SERIES`` of a camera
+(:mod:`fv_algos.contact_motion`) and its displacement fields of the same frames into the
+``DESCRIPTORS`` (C = 11) per frame, each divided by its ``SCALE`` so that all are of order 1.
+:class:`TrialNet` reads the descriptors of each camera with three dilated 1-D convolutions
+(29 frames of context), pools them over time (mean and max, so the trial's length does not
+matter), averages the cameras and gives one slip logit per trial (slip when p >= 0.5; no
+threshold is tuned). The decision needs the whole trial (e.g. when the gripper releases); the
+series are accumulated online, frame by frame.
+"""
+from __future__ import annotations
+
+import statistics
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from fv_algos.contact_motion import ContactMotionParams, TrialSeries
+from fv_algos.real_trials import CAMERAS, Trial, TrialFields, VideoFields
+from fv_algos.slip.evaluate import classification_metrics
+from fv_algos.trial_eval import object_folds
+
+DESCRIPTORS = (
+    "relative_px", "marker_px",  # from SERIES, px/frame at size_px scale
+    "contact_rise",  # contact minus that of the first 3 frames, grey levels
+    "field_px", "shear_x_px", "shear_y_px",  # grid means of |d|, dx, dy, px
+    "invalid_share",  # share of reference markers not valid this frame
+    "divergence", "curl",  # grid means of div d and curl d (d in px, per grid cell)
+    "imprint_change", "imprint_step",  # from SERIES, grey levels
+)
+SCALE = np.array([1.0, 1.0, 1.0, 5.0, 5.0, 5.0, 0.1, 1 / 3, 1 / 3, 10.0, 1.0], np.float32)
+MIRROR_X = np.array([1, 1, 1, 1, -1, 1, 1, 1, -1, 1, 1], np.float32)  # descriptor signs of the image mirrored left-right
+MIRROR_Y = np.array([1, 1, 1, 1, 1, -1, 1, 1, -1, 1, 1], np.float32)  # ... and upside down
+KIND = "trial_net"
+
+
+def camera_descriptors(series: np.ndarray, fields: VideoFields) -> torch.Tensor:
+    """(C, F) float32 ``DESCRIPTORS`` / ``SCALE`` of one camera: ``series`` (F, 5) from
+    :func:`fv_algos.contact_motion.contact_series` and ``fields`` of the same F frames; ValueError when the counts differ."""
+    grid = fields.fields.astype(np.float32)
+    if grid.shape[0] != series.shape[0]:
+        raise ValueError(f"{series.shape[0]} contact-series frames but {grid.shape[0]} fields")
+    ddx_dy, ddx_dx = np.gradient(grid[..., 0], axis=(1, 2))
+    ddy_dy, ddy_dx = np.gradient(grid[..., 1], axis=(1, 2))
+    rows = np.stack([
+        series[:, 0], series[:, 1], series[:, 2] - series[:3, 2].mean(),
+        grid[..., 2].mean(axis=(1, 2)), grid[..., 0].mean(axis=(1, 2)), grid[..., 1].mean(axis=(1, 2)),
+        1.0 - fields.valid_share, (ddx_dx + ddy_dy).mean(axis=(1, 2)), (ddy_dx - ddx_dy).mean(axis=(1, 2)),
+        series[:, 3], series[:, 4],
+    ]).astype(np.float32)
+    return torch.from_numpy(np.nan_to_num(rows / SCALE[:, None], nan=0.0, posinf=0.0, neginf=0.0))
+
+
+TrialInput = list[torch.Tensor]  # one (C, F) descriptor tensor per camera of a trial
+
+
+def trial_inputs(trials: Sequence[Trial], series: TrialSeries, fields: TrialFields,
+                 cameras: Sequence[str] = CAMERAS) -> list[TrialInput]:
+    """:func:`camera_descriptors` of every camera of every trial (the cameras it has)."""
+    return [[camera_descriptors(series[(t.name, c)], fields[(t.name, c)]) for c in cameras if (t.name, c) in series]
+            for t in trials]
+
+
+@dataclass(frozen=True)
+class TrialNetConfig:
+    """hidden: channels of the temporal convolutions. steps: optimizer steps of ``batch`` trials
+    (half slip, half no slip). lr, weight_decay: AdamW. gain: range of the random factor every
+    training trial's descriptors are multiplied by (with random left-right / up-down mirroring)."""
+
+    hidden: int = 16
+    steps: int = 1600
+    batch: int = 8
+    lr: float = 3e-3
+    weight_decay: float = 1e-2
+    gain: tuple[float, float] = (0.8, 1.2)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.hidden < 1 or self.steps < 1 or self.batch < 2 or self.batch % 2 or not 0 < self.gain[0] <= self.gain[1]:
+            raise ValueError(f"TrialNetConfig needs hidden, steps >= 1, an even batch >= 2 and 0 < gain[0] <= gain[1], got {self}")
+
+
+class TrialNet(nn.Module):
+    """Cameras of one trial -> slip logit: per camera three 1-D convolutions (kernel 5, dilation 1, 2,
+    4) with ReLU over the (C, F) descriptors, then mean and max over the F frames (2 * hidden);
+    mean over the cameras; linear."""
+
+    def __init__(self, hidden: int = 16) -> None:
+        super().__init__()
+        self.temporal = nn.Sequential(
+            nn.Conv1d(len(DESCRIPTORS), hidden, 5, padding=2), nn.ReLU(),
+            nn.Conv1d(hidden, hidden, 5, padding=4, dilation=2), nn.ReLU(),
+            nn.Conv1d(hidden, hidden, 5, padding=8, dilation=4), nn.ReLU())
+        self.head = nn.Linear(2 * hidden, 1)
+
+    def forward(self, cameras: TrialInput) -> torch.Tensor:
+        """Scalar slip logit of one trial (its cameras' (C, F) tensors, any F >= 1)."""
+        pooled = []
+        for x in cameras:
+            h = self.temporal(x[None])[0]
+            pooled.append(torch.cat([h.mean(dim=1), h.amax(dim=1)]))
+        return self.head(torch.stack(pooled).mean(dim=0))[0]
+
+
+def _augment(x: torch.Tensor, rng: np.random.Generator, gain: tuple[float, float]) -> torch.Tensor:
+    """``x`` (C, F) times a random gain, randomly mirrored left-right and up-down."""
+    sign = np.ones(len(DESCRIPTORS), np.float32)
+    for mirror in (MIRROR_X, MIRROR_Y):
+        if rng.random() < 0.5:
+            sign = sign * mirror
+    return x * torch.from_numpy(sign * np.float32(rng.uniform(*gain)))[:, None]
+
+
+def fit_trial_net(inputs: Sequence[TrialInput], labels: np.ndarray, config: TrialNetConfig = TrialNetConfig()) -> TrialNet:
+    """Train a :class:`TrialNet` on ``inputs`` with ``labels`` (M,) 0/1 (both classes needed):
+    AdamW on the binary cross-entropy of balanced batches of augmented trials."""
+    labels = np.asarray(labels)
+    slip, still = np.flatnonzero(labels == 1), np.flatnonzero(labels == 0)
+    if slip.size == 0 or still.size == 0:
+        raise ValueError(f"training needs slip and no-slip trials, got {slip.size} and {still.size}")
+    torch.manual_seed(config.seed)
+    rng = np.random.default_rng(config.seed)
+    net = TrialNet(config.hidden)
+    optimizer = torch.optim.AdamW(net.parameters(), config.lr, weight_decay=config.weight_decay)
+    loss_fn = nn.BCEWithLogitsLoss()
+    for _ in range(config.steps):
+        picks = np.concatenate([rng.choice(slip, config.batch // 2), rng.choice(still, config.batch // 2)])
+        logits = torch.stack([net([_augment(x, rng, config.gain) for x in inputs[i]]) for i in picks])
+        loss = loss_fn(logits, torch.as_tensor(labels[picks], dtype=torch.float32))
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    return net.eval()
+
+
+@torch.no_grad()
+def trial_probability(net: TrialNet, inputs: Sequence[TrialInput]) -> np.ndarray:
+    """(M,) slip probability of each trial."""
+    return np.array([torch.sigmoid(net(x)).item() for x in inputs])
+
+
+def save_trial_model(path: str | Path, net: TrialNet, config: TrialNetConfig,
+                     params: ContactMotionParams = ContactMotionParams()) -> Path:
+    """Write ``net`` (+ its training config, the descriptors and the contact-motion parameters)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"kind": KIND, "descriptors": list(DESCRIPTORS), "scale": SCALE.tolist(), "config": asdict(config),
+                "params": asdict(params), "state_dict": net.state_dict()}, path)
+    return path
+
+
+def is_trial_model(path: str | Path) -> bool:
+    """Whether ``path`` holds a model written by :func:`save_trial_model`."""
+    data = torch.load(path, map_location="cpu", weights_only=False)
+    return isinstance(data, dict) and data.get("kind") == KIND
+
+
+def load_trial_model(path: str | Path) -> tuple[TrialNet, ContactMotionParams]:
+    """Read a file written by :func:`save_trial_model`; ValueError when it is another kind or was
+    written for other descriptors."""
+    data = torch.load(path, map_location="cpu", weights_only=False)
+    if not (isinstance(data, dict) and data.get("kind") == KIND):
+        raise ValueError(f"{path} is not a trial-level slip model (kind {KIND!r})")
+    if data["descriptors"] != list(DESCRIPTORS) or data["scale"] != SCALE.tolist():
+        raise ValueError(f"{path}: descriptors {data['descriptors']} (scale {data['scale']}) differ from this "
+                         f"code's {list(DESCRIPTORS)} ({SCALE.tolist()})")
+    net = TrialNet(int(data["config"]["hidden"]))
+    net.load_state_dict(data["state_dict"])
+    params = data["params"]
+    return net.eval(), ContactMotionParams(**{**params, "size_px": tuple(params["size_px"])})
+
+
+def judge_trials(probability: np.ndarray, labels: np.ndarray) -> dict[str, object]:
+    """Trial accuracy, F1, confusion ([[TN, FP], [FN, TP]]), n_trials and the probabilities (M,) of
+    trials with ``labels`` (M,) (slip when p >= 0.5)."""
+    m = classification_metrics(labels, (np.asarray(probability) >= 0.5).astype(np.int64))
+    return {"trial_accuracy": m.accuracy, "trial_f1": m.f1, "confusion": [list(r) for r in m.confusion],
+            "n_trials": m.n, "probability": np.asarray(probability).tolist()}
+
+
+def cross_validate_trials(inputs: Sequence[TrialInput], labels: np.ndarray, objects: Sequence[str], folds: int,
+                          seed: int = 0, config: TrialNetConfig = TrialNetConfig()) -> dict[str, object]:
+    """Object-held-out cross-validation of :class:`TrialNet`: ``folds`` object groups (dealt with
+    ``seed``; ``folds`` = number of objects leaves one object out), a network trained per fold on
+    the other objects' trials. Returns {"folds": per fold objects, trials, trial accuracy,
+    confusion; "summary": mean, std, min, worst fold, pooled accuracy and confusion}."""
+    names, labels = np.asarray(objects), np.asarray(labels)
+    rows = []
+    for k, group in enumerate(object_folds(objects, folds, seed)):
+        test = np.isin(names, group)
+        net = fit_trial_net([inputs[i] for i in np.flatnonzero(~test)], labels[~test], config)
+        probability = trial_probability(net, [inputs[i] for i in np.flatnonzero(test)])
+        rows.append({"fold": k, "objects": group, "trials": np.flatnonzero(test).tolist(),
+                     **judge_trials(probability, labels[test])})
+    accuracy = [r["trial_accuracy"] for r in rows]
+    worst = min(rows, key=lambda r: r["trial_accuracy"])
+    confusion = np.sum([r["confusion"] for r in rows], axis=0)
+    return {"folds": rows, "summary": {
+        "trial_accuracy_mean": statistics.fmean(accuracy), "trial_accuracy_std": statistics.pstdev(accuracy),
+        "trial_accuracy_min": min(accuracy), "worst_fold": worst["fold"],
+        "pooled_trial_accuracy": float(np.trace(confusion) / confusion.sum()), "pooled_confusion": confusion.tolist()}}

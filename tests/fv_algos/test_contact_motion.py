@@ -1,0 +1,34 @@
+"""Contact motion of a GelSight-type image against closed-form motions of imprint and markers (no data needed)."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from fv_algos.contact_motion import ContactMotion
+
+
+def _scene(imprint_shift_px: int, marker_shift_px: int) -> np.ndarray:
+    """320x240 BGR: a textured imprint (shifted right by ``imprint_shift_px``) under a grid of dark
+    markers (shifted right by ``marker_shift_px``)."""
+    texture = cv2.GaussianBlur(np.random.default_rng(0).uniform(0, 255, (240, 400)).astype(np.float32), (0, 0), 6)
+    texture = 60 + 3.0 * (texture - texture.mean())
+    image = np.repeat(texture[:, 40 - imprint_shift_px: 360 - imprint_shift_px, None], 3, axis=2)
+    image = np.clip(image, 0, 255).astype(np.uint8)
+    for y in range(20, 240, 40):
+        for x in range(20, 320, 40):
+            cv2.circle(image, (x + marker_shift_px, y), 6, (0, 0, 0), -1)
+    return image
+
+
+def test_relative_motion_is_small_when_imprint_sticks_and_large_when_it_slips() -> None:
+    stick, slip = ContactMotion(), ContactMotion()
+    stick.reset(_scene(0, 0))
+    slip.reset(_scene(0, 0))
+    relative_stick, marker_stick, _, change_stick, step_stick = stick.step(_scene(8, 8))  # skin and imprint move together
+    relative_slip, marker_slip, _, change_slip, step_slip = slip.step(_scene(8, 0))  # imprint moves, markers stay
+    assert marker_stick > 1.0
+    assert relative_slip > 3 * relative_stick
+    assert change_slip == pytest.approx(step_slip) and change_slip > 1.0  # one step from the reference
+    again = slip.step(_scene(8, 0))  # no further motion: the imprint is still away from the reference
+    assert again[4] < 0.1 * again[3] and again[3] == pytest.approx(change_slip, rel=1e-5)

@@ -1,0 +1,110 @@
+"""Trial-level slip model: descriptors, the temporal network, its file and object-held-out
+cross-validation (no data needed)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from fv_algos.real_trials import VideoFields
+from fv_algos.trial_net import (
+    DESCRIPTORS,
+    MIRROR_X,
+    SCALE,
+    TrialNet,
+    TrialNetConfig,
+    camera_descriptors,
+    cross_validate_trials,
+    fit_trial_net,
+    is_trial_model,
+    load_trial_model,
+    save_trial_model,
+    trial_probability,
+)
+
+
+def _fields(frames: int, dx_px: float) -> VideoFields:
+    grid = np.zeros((frames, 30, 30, 3), np.float16)
+    grid[..., 0] = dx_px
+    grid[..., 2] = abs(dx_px)
+    return VideoFields(grid, np.ones(frames, bool), np.full(frames, 0.9, np.float32), np.zeros(frames, np.int32), 40, 0.0)
+
+
+def test_descriptors_closed_form_and_mirroring() -> None:
+    series = np.zeros((12, 5), np.float32)
+    series[:, 2] = np.r_[np.full(3, 4.0), np.full(9, 6.0)]  # contact rises by 2 after the first 3 frames
+    series[:, 3] = 10.0  # imprint 10 grey levels from the reference
+    d = dict(zip(DESCRIPTORS, camera_descriptors(series, _fields(12, 2.5)).numpy() * SCALE[:, None]))
+    np.testing.assert_allclose(d["contact_rise"], np.r_[np.zeros(3), np.full(9, 2.0)], atol=1e-6)
+    np.testing.assert_allclose(d["shear_x_px"], 2.5)
+    np.testing.assert_allclose(d["field_px"], 2.5)
+    np.testing.assert_allclose(d["invalid_share"], 0.1, atol=1e-6)
+    np.testing.assert_allclose(d["divergence"], 0.0, atol=1e-6)
+    np.testing.assert_allclose(d["imprint_change"], 10.0)
+    mirrored = dict(zip(DESCRIPTORS, MIRROR_X))  # mirroring left-right flips x shear and curl only
+    assert mirrored["shear_x_px"] == -1 and mirrored["curl"] == -1 and sum(MIRROR_X) == len(DESCRIPTORS) - 4
+    with pytest.raises(ValueError, match="12 contact-series frames but 11 fields"):
+        camera_descriptors(series, _fields(11, 1.0))
+
+
+def _toy_trials(n: int, seed: int = 0) -> tuple[list[list[torch.Tensor]], np.ndarray]:
+    """Slip trials carry a burst of marker motion at a random time, no-slip trials a steady wobble."""
+    rng = np.random.default_rng(seed)
+    inputs, labels = [], np.arange(n) % 2
+    for label in labels:
+        cameras = []
+        for _ in range(2):
+            length = int(rng.integers(60, 200))
+            x = rng.normal(0, 0.05, (len(DESCRIPTORS), length)).astype(np.float32)
+            if label:
+                start = int(rng.integers(0, length - 8))
+                x[1, start:start + 8] += 2.0
+            else:
+                x[1] += 0.4 * np.abs(np.sin(np.arange(length) / 3.0)).astype(np.float32)
+            cameras.append(torch.from_numpy(x))
+        inputs.append(cameras)
+    return inputs, labels
+
+
+def test_trial_net_learns_a_burst_whatever_the_length_and_round_trips(tmp_path: Path) -> None:
+    torch.set_num_threads(1)
+    inputs, labels = _toy_trials(40)
+    config = TrialNetConfig(steps=60, seed=1)
+    net = fit_trial_net(inputs, labels, config)
+    test_inputs, test_labels = _toy_trials(20, seed=5)
+    assert ((trial_probability(net, test_inputs) >= 0.5) == test_labels).mean() >= 0.9
+    path = save_trial_model(tmp_path / "m.pt", net, config)
+    assert is_trial_model(path)
+    again, params = load_trial_model(path)
+    np.testing.assert_allclose(trial_probability(again, test_inputs), trial_probability(net, test_inputs), rtol=1e-6)
+    assert params.size_px == (80, 60)
+    with pytest.raises(ValueError, match="slip and no-slip trials"):
+        fit_trial_net(inputs, np.zeros(40, int), config)
+
+
+def test_object_held_out_cross_validation_keeps_objects_apart() -> None:
+    torch.set_num_threads(1)
+    inputs, labels = _toy_trials(30)
+    objects = [f"o{i % 6}" for i in range(30)]
+    report = cross_validate_trials(inputs, labels, objects, folds=3, config=TrialNetConfig(steps=40))
+    assert len(report["folds"]) == 3 and report["summary"]["trial_accuracy_mean"] >= 0.8
+    for fold in report["folds"]:  # every test object is absent from its fold's training trials
+        assert {objects[i] for i in fold["trials"]} == set(fold["objects"])
+    assert sum(fold["n_trials"] for fold in report["folds"]) == 30
+
+
+def test_a_model_file_of_another_kind_is_refused(tmp_path: Path) -> None:
+    torch.save({"kind": "something_else"}, tmp_path / "other.pt")
+    assert not is_trial_model(tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="not a trial-level slip model"):
+        load_trial_model(tmp_path / "other.pt")
+    save_trial_model(tmp_path / "m.pt", TrialNet(4), TrialNetConfig(hidden=4))
+    data = torch.load(tmp_path / "m.pt", weights_only=False)
+    data["descriptors"] = data["descriptors"][:-1]
+    torch.save(data, tmp_path / "old.pt")
+    with pytest.raises(ValueError, match="differ from this code"):
+        load_trial_model(tmp_path / "old.pt")
+
+
