@@ -238,6 +238,9 @@ def cross_validate(data: TrialWindows, config: FitConfig, folds: int, seed: int 
         model, threshold, record = fit(data, train_trials, fold_config, monitor, init)
         metrics = judge(model, data, test, threshold, config.rule.top_k)
         rows.append({"fold": k, "objects": group, "trials": test.tolist(), **metrics, "training": record})
+    train_record = config.train.to_dict()
+    if init is not None:  # the fine-tuned architecture is the checkpoint's, not config.train.model
+        train_record["model"] = asdict(load_checkpoint(init).model_config)
     trial_acc = [r["trial_accuracy"] for r in rows]
     window_acc = [r["window_accuracy"] for r in rows]
     worst = min(rows, key=lambda r: r["trial_accuracy"])
@@ -251,7 +254,7 @@ def cross_validate(data: TrialWindows, config: FitConfig, folds: int, seed: int 
             "worst_fold": worst["fold"], "pooled_trial_accuracy": float(np.trace(confusion) / confusion.sum()),
             "pooled_confusion": confusion.tolist(),
         },
-        "config": {"train": config.train.to_dict(), "rule": asdict(config.rule), "folds": folds, "seed": seed},
+        "config": {"train": train_record, "init": init, "rule": asdict(config.rule), "folds": folds, "seed": seed},
     }
 
 
