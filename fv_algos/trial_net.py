@@ -41,7 +41,8 @@ KIND = "trial_net"
 
 def camera_descriptors(series: np.ndarray, fields: VideoFields) -> torch.Tensor:
     """(C, F) float32 ``DESCRIPTORS`` / ``SCALE`` of one camera: ``series`` (F, 5) from
-    :func:`fv_algos.contact_motion.contact_series` and ``fields`` of the same F frames; ValueError when the counts differ."""
+    :func:`fv_algos.contact_motion.contact_series` and ``fields`` of the same F frames; ValueError
+    when the counts differ."""
     grid = fields.fields.astype(np.float32)
     if grid.shape[0] != series.shape[0]:
         raise ValueError(f"{series.shape[0]} contact-series frames but {grid.shape[0]} fields")
@@ -82,7 +83,8 @@ class TrialNetConfig:
 
     def __post_init__(self) -> None:
         if self.hidden < 1 or self.steps < 1 or self.batch < 2 or self.batch % 2 or not 0 < self.gain[0] <= self.gain[1]:
-            raise ValueError(f"TrialNetConfig needs hidden, steps >= 1, an even batch >= 2 and 0 < gain[0] <= gain[1], got {self}")
+            raise ValueError("TrialNetConfig needs hidden, steps >= 1, an even batch >= 2 and "
+                             f"0 < gain[0] <= gain[1], got {self}")
 
 
 class TrialNet(nn.Module):
@@ -116,7 +118,8 @@ def _augment(x: torch.Tensor, rng: np.random.Generator, gain: tuple[float, float
     return x * torch.from_numpy(sign * np.float32(rng.uniform(*gain)))[:, None]
 
 
-def fit_trial_net(inputs: Sequence[TrialInput], labels: np.ndarray, config: TrialNetConfig = TrialNetConfig()) -> TrialNet:
+def fit_trial_net(inputs: Sequence[TrialInput], labels: np.ndarray,
+                  config: TrialNetConfig = TrialNetConfig()) -> TrialNet:
     """Train a :class:`TrialNet` on ``inputs`` with ``labels`` (M,) 0/1 (both classes needed):
     AdamW on the binary cross-entropy of balanced batches of augmented trials."""
     labels = np.asarray(labels)

@@ -3,9 +3,9 @@
 
 Two methods (`--method`): `trial` (default), the trial-level temporal network on per-frame
 contact-motion and field descriptors of :mod:`fv_algos.trial_net`, shipped as
-`fv_algos/weights/slip_gelsight_trial.pt`; `windows`, the paper's window classifiers (ConvLSTM and variants, :mod:`fv_algos.trial_eval`), shipped
-as `fv_algos/weights/slip_gelsight.pt`. `fv eval --trials DIR --model NAME` uses the shipped
-trial-level model `slip_NAME_trial.pt` when there is one, else the window model `slip_NAME.pt`.
+`fv_algos/weights/slip_gelsight_trial.pt`; `windows`, the paper's window classifiers (ConvLSTM and
+variants, :mod:`fv_algos.trial_eval`), shipped as `fv_algos/weights/slip_gelsight.pt`.
+`fv eval --trials DIR --model NAME` uses the shipped trial-level model `slip_NAME_trial.pt` when there is one, else the window model `slip_NAME.pt`.
 
 A trials folder holds `labels.csv` (columns trial, object, label = slip / no_slip) and per trial
 `<trial>/camera_0.avi` (+ `camera_2.avi`). Fields are cached per video under `--cache`
@@ -53,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", required=True, help="shipped model name (gelsight, sim) or checkpoint path")
     p.add_argument("--trials", type=Path, required=True, help="folder with labels.csv and <trial>/camera_0.avi")
     p.add_argument("--cache", type=Path, default=None, help="reuse / write cached fields here (default: none)")
-    p.add_argument("--workers", type=int, default=1, help="processes for the fields (default 1)")
+    p.add_argument("--workers", type=int, default=1, help="processes for the fields and contact motion (default 1)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=eval_trials_command)
 
@@ -61,7 +61,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _data_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trials", type=Path, required=True, help="folder with labels.csv and the trial folders")
     p.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help=f"field cache folder (default {DEFAULT_CACHE})")
-    p.add_argument("--workers", type=int, default=1, help="processes for the fields (default 1)")
+    p.add_argument("--workers", type=int, default=1, help="processes for the fields and contact motion (default 1)")
 
 
 def _fit_args(p: argparse.ArgumentParser, window_steps: int) -> None:

@@ -82,6 +82,8 @@ def test_trial_net_learns_a_burst_whatever_the_length_and_round_trips(tmp_path: 
     assert params.size_px == (80, 60)
     with pytest.raises(ValueError, match="slip and no-slip trials"):
         fit_trial_net(inputs, np.zeros(40, int), config)
+    with pytest.raises(ValueError, match="an even batch"):
+        TrialNetConfig(batch=3)
 
 
 def test_object_held_out_cross_validation_keeps_objects_apart() -> None:
