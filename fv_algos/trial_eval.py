@@ -220,6 +220,18 @@ def judge(model: nn.Module, data: TrialWindows, trials: np.ndarray, threshold: f
             "threshold": threshold, "scores": scores.tolist()}
 
 
+def fold_summary(rows: Sequence[dict[str, object]]) -> dict[str, object]:
+    """Trial accuracy over cross-validation folds (``rows``, each with fold, trial_accuracy and a
+    trial confusion [[TN, FP], [FN, TP]]): mean, std, min, worst fold, pooled accuracy and confusion."""
+    accuracy = [r["trial_accuracy"] for r in rows]
+    worst = min(rows, key=lambda r: r["trial_accuracy"])
+    confusion = np.sum([r["confusion"] for r in rows], axis=0)
+    return {"trial_accuracy_mean": statistics.fmean(accuracy), "trial_accuracy_std": statistics.pstdev(accuracy),
+            "trial_accuracy_min": min(accuracy), "worst_fold": worst["fold"],
+            "pooled_trial_accuracy": float(np.trace(confusion) / confusion.sum()),
+            "pooled_confusion": confusion.tolist()}
+
+
 def cross_validate(data: TrialWindows, config: FitConfig, folds: int, seed: int = 0,
                    init: str | None = None, progress: bool = True) -> dict[str, object]:
     """Object-held-out cross-validation. Returns {"folds": [per fold: test objects, test trial
@@ -241,18 +253,12 @@ def cross_validate(data: TrialWindows, config: FitConfig, folds: int, seed: int 
     train_record = config.train.to_dict()
     if init is not None:  # the fine-tuned architecture is the checkpoint's, not config.train.model
         train_record["model"] = asdict(load_checkpoint(init).model_config)
-    trial_acc = [r["trial_accuracy"] for r in rows]
     window_acc = [r["window_accuracy"] for r in rows]
-    worst = min(rows, key=lambda r: r["trial_accuracy"])
-    confusion = np.sum([r["confusion"] for r in rows], axis=0)
     return {
         "folds": rows,
         "summary": {
-            "trial_accuracy_mean": statistics.fmean(trial_acc), "trial_accuracy_std": statistics.pstdev(trial_acc),
-            "trial_accuracy_min": min(trial_acc), "window_accuracy_mean": statistics.fmean(window_acc),
+            **fold_summary(rows), "window_accuracy_mean": statistics.fmean(window_acc),
             "window_accuracy_std": statistics.pstdev(window_acc), "window_accuracy_min": min(window_acc),
-            "worst_fold": worst["fold"], "pooled_trial_accuracy": float(np.trace(confusion) / confusion.sum()),
-            "pooled_confusion": confusion.tolist(),
         },
         "config": {"train": train_record, "init": init, "rule": asdict(config.rule), "folds": folds, "seed": seed},
     }

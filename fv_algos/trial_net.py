@@ -11,7 +11,6 @@ series are accumulated online, frame by frame.
 """
 from __future__ import annotations
 
-import statistics
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -22,8 +21,9 @@ from torch import nn
 
 from fv_algos.contact_motion import ContactMotionParams, TrialSeries
 from fv_algos.real_trials import CAMERAS, Trial, TrialFields, VideoFields
+from fv_algos.slip.classifier import LOAD_ERRORS
 from fv_algos.slip.evaluate import classification_metrics
-from fv_algos.trial_eval import object_folds
+from fv_algos.trial_eval import fold_summary, object_folds
 
 DESCRIPTORS = (
     "relative_px", "marker_px",  # from SERIES, px/frame at size_px scale
@@ -34,8 +34,9 @@ DESCRIPTORS = (
     "imprint_change", "imprint_step",  # from SERIES, grey levels
 )
 SCALE = np.array([1.0, 1.0, 1.0, 5.0, 5.0, 5.0, 0.1, 1 / 3, 1 / 3, 10.0, 1.0], np.float32)
-MIRROR_X = np.array([1, 1, 1, 1, -1, 1, 1, 1, -1, 1, 1], np.float32)  # descriptor signs of the image mirrored left-right
-MIRROR_Y = np.array([1, 1, 1, 1, 1, -1, 1, 1, -1, 1, 1], np.float32)  # ... and upside down
+# descriptor signs of the image mirrored left-right, and upside down
+MIRROR_X = np.array([1, 1, 1, 1, -1, 1, 1, 1, -1, 1, 1], np.float32)
+MIRROR_Y = np.array([1, 1, 1, 1, 1, -1, 1, 1, -1, 1, 1], np.float32)
 KIND = "trial_net"
 
 
@@ -82,7 +83,8 @@ class TrialNetConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.hidden < 1 or self.steps < 1 or self.batch < 2 or self.batch % 2 or not 0 < self.gain[0] <= self.gain[1]:
+        even_batch = self.batch >= 2 and self.batch % 2 == 0
+        if self.hidden < 1 or self.steps < 1 or not even_batch or not 0 < self.gain[0] <= self.gain[1]:
             raise ValueError("TrialNetConfig needs hidden, steps >= 1, an even batch >= 2 and "
                              f"0 < gain[0] <= gain[1], got {self}")
 
@@ -157,17 +159,26 @@ def save_trial_model(path: str | Path, net: TrialNet, config: TrialNetConfig,
     return path
 
 
+def _read(path: str | Path) -> dict | None:
+    """The payload of ``path`` when it holds a model written by :func:`save_trial_model` (tensors and
+    plain values only: read with ``weights_only``), else None."""
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except LOAD_ERRORS:
+        return None
+    return data if isinstance(data, dict) and data.get("kind") == KIND else None
+
+
 def is_trial_model(path: str | Path) -> bool:
     """Whether ``path`` holds a model written by :func:`save_trial_model`."""
-    data = torch.load(path, map_location="cpu", weights_only=False)
-    return isinstance(data, dict) and data.get("kind") == KIND
+    return _read(path) is not None
 
 
 def load_trial_model(path: str | Path) -> tuple[TrialNet, ContactMotionParams]:
     """Read a file written by :func:`save_trial_model`; ValueError when it is another kind or was
     written for other descriptors."""
-    data = torch.load(path, map_location="cpu", weights_only=False)
-    if not (isinstance(data, dict) and data.get("kind") == KIND):
+    data = _read(path)
+    if data is None:
         raise ValueError(f"{path} is not a trial-level slip model (kind {KIND!r})")
     if data["descriptors"] != list(DESCRIPTORS) or data["scale"] != SCALE.tolist():
         raise ValueError(f"{path}: descriptors {data['descriptors']} (scale {data['scale']}) differ from this "
@@ -200,10 +211,4 @@ def cross_validate_trials(inputs: Sequence[TrialInput], labels: np.ndarray, obje
         probability = trial_probability(net, [inputs[i] for i in np.flatnonzero(test)])
         rows.append({"fold": k, "objects": group, "trials": np.flatnonzero(test).tolist(),
                      **judge_trials(probability, labels[test])})
-    accuracy = [r["trial_accuracy"] for r in rows]
-    worst = min(rows, key=lambda r: r["trial_accuracy"])
-    confusion = np.sum([r["confusion"] for r in rows], axis=0)
-    return {"folds": rows, "summary": {
-        "trial_accuracy_mean": statistics.fmean(accuracy), "trial_accuracy_std": statistics.pstdev(accuracy),
-        "trial_accuracy_min": min(accuracy), "worst_fold": worst["fold"],
-        "pooled_trial_accuracy": float(np.trace(confusion) / confusion.sum()), "pooled_confusion": confusion.tolist()}}
+    return {"folds": rows, "summary": fold_summary(rows)}

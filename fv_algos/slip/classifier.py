@@ -80,6 +80,9 @@ def save_checkpoint(path: str | Path, checkpoint: Checkpoint) -> Path:
     return path
 
 
+# what torch.load raises on a file that is no checkpoint
+LOAD_ERRORS = (pickle.UnpicklingError, zipfile.BadZipFile, RuntimeError, EOFError, OSError)
+
 def load_checkpoint(path: str | Path, expected: ModelConfig | None = None) -> Checkpoint:
     """Read and validate a checkpoint.
 
@@ -92,7 +95,7 @@ def load_checkpoint(path: str | Path, expected: ModelConfig | None = None) -> Ch
         raise FileNotFoundError(f"checkpoint not found: {path}")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, zipfile.BadZipFile, RuntimeError, EOFError, OSError) as exc:
+    except LOAD_ERRORS as exc:
         raise ValueError(f"{path} is not a slip checkpoint (torch.load failed: {exc})") from exc
     if isinstance(payload, dict) and "kind" in payload and "format" not in payload:
         raise ValueError(f"{path} holds a {payload['kind']!r} model, which decides once per grasp from whole "
