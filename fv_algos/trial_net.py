@@ -38,24 +38,38 @@ SCALE = np.array([1.0, 1.0, 1.0, 5.0, 5.0, 5.0, 0.1, 1 / 3, 1 / 3, 10.0, 1.0], n
 MIRROR_X = np.array([1, 1, 1, 1, -1, 1, 1, 1, -1, 1, 1], np.float32)
 MIRROR_Y = np.array([1, 1, 1, 1, 1, -1, 1, 1, -1, 1, 1], np.float32)
 KIND = "trial_net"
+FIELD_ROWS = ("field_px", "shear_x_px", "shear_y_px", "invalid_share", "divergence", "curl")
+
+
+def field_rows(fields: np.ndarray, valid_share: np.ndarray) -> np.ndarray:
+    """(F, 6) float32 ``FIELD_ROWS`` of ``fields`` (F, H, W, 3) px (dx, dy, |d|) and the share of
+    reference markers valid in each frame ``valid_share`` (F,); frames are independent."""
+    grid = fields.astype(np.float32)
+    ddx_dy, ddx_dx = np.gradient(grid[..., 0], axis=(1, 2))
+    ddy_dy, ddy_dx = np.gradient(grid[..., 1], axis=(1, 2))
+    return np.stack([grid[..., 2].mean(axis=(1, 2)), grid[..., 0].mean(axis=(1, 2)), grid[..., 1].mean(axis=(1, 2)),
+                     1.0 - np.asarray(valid_share, np.float32), (ddx_dx + ddy_dy).mean(axis=(1, 2)),
+                     (ddy_dx - ddx_dy).mean(axis=(1, 2))], axis=1).astype(np.float32)
+
+
+def descriptor_matrix(series: np.ndarray, rows: np.ndarray, contact_base: float | None = None) -> torch.Tensor:
+    """(C, F) float32 ``DESCRIPTORS`` / ``SCALE`` from contact-motion ``series`` (F, 5) and
+    :func:`field_rows` ``rows`` (F, 6) of the same frames; contact_rise is taken against
+    ``contact_base`` (grey levels; None: the mean contact of the first 3 of these frames, the
+    trial's start); ValueError when the counts differ."""
+    if rows.shape[0] != series.shape[0]:
+        raise ValueError(f"{series.shape[0]} contact-series frames but {rows.shape[0]} fields")
+    base = series[:3, 2].mean() if contact_base is None else contact_base
+    joined = np.stack([series[:, 0], series[:, 1], series[:, 2] - base, *rows.T,
+                       series[:, 3], series[:, 4]]).astype(np.float32)
+    return torch.from_numpy(np.nan_to_num(joined / SCALE[:, None], nan=0.0, posinf=0.0, neginf=0.0))
 
 
 def camera_descriptors(series: np.ndarray, fields: VideoFields) -> torch.Tensor:
     """(C, F) float32 ``DESCRIPTORS`` / ``SCALE`` of one camera: ``series`` (F, 5) from
     :func:`fv_algos.contact_motion.contact_series` and ``fields`` of the same F frames; ValueError
     when the counts differ."""
-    grid = fields.fields.astype(np.float32)
-    if grid.shape[0] != series.shape[0]:
-        raise ValueError(f"{series.shape[0]} contact-series frames but {grid.shape[0]} fields")
-    ddx_dy, ddx_dx = np.gradient(grid[..., 0], axis=(1, 2))
-    ddy_dy, ddy_dx = np.gradient(grid[..., 1], axis=(1, 2))
-    rows = np.stack([
-        series[:, 0], series[:, 1], series[:, 2] - series[:3, 2].mean(),
-        grid[..., 2].mean(axis=(1, 2)), grid[..., 0].mean(axis=(1, 2)), grid[..., 1].mean(axis=(1, 2)),
-        1.0 - fields.valid_share, (ddx_dx + ddy_dy).mean(axis=(1, 2)), (ddy_dx - ddx_dy).mean(axis=(1, 2)),
-        series[:, 3], series[:, 4],
-    ]).astype(np.float32)
-    return torch.from_numpy(np.nan_to_num(rows / SCALE[:, None], nan=0.0, posinf=0.0, neginf=0.0))
+    return descriptor_matrix(series, field_rows(fields.fields, fields.valid_share))
 
 
 TrialInput = list[torch.Tensor]  # one (C, F) descriptor tensor per camera of a trial
@@ -101,6 +115,11 @@ class TrialNet(nn.Module):
             nn.Conv1d(hidden, hidden, 5, padding=4, dilation=2), nn.ReLU(),
             nn.Conv1d(hidden, hidden, 5, padding=8, dilation=4), nn.ReLU())
         self.head = nn.Linear(2 * hidden, 1)
+
+    @property
+    def radius(self) -> int:
+        """Frames on each side of a frame that its temporal features depend on (14)."""
+        return sum(c.dilation[0] * (c.kernel_size[0] - 1) // 2 for c in self.temporal if isinstance(c, nn.Conv1d))
 
     def forward(self, cameras: TrialInput) -> torch.Tensor:
         """Scalar slip logit of one trial (its cameras' (C, F) tensors, any F >= 1)."""

@@ -115,7 +115,8 @@ class SlipState(Message):
     """Slip decision for the window of fields ending at `stamp_ns`.
 
     probability: P(slip) in [0, 1]. slip: the decision after threshold and hysteresis.
-    window_stamps_ns: (T,) int64 capture stamps of the fields the model judged.
+    window_stamps_ns: (T,) int64 capture stamps of the fields the model judged (a trial
+    model judges a whole grasp: its first and current stamps).
     valid: False when the window held invalid fields (then probability is 0 and slip
     keeps its last value).
     """

@@ -1,16 +1,20 @@
 """The `camera` node: frames from the simulator, a video file, a folder of images or a
 V4L2 device, published as `Image` on `/camera/image` with capture stamps, plus a latched
 `CameraInfo` on `/camera/info`. A lost source is reported in NodeStatus and reopened
-with backoff; a source that cannot be opened at start fails with a clear error."""
+with backoff; a source that cannot be opened at start fails with a clear error.
+
+`start_after` holds the first frame back until the named nodes have reported (their first
+NodeStatus on `/status`, sent once their subscriptions are made), so that a replayed video
+reaches them whole from its first frame; after `start_timeout_s` it starts anyway, warned."""
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
-from msgs import CameraInfo, Image
+from msgs import CameraInfo, Image, NodeStatus
 from nodes.camera_sources import FolderSource, Frame, FrameSource, SourceError, V4L2Source, VideoFileSource
 from nodes.node import Node
 
@@ -36,6 +40,8 @@ class CameraParams:
     prerender: bool = False  # sim: render the scene once at start and replay it from memory
     frame_id: str = "fv_camera"
     reopen_backoff_s: float = 0.5  # first retry delay after a lost source; doubles up to 8 s
+    start_after: list[str] = field(default_factory=list)  # node names to wait for before the first frame
+    start_timeout_s: float = 30.0  # start anyway (warned) when they have not all reported by then
 
     def __post_init__(self) -> None:
         if self.source not in SOURCES:
@@ -48,6 +54,8 @@ class CameraParams:
             raise ValueError(f"source {self.source!r} needs a path")
         if self.undistort and not self.calibration and self.source != "sim":
             raise ValueError("undistort needs a calibration file")
+        if self.start_timeout_s < 0:
+            raise ValueError(f"start_timeout_s {self.start_timeout_s} must be >= 0")
 
 
 def make_source(p: CameraParams) -> FrameSource:
@@ -80,7 +88,24 @@ class CameraNode(Node):
         self.backoff_s = 0.0
         self.retry_at = 0.0
         self.counters.update(frames=0, lost=0, reopened=0)
+        self.awaited = set(p.start_after)
+        self.start_by = time.monotonic() + p.start_timeout_s
+        if self.awaited:
+            self.subscribe("/status", NodeStatus, self.on_status, depth=None)
         self.timer(1.0 / rate, self.tick)
+
+    def on_status(self, msg: NodeStatus) -> None:
+        self.awaited.discard(msg.node)
+
+    def waiting(self) -> bool:
+        """Whether the first frame is still held back for the nodes of `start_after`."""
+        if not self.awaited:
+            return False
+        if time.monotonic() < self.start_by:
+            return True
+        self.warn(f"started without a status from {sorted(self.awaited)} after {self.params.start_timeout_s} s")
+        self.awaited = set()
+        return False
 
     def _load_calibration(self):
         from fv_algos.fisheye import FisheyeCamera
@@ -97,7 +122,7 @@ class CameraNode(Node):
                                          D=np.asarray(cam.D, np.float64).reshape(4), rms_px=float(getattr(cam, "rms_px", 0.0) or 0.0)))
 
     def tick(self) -> None:
-        if getattr(self.source, "finished", False):
+        if getattr(self.source, "finished", False) or self.waiting():
             return
         if self.retry_at:
             if time.monotonic() < self.retry_at:

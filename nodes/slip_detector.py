@@ -1,12 +1,20 @@
 """The `slip_detector` node: DisplacementField -> SlipState on `/slip` at the field rate.
 
-It keeps the last `window` fields (the model's window length), asks the ConvLSTM for
-P(slip), and decides with a threshold and optional hysteresis. Every field enters the
-window, but when the model falls behind (newer fields already queued) only the newest
-window is judged: the skipped decisions are counted, and latency stays one model call.
+A window model keeps the last `window` fields (the model's window length), asks the
+ConvLSTM for P(slip), and decides with a threshold and optional hysteresis. Every field
+enters the window, but when the model falls behind (newer fields already queued) only the
+newest window is judged: the skipped decisions are counted, and latency stays one model call.
+
+A trial model (`gelsight_trial`) judges the whole grasp so far: a grasp starts at the
+tracker's reference (`/markers/reference`, latched: a new one after `/tracker/reset`), and
+every field of it, with the camera image of the same stamp (`/camera/image`), updates the
+running P(slip) of the grasp (`fv_algos.grasp_judge`). Its SlipState's window_stamps_ns
+holds the grasp's first and current stamps.
+
 `model` is a shipped model name (`sim_cnn_lstm`: per-field CNN then LSTM, the default and
 the fastest; `sim_fast`: the ConvLSTM with 16 hidden channels; `sim`: the paper's ConvLSTM;
-`gelsight`) or a checkpoint path."""
+`gelsight`: the paper's ConvLSTM trained on real GelSight Mini grasps; `gelsight_trial`:
+the trial model for GelSight Mini-class sensors) or a checkpoint path."""
 from __future__ import annotations
 
 import collections
@@ -15,9 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-from msgs import DisplacementField, SlipState
+from fv_algos.visualize import as_bgr
+from msgs import DisplacementField, Image, MarkerArray, SlipState
 from nodes.node import Node
 
+IMAGE_BUFFER = 64  # camera images kept for the fields still to come (trial models), frames
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "fv_algos" / "weights"
 
 
@@ -36,7 +46,7 @@ def model_path(name: str) -> Path:
 
 @dataclass
 class SlipDetectorParams:
-    model: str = "sim_cnn_lstm"  # shipped model name (sim_cnn_lstm, sim_fast, sim, gelsight) or checkpoint path
+    model: str = "sim_cnn_lstm"  # shipped model (sim_cnn_lstm, sim_fast, sim, gelsight, gelsight_trial) or path
     threshold: float = 0.5  # P(slip) above which the state is slip
     hysteresis: float = 0.0  # slip turns on above threshold + h and off below threshold - h
     threads: int = 1  # torch threads for inference
@@ -51,7 +61,7 @@ class SlipDetectorParams:
 
 
 class SlipDetectorNode(Node):
-    """Slides a window over the fields and publishes a decision per field."""
+    """Publishes a slip decision per field: from a sliding window, or from the grasp so far."""
 
     Params = SlipDetectorParams
 
@@ -60,17 +70,54 @@ class SlipDetectorNode(Node):
         import fv_algos.slip.classifier  # noqa: F401  (torch: the bulk of a cold start)
 
     def setup(self) -> None:
-        from fv_algos.slip.classifier import SlipClassifier
+        from fv_algos.trial_net import is_trial_model
         p = self.params
-        self.classifier = SlipClassifier(model_path(p.model), device=p.device, threads=p.threads)
-        cfg = self.classifier.config
-        self.window: collections.deque = collections.deque(maxlen=cfg.window)
+        path = model_path(p.model)
         self.slip = False
         self.slip_pub = self.publisher("/slip", SlipState)
+        self.counters.update(decisions=0, invalid_windows=0, skipped=0)
+        if is_trial_model(path):
+            self.setup_grasp(path)
+        else:
+            self.setup_window(path)
+
+    def setup_window(self, path: Path) -> None:
+        from fv_algos.slip.classifier import SlipClassifier
+        p = self.params
+        self.classifier = SlipClassifier(path, device=p.device, threads=p.threads)
+        cfg = self.classifier.config
+        self.window: collections.deque = collections.deque(maxlen=cfg.window)
         self.field_sub = self.subscribe("/field", DisplacementField, self.on_field, depth=cfg.window,
                                         stale_after_s=p.input_timeout_s or None)
-        self.counters.update(decisions=0, invalid_windows=0, skipped=0)
         self.log.info("model %s: window %d, grid %d", p.model, cfg.window, cfg.grid)
+
+    def setup_grasp(self, path: Path) -> None:
+        import torch
+
+        from fv_algos.grasp_judge import GraspJudge
+        p = self.params
+        if p.device != "cpu":
+            raise ValueError(f"a trial model runs on the cpu only, not device {p.device!r}")
+        torch.set_num_threads(p.threads)
+        self.judge = GraspJudge.from_file(path)
+        self.images: collections.OrderedDict[int, Image] = collections.OrderedDict()  # by stamp, oldest first
+        self.grasp_start_ns: int | None = None
+        self.reference_markers = 0
+        self.subscribe("/camera/image", Image, self.on_image, depth=IMAGE_BUFFER)
+        self.subscribe("/markers/reference", MarkerArray, self.on_reference, depth=1)
+        self.subscribe("/field", DisplacementField, self.on_grasp_field, depth=IMAGE_BUFFER,
+                       stale_after_s=p.input_timeout_s or None)
+        self.counters.update(grasps=0, unmatched_fields=0)
+        self.log.info("model %s: trial model, judges each grasp from the tracker's reference on", p.model)
+
+    def decide(self, probability: float) -> bool:
+        """The slip state after threshold and hysteresis (kept between the two bounds)."""
+        p = self.params
+        if probability > p.threshold + p.hysteresis:
+            self.slip = True
+        elif probability < p.threshold - p.hysteresis:
+            self.slip = False
+        return self.slip
 
     def on_field(self, msg: DisplacementField) -> None:
         grid = self.classifier.config.grid
@@ -93,13 +140,47 @@ class SlipDetectorNode(Node):
                 self.warn(f"window rejected: {exc}")
                 valid = False
         if valid:
-            p = self.params
-            if probability > p.threshold + p.hysteresis:
-                self.slip = True
-            elif probability < p.threshold - p.hysteresis:
-                self.slip = False
+            self.decide(probability)
         else:
             self.counters["invalid_windows"] += 1
+        self.publish_state(msg, probability, stamps, valid)
+
+    def on_image(self, msg: Image) -> None:
+        self.images[msg.stamp_ns] = msg
+        while len(self.images) > IMAGE_BUFFER:
+            self.images.popitem(last=False)
+
+    def on_reference(self, msg: MarkerArray) -> None:
+        """A new reference: a new grasp starts at its frame."""
+        self.grasp_start_ns = msg.stamp_ns
+        self.reference_markers = len(msg.ref_px)
+        self.judge.reset()
+        self.slip = False
+        self.counters["grasps"] += 1
+
+    def on_grasp_field(self, msg: DisplacementField) -> None:
+        if self.grasp_start_ns is None or msg.stamp_ns < self.grasp_start_ns:
+            return  # no reference yet, or a field of the grasp before the current one
+        image = self.images.pop(msg.stamp_ns, None)
+        while self.images and next(iter(self.images)) < msg.stamp_ns:
+            self.images.popitem(last=False)
+        if image is None:
+            self.counters["unmatched_fields"] += 1
+            self.warn(f"no camera image with the field's stamp {msg.stamp_ns}: frame left out of the grasp")
+            return
+        if not np.isfinite(msg.field).all():
+            self.counters["invalid_windows"] += 1
+            self.warn("field with non-finite values left out of the grasp")
+            return
+        if image.encoding == "mono8":
+            raise ValueError("the trial model needs colour camera images (bgr8 or rgb8), got mono8: "
+                             "set the camera's encoding param")
+        valid_share = msg.n_markers / max(self.reference_markers, 1)
+        probability = self.judge.step(as_bgr(image.data, image.encoding), msg.field, valid_share)
+        self.decide(probability)
+        self.publish_state(msg, probability, np.array([self.grasp_start_ns, msg.stamp_ns], np.int64), True)
+
+    def publish_state(self, msg: DisplacementField, probability: float, stamps: np.ndarray, valid: bool) -> None:
         self.counters["decisions"] += 1
         self.slip_pub.publish(SlipState(stamp_ns=msg.stamp_ns, frame_id=msg.frame_id, probability=probability,
                                         slip=self.slip, threshold=self.params.threshold,

@@ -94,3 +94,33 @@ def test_missing_source_fails_at_start_with_clear_error(bus, tmp_path: Path) -> 
 def test_unknown_source_param_is_rejected(bus) -> None:
     result = run_fv("node", "camera", "-p", "source=webcam", timeout_s=20)
     assert result.returncode == 2 and "source 'webcam'" in result.stderr
+
+
+def test_start_after_holds_the_first_frame_until_the_named_nodes_report(bus, spawn, tmp_path: Path) -> None:
+    from msgs import NodeStatus
+    from nodes.bus import PublisherSocket
+    video = tmp_path / "clip.avi"
+    _write_video(video)
+    with TopicReader(["/camera/image"]) as reader:
+        spawn("node", "camera", "-p", "source=video", "-p", f"path={video}", "-p", "fps=25", "-p", "loop=false",
+              "-p", "start_after=[late_node]")
+        wait_status("camera", timeout_s=20.0)
+        assert reader.recv(1.0) is None  # held back: late_node has not reported
+        pub = PublisherSocket("late_node")
+        assert pub.wait_connected(5.0)
+        pub.publish("/status", NodeStatus(), latched=True)
+        frames = [reader.recv(5.0) for _ in range(20)]
+        pub.close()
+    assert all(f is not None for f in frames)
+    assert [f.msg.seq for f in frames] == list(range(20))  # the whole video, from its first frame
+
+
+def test_start_after_gives_up_after_the_timeout_with_a_warning(bus, spawn, tmp_path: Path) -> None:
+    video = tmp_path / "clip.avi"
+    _write_video(video)
+    with TopicReader(["/camera/image"]) as reader:
+        spawn("node", "camera", "-p", "source=video", "-p", f"path={video}", "-p", "fps=25",
+              "-p", "start_after=[absent_node]", "-p", "start_timeout_s=1.5")
+        assert reader.recv(15.0) is not None
+    st = wait_status("camera", lambda st: "absent_node" in st.message, 10.0)
+    assert "started without a status" in st.message

@@ -1,9 +1,11 @@
 """Slip-detector node: one SlipState per field once the window is full, stamps of the
-judged fields, flagged (not NaN) output for a bad window, and a clear refusal of a
-field grid the model was not trained for."""
+judged fields, flagged (not NaN) output for a bad window, a clear refusal of a field grid
+the model was not trained for; with the trial model, a replayed real grasp judged frame by
+frame exactly as offline, and grey images refused by name."""
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,7 +13,7 @@ import pytest
 from msgs import DisplacementField
 from nodes.bus import PublisherSocket, TopicReader
 from nodes.slip_detector import model_path
-from tests.nodes.conftest import wait_status
+from tests.nodes.conftest import REPO, wait_status
 
 
 def _field(stamp_ns: int, value: float, grid: int = 30) -> DisplacementField:
@@ -59,11 +61,37 @@ def test_decisions_per_field_with_window_stamps(bus, spawn) -> None:
     pub.close()
 
 
-def test_trial_level_model_is_refused_with_a_clear_error() -> None:
+def test_trial_model_refuses_grey_images_by_name() -> None:
+    from msgs import Image, MarkerArray
     from nodes.slip_detector import SlipDetectorNode
     node = SlipDetectorNode("slip_detector", {"model": "gelsight_trial"})
     try:
-        with pytest.raises(ValueError, match="once per grasp"):
-            node.setup()
+        node.setup()
+        node.on_reference(MarkerArray(stamp_ns=5, ref_px=np.zeros((40, 2), np.float32)))
+        node.on_image(Image(stamp_ns=5, encoding="mono8", data=np.zeros((240, 320), np.uint8)))
+        with pytest.raises(ValueError, match="colour camera images .* mono8"):
+            node.on_grasp_field(_field(5, 0.0))
     finally:
         node.close()
+
+
+def test_video_launch_with_the_trial_model_judges_the_grasp_as_offline(bus_env, spawn, isd_data: Path) -> None:
+    """launch/video.yaml replays a real grasp whole: one decision per frame, each the trial model's
+    P(slip) of the grasp so far, as `fv eval` computes it from the same video."""
+    from fv_algos.contact_motion import contact_series
+    from fv_algos.grasp_judge import GraspJudge
+    from fv_algos.real_trials import read_frames, video_fields
+    from fv_algos.trial_net import field_rows
+    video = isd_data / "train" / "marker_pen" / "exp_num_2" / "camera_0.avi"  # a slip, 53 frames
+    fields = video_fields(video)
+    series = contact_series(read_frames(video))
+    judge = GraspJudge.from_file(model_path("gelsight_trial"))
+    expected = [judge.push(s, r) for s, r in zip(series, field_rows(fields.fields, fields.valid_share))]
+    with TopicReader(["/slip"]) as reader:
+        spawn("launch", str(REPO / "launch" / "video.yaml"), f"video:={video}")
+        states = [reader.recv(60.0 if k == 0 else 10.0) for k in range(len(expected))]
+    assert all(s is not None for s in states), f"{sum(s is not None for s in states)} of {len(expected)} decisions"
+    got = [s.msg for s in states]
+    assert len({int(m.window_stamps_ns[0]) for m in got}) == 1 and got[0].window_stamps_ns[0] == got[0].stamp_ns
+    np.testing.assert_allclose([m.probability for m in got], expected, atol=1e-4)
+    assert got[-1].slip and got[-1].model == "gelsight_trial"

@@ -1,0 +1,55 @@
+"""Online grasp judge: after every frame it gives exactly what the trial network says of the
+trial cut at that frame, over grasps longer than its bounded memory, and starts afresh on reset."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from fv_algos.contact_motion import contact_series
+from fv_algos.grasp_judge import GraspJudge
+from fv_algos.trial_net import TrialNet, TrialNetConfig, descriptor_matrix, field_rows, save_trial_model, trial_probability
+
+
+def _grasp(frames: int, seed: int) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """Textured BGR frames drifting right, random fields (F, 30, 30, 3) px and valid shares (F,)."""
+    rng = np.random.default_rng(seed)
+    texture = np.clip(rng.normal(128, 50, (240, 400, 3)), 0, 255).astype(np.uint8)
+    images = [np.ascontiguousarray(texture[:, 2 * i:2 * i + 320]) for i in range(frames)]
+    return images, rng.normal(0, 2, (frames, 30, 30, 3)).astype(np.float32), rng.uniform(0.8, 1.0, frames)
+
+
+def _offline(net: TrialNet, images: list[np.ndarray], fields: np.ndarray, shares: np.ndarray) -> np.ndarray:
+    """(F,) the network on every prefix of the trial, computed whole each time."""
+    series = contact_series(images, reference_frame=0)
+    rows = field_rows(fields.astype(np.float16), shares)
+    return np.array([trial_probability(net, [[descriptor_matrix(series[:k], rows[:k])]])[0]
+                     for k in range(1, len(images) + 1)])
+
+
+def test_running_probability_equals_the_network_on_every_prefix() -> None:
+    torch.manual_seed(3)
+    net = TrialNet(8)
+    images, fields, shares = _grasp(3 * (2 * net.radius + 1), seed=0)  # 87 frames: 3x the judge's memory
+    judge = GraspJudge(net)
+    online = np.array([judge.step(i, f, s) for i, f, s in zip(images, fields, shares)])
+    np.testing.assert_allclose(online, _offline(net, images, fields, shares), atol=1e-5)
+    assert judge.frames == len(images)
+    judge.reset()  # a new grasp: the second half alone, judged as if it were the whole trial
+    again = np.array([judge.step(i, f, s) for i, f, s in zip(images[40:], fields[40:], shares[40:])])
+    np.testing.assert_allclose(again, _offline(net, images[40:], fields[40:], shares[40:]), atol=1e-5)
+
+
+def test_from_file_reads_a_trial_model_and_refuses_other_files(tmp_path: Path) -> None:
+    torch.manual_seed(0)
+    net = TrialNet(4)
+    path = save_trial_model(tmp_path / "trial.pt", net, TrialNetConfig(hidden=4))
+    images, fields, shares = _grasp(5, seed=1)
+    judge = GraspJudge.from_file(path)
+    online = [judge.step(i, f, s) for i, f, s in zip(images, fields, shares)]
+    np.testing.assert_allclose(online, _offline(net.eval(), images, fields, shares), atol=1e-5)
+    (tmp_path / "other.pt").write_bytes(b"not a model")
+    with pytest.raises(ValueError, match="not a trial-level slip model"):
+        GraspJudge.from_file(tmp_path / "other.pt")
