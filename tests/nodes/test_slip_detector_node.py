@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from msgs import DisplacementField
+from msgs import DisplacementField, SlipState
 from nodes.bus import PublisherSocket, TopicReader
 from nodes.slip_detector import model_path
 from tests.nodes.conftest import REPO, wait_status
@@ -95,3 +95,23 @@ def test_video_launch_with_the_trial_model_judges_the_grasp_as_offline(bus_env, 
     assert len({int(m.window_stamps_ns[0]) for m in got}) == 1 and got[0].window_stamps_ns[0] == got[0].stamp_ns
     np.testing.assert_allclose([m.probability for m in got], expected, atol=1e-4)
     assert got[-1].slip and got[-1].model == "gelsight_trial"
+
+
+def test_tracker_reset_starts_a_new_grasp(bus_env, spawn, isd_data: Path) -> None:
+    video = isd_data / "train" / "marker_pen" / "exp_num_2" / "camera_0.avi"
+    with TopicReader(["/slip"]) as reader:
+        spawn("launch", str(REPO / "launch" / "video.yaml"), f"video:={video}", "loop:=true")
+        first = [reader.recv(60.0 if k == 0 else 10.0) for k in range(10)]
+        assert all(s is not None for s in first)
+        start = int(first[0].msg.window_stamps_ns[0])
+        pub = PublisherSocket("gripper")
+        assert pub.wait_connected(5.0)
+        pub.publish("/tracker/reset", SlipState())  # any message: the gripper has just closed
+        later = [reader.recv(10.0) for _ in range(40)]
+        pub.close()
+    assert all(s is not None for s in later)
+    starts = [int(s.msg.window_stamps_ns[0]) for s in later]
+    new = [k for k, s in enumerate(starts) if s != start]
+    assert new, "no new grasp after /tracker/reset"
+    assert later[new[0]].msg.stamp_ns == starts[new[0]] > start  # the new grasp starts at its reference frame
+    assert len(set(starts[new[0]:])) == 1
