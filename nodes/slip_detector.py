@@ -9,7 +9,8 @@ A trial model (`gelsight_trial`) judges the whole grasp so far: a grasp starts a
 tracker's reference (`/markers/reference`, latched: a new one after `/tracker/reset`), and
 every field of it, with the camera image of the same stamp (`/camera/image`), updates the
 running P(slip) of the grasp (`fv_algos.grasp_judge`). Its SlipState's window_stamps_ns
-holds the grasp's first and current stamps.
+holds the grasp's first and current stamps. That answer is the grasp's outcome so far, to be
+read at the end of a test motion: early in a grasp it often says slip (README, real sensors).
 
 `model` is a shipped model name (`sim_cnn_lstm`: per-field CNN then LSTM, the default and
 the fastest; `sim_fast`: the ConvLSTM with 16 hidden channels; `sim`: the paper's ConvLSTM;
