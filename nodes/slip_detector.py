@@ -167,7 +167,7 @@ class SlipDetectorNode(Node):
             self.images.popitem(last=False)
         if image is None:
             self.counters["unmatched_fields"] += 1
-            self.warn(f"no camera image with the field's stamp {msg.stamp_ns}: frame left out of the grasp")
+            self.warn("a field without the camera image of its stamp: frame left out of the grasp (unmatched_fields)")
             return
         if not np.isfinite(msg.field).all():
             self.counters["invalid_windows"] += 1
