@@ -17,9 +17,7 @@ import numpy as np
 import torch
 
 from fv_algos.contact_motion import ContactMotion, ContactMotionParams
-from fv_algos.trial_net import TrialNet, descriptor_matrix, field_rows, load_trial_model
-
-BASE_FRAMES = 3  # contact_rise is measured against the mean contact of a grasp's first frames
+from fv_algos.trial_net import BASE_FRAMES, TrialNet, descriptor_matrix, field_rows, load_trial_model
 
 
 class GraspJudge:
@@ -45,8 +43,9 @@ class GraspJudge:
         self._series: collections.deque = collections.deque(maxlen=tail)  # (5,) contact-motion rows
         self._rows: collections.deque = collections.deque(maxlen=tail)  # (6,) field rows
         self._final = 0  # frames whose features are final
-        self._sum: torch.Tensor | None = None  # (hidden,) sum of the final frames' features
-        self._max: torch.Tensor | None = None  # (hidden,) their maximum
+        hidden = self.net.head.in_features // 2
+        self._sum = torch.zeros(hidden)  # (hidden,) sum of the final frames' features
+        self._max = torch.full((hidden,), -torch.inf)  # (hidden,) their maximum
 
     def step(self, image: np.ndarray, field: np.ndarray, valid_share: float) -> float:
         """P(slip) of the grasp up to and including this frame: ``image`` (H, W, 3) BGR uint8,
@@ -69,11 +68,9 @@ class GraspJudge:
         first_column = self.frames - h.shape[1]
         newly_final = self.frames - self.net.radius  # frames [self._final, newly_final) become final
         for frame in range(self._final, max(self._final, newly_final)):
-            column = h[:, frame - first_column]
-            self._sum = column.clone() if self._sum is None else self._sum + column
-            self._max = column.clone() if self._max is None else torch.maximum(self._max, column)
+            self._sum += h[:, frame - first_column]
+            self._max = torch.maximum(self._max, h[:, frame - first_column])
         self._final = max(self._final, newly_final)
-        live = h[:, self._final - first_column:]
-        total = live.sum(dim=1) if self._sum is None else self._sum + live.sum(dim=1)
-        peak = live.amax(dim=1) if self._max is None else torch.maximum(self._max, live.amax(dim=1))
-        return torch.sigmoid(self.net.head(torch.cat([total / self.frames, peak]))).item()
+        live = h[:, self._final - first_column:]  # never empty: the newest frame is never final
+        peak = torch.maximum(self._max, live.amax(dim=1))
+        return torch.sigmoid(self.net.head(torch.cat([(self._sum + live.sum(dim=1)) / self.frames, peak]))).item()

@@ -38,6 +38,7 @@ SCALE = np.array([1.0, 1.0, 1.0, 5.0, 5.0, 5.0, 0.1, 1 / 3, 1 / 3, 10.0, 1.0], n
 MIRROR_X = np.array([1, 1, 1, 1, -1, 1, 1, 1, -1, 1, 1], np.float32)
 MIRROR_Y = np.array([1, 1, 1, 1, 1, -1, 1, 1, -1, 1, 1], np.float32)
 KIND = "trial_net"
+BASE_FRAMES = 3  # contact_rise is measured against the mean contact of a trial's first frames
 FIELD_ROWS = ("field_px", "shear_x_px", "shear_y_px", "invalid_share", "divergence", "curl")
 
 
@@ -55,11 +56,11 @@ def field_rows(fields: np.ndarray, valid_share: np.ndarray) -> np.ndarray:
 def descriptor_matrix(series: np.ndarray, rows: np.ndarray, contact_base: float | None = None) -> torch.Tensor:
     """(C, F) float32 ``DESCRIPTORS`` / ``SCALE`` from contact-motion ``series`` (F, 5) and
     :func:`field_rows` ``rows`` (F, 6) of the same frames; contact_rise is taken against
-    ``contact_base`` (grey levels; None: the mean contact of the first 3 of these frames, the
-    trial's start); ValueError when the counts differ."""
+    ``contact_base`` (grey levels; None: the mean contact of the first ``BASE_FRAMES`` of these
+    frames, the trial's start); ValueError when the counts differ."""
     if rows.shape[0] != series.shape[0]:
         raise ValueError(f"{series.shape[0]} contact-series frames but {rows.shape[0]} fields")
-    base = series[:3, 2].mean() if contact_base is None else contact_base
+    base = series[:BASE_FRAMES, 2].mean() if contact_base is None else contact_base
     joined = np.stack([series[:, 0], series[:, 1], series[:, 2] - base, *rows.T,
                        series[:, 3], series[:, 4]]).astype(np.float32)
     return torch.from_numpy(np.nan_to_num(joined / SCALE[:, None], nan=0.0, posinf=0.0, neginf=0.0))

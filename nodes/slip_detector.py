@@ -111,14 +111,13 @@ class SlipDetectorNode(Node):
         self.counters.update(grasps=0, unmatched_fields=0)
         self.log.info("model %s: trial model, judges each grasp from the tracker's reference on", p.model)
 
-    def decide(self, probability: float) -> bool:
-        """The slip state after threshold and hysteresis (kept between the two bounds)."""
+    def decide(self, probability: float) -> None:
+        """Update the slip state with threshold and hysteresis (kept between the two bounds)."""
         p = self.params
         if probability > p.threshold + p.hysteresis:
             self.slip = True
         elif probability < p.threshold - p.hysteresis:
             self.slip = False
-        return self.slip
 
     def on_field(self, msg: DisplacementField) -> None:
         grid = self.classifier.config.grid
