@@ -189,17 +189,13 @@ def _read(path: str | Path) -> dict | None:
     return data if isinstance(data, dict) and data.get("kind") == KIND else None
 
 
-def is_trial_model(path: str | Path) -> bool:
-    """Whether ``path`` holds a model written by :func:`save_trial_model`."""
-    return _read(path) is not None
-
-
-def load_trial_model(path: str | Path) -> tuple[TrialNet, ContactMotionParams]:
-    """Read a file written by :func:`save_trial_model`; ValueError when it is another kind or was
+def read_trial_model(path: str | Path) -> tuple[TrialNet, ContactMotionParams] | None:
+    """The network and contact-motion parameters of a file written by :func:`save_trial_model`, or
+    None when ``path`` holds another kind of file (one read either way); ValueError when it was
     written for other descriptors."""
     data = _read(path)
     if data is None:
-        raise ValueError(f"{path} is not a trial-level slip model (kind {KIND!r})")
+        return None
     if data["descriptors"] != list(DESCRIPTORS) or data["scale"] != SCALE.tolist():
         raise ValueError(f"{path}: descriptors {data['descriptors']} (scale {data['scale']}) differ from this "
                          f"code's {list(DESCRIPTORS)} ({SCALE.tolist()})")
@@ -207,6 +203,14 @@ def load_trial_model(path: str | Path) -> tuple[TrialNet, ContactMotionParams]:
     net.load_state_dict(data["state_dict"])
     params = data["params"]
     return net.eval(), ContactMotionParams(**{**params, "size_px": tuple(params["size_px"])})
+
+
+def load_trial_model(path: str | Path) -> tuple[TrialNet, ContactMotionParams]:
+    """:func:`read_trial_model`, with a ValueError when ``path`` holds another kind of file."""
+    model = read_trial_model(path)
+    if model is None:
+        raise ValueError(f"{path} is not a trial-level slip model (kind {KIND!r})")
+    return model
 
 
 def judge_trials(probability: np.ndarray, labels: np.ndarray) -> dict[str, object]:

@@ -18,6 +18,11 @@ import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # torch is imported only where a model is used
+    from fv_algos.contact_motion import ContactMotionParams
+    from fv_algos.trial_net import TrialNet
 
 DEFAULT_CACHE = Path.home() / ".cache" / "fingervision" / "real_fields"
 
@@ -250,13 +255,13 @@ def resolve_trial_model(name: str) -> Path:
     return shipped if shipped.is_file() else model_path(name)
 
 
-def _eval_trial_net(args: argparse.Namespace, path: Path) -> dict[str, object]:
-    """Report of the trial-level model at ``path`` on ``args.trials`` (video to decision)."""
+def _eval_trial_net(args: argparse.Namespace, net: TrialNet, params: ContactMotionParams) -> dict[str, object]:
+    """Report of the trial-level model ``net`` (with its contact-motion ``params``) on ``args.trials``
+    (video to decision)."""
     import numpy as np
     from fv_algos.real_trials import tracking_quality
     from fv_algos.contact_motion import trial_series
-    from fv_algos.trial_net import judge_trials, load_trial_model, trial_inputs, trial_probability
-    net, params = load_trial_model(path)
+    from fv_algos.trial_net import judge_trials, trial_inputs, trial_probability
     trials, fields, field_s = _load(args.trials, getattr(args, "cache", None), getattr(args, "workers", 1))
     series = trial_series(trials, getattr(args, "cache", None), params=params, workers=getattr(args, "workers", 1))
     labels = np.array([t.label for t in trials])
@@ -278,12 +283,13 @@ def eval_trials_command(args: argparse.Namespace) -> int:
     A trial-level model (:func:`resolve_trial_model`) has no windows: its window_accuracy is null."""
     import cv2
     import torch
-    from fv_algos.trial_net import is_trial_model
+    from fv_algos.trial_net import read_trial_model
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     started = time.perf_counter()
     path = resolve_trial_model(args.model)
-    out = _eval_trial_net(args, path) if is_trial_model(path) else _eval_windows(args, path)
+    trial_model = read_trial_model(path)
+    out = _eval_windows(args, path) if trial_model is None else _eval_trial_net(args, *trial_model)
     wall = time.perf_counter() - started
     out = {"model": str(path), **out, "wall_s": wall, "s_per_trial": wall / out["n_trials"],
            "ms_per_frame": 1e3 * wall / out.pop("frames")}

@@ -21,12 +21,17 @@ from __future__ import annotations
 import collections
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from fv_algos.visualize import as_bgr
 from msgs import DisplacementField, Image, MarkerArray, SlipState
 from nodes.node import Node
+
+if TYPE_CHECKING:  # torch is imported only where a model is used
+    from fv_algos.contact_motion import ContactMotionParams
+    from fv_algos.trial_net import TrialNet
 
 IMAGE_BUFFER = 64  # camera images kept for the fields still to come (trial models), frames
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "fv_algos" / "weights"
@@ -71,14 +76,15 @@ class SlipDetectorNode(Node):
         import fv_algos.slip.classifier  # noqa: F401  (torch: the bulk of a cold start)
 
     def setup(self) -> None:
-        from fv_algos.trial_net import is_trial_model
+        from fv_algos.trial_net import read_trial_model
         p = self.params
         path = model_path(p.model)
         self.slip = False
         self.slip_pub = self.publisher("/slip", SlipState)
         self.counters.update(decisions=0, invalid_windows=0, skipped=0)
-        if is_trial_model(path):
-            self.setup_grasp(path)
+        trial_model = read_trial_model(path)
+        if trial_model is not None:
+            self.setup_grasp(*trial_model)
         else:
             self.setup_window(path)
 
@@ -92,7 +98,7 @@ class SlipDetectorNode(Node):
                                         stale_after_s=p.input_timeout_s or None)
         self.log.info("model %s: window %d, grid %d", p.model, cfg.window, cfg.grid)
 
-    def setup_grasp(self, path: Path) -> None:
+    def setup_grasp(self, net: TrialNet, params: ContactMotionParams) -> None:
         import torch
 
         from fv_algos.grasp_judge import GraspJudge
@@ -100,7 +106,7 @@ class SlipDetectorNode(Node):
         if p.device != "cpu":
             raise ValueError(f"a trial model runs on the cpu only, not device {p.device!r}")
         torch.set_num_threads(p.threads)
-        self.judge = GraspJudge.from_file(path)
+        self.judge = GraspJudge(net, params)
         self.images: collections.OrderedDict[int, Image] = collections.OrderedDict()  # by stamp, oldest first
         self.grasp_start_ns: int | None = None
         self.reference_markers = 0

@@ -18,8 +18,8 @@ from fv_algos.trial_net import (
     camera_descriptors,
     cross_validate_trials,
     fit_trial_net,
-    is_trial_model,
     load_trial_model,
+    read_trial_model,
     save_trial_model,
     trial_probability,
 )
@@ -76,7 +76,7 @@ def test_trial_net_learns_a_burst_whatever_the_length_and_round_trips(tmp_path: 
     test_inputs, test_labels = _toy_trials(20, seed=5)
     assert ((trial_probability(net, test_inputs) >= 0.5) == test_labels).mean() >= 0.9
     path = save_trial_model(tmp_path / "m.pt", net, config)
-    assert is_trial_model(path)
+    assert read_trial_model(path) is not None
     again, params = load_trial_model(path)
     np.testing.assert_allclose(trial_probability(again, test_inputs), trial_probability(net, test_inputs), rtol=1e-6)
     assert params.size_px == (80, 60)
@@ -99,7 +99,7 @@ def test_object_held_out_cross_validation_keeps_objects_apart() -> None:
 
 def test_a_model_file_of_another_kind_is_refused(tmp_path: Path) -> None:
     torch.save({"kind": "something_else"}, tmp_path / "other.pt")
-    assert not is_trial_model(tmp_path / "other.pt")
+    assert read_trial_model(tmp_path / "other.pt") is None
     with pytest.raises(ValueError, match="not a trial-level slip model"):
         load_trial_model(tmp_path / "other.pt")
     save_trial_model(tmp_path / "m.pt", TrialNet(4), TrialNetConfig(hidden=4))
