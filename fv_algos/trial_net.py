@@ -3,8 +3,8 @@
 :func:`camera_descriptors` joins the contact-motion ``SERIES`` of a camera
 (:mod:`fv_algos.contact_motion`) and its displacement fields of the same frames into the
 ``DESCRIPTORS`` (C = 11) per frame, each divided by its ``SCALE`` so that all are of order 1.
-:class:`TrialNet` reads the descriptors of each camera with three dilated 1-D convolutions
-(29 frames of context), pools them over time (mean and max, so the trial's length does not
+:class:`TrialNet` reads the descriptors of each camera with four dilated 1-D convolutions
+(61 frames of context), pools them over time (mean and max, so the trial's length does not
 matter), averages the cameras and gives one slip logit per trial (slip when p >= 0.5; no
 threshold is tuned). The decision needs the whole trial (e.g. when the gripper releases); the
 series are accumulated online, frame by frame.
@@ -85,11 +85,13 @@ def trial_inputs(trials: Sequence[Trial], series: TrialSeries, fields: TrialFiel
 
 @dataclass(frozen=True)
 class TrialNetConfig:
-    """hidden: channels of the temporal convolutions. steps: optimizer steps of ``batch`` trials
+    """hidden: channels of the temporal convolutions; layers: their number (dilations 1, 2, 4, ...:
+    a frame's features see 4 * (2**layers - 1) frames on each side). steps: optimizer steps of ``batch`` trials
     (half slip, half no slip). lr, weight_decay: AdamW. gain: range of the random factor every
     training trial's descriptors are multiplied by (with random left-right / up-down mirroring)."""
 
     hidden: int = 16
+    layers: int = 4
     steps: int = 1600
     batch: int = 8
     lr: float = 3e-3
@@ -99,27 +101,28 @@ class TrialNetConfig:
 
     def __post_init__(self) -> None:
         even_batch = self.batch >= 2 and self.batch % 2 == 0
-        if self.hidden < 1 or self.steps < 1 or not even_batch or not 0 < self.gain[0] <= self.gain[1]:
-            raise ValueError("TrialNetConfig needs hidden, steps >= 1, an even batch >= 2 and "
+        if min(self.hidden, self.layers, self.steps) < 1 or not even_batch or not 0 < self.gain[0] <= self.gain[1]:
+            raise ValueError("TrialNetConfig needs hidden, layers, steps >= 1, an even batch >= 2 and "
                              f"0 < gain[0] <= gain[1], got {self}")
 
 
 class TrialNet(nn.Module):
-    """Cameras of one trial -> slip logit: per camera three 1-D convolutions (kernel 5, dilation 1, 2,
-    4) with ReLU over the (C, F) descriptors, then mean and max over the F frames (2 * hidden);
-    mean over the cameras; linear."""
+    """Cameras of one trial -> slip logit: per camera ``layers`` 1-D convolutions (kernel 5, dilation
+    1, 2, 4, ...) with ReLU over the (C, F) descriptors, then mean and max over the F frames
+    (2 * hidden); mean over the cameras; linear."""
 
-    def __init__(self, hidden: int = 16) -> None:
+    def __init__(self, hidden: int = 16, layers: int = 4) -> None:
         super().__init__()
-        self.temporal = nn.Sequential(
-            nn.Conv1d(len(DESCRIPTORS), hidden, 5, padding=2), nn.ReLU(),
-            nn.Conv1d(hidden, hidden, 5, padding=4, dilation=2), nn.ReLU(),
-            nn.Conv1d(hidden, hidden, 5, padding=8, dilation=4), nn.ReLU())
+        convs: list[nn.Module] = []
+        for k in range(layers):
+            convs += [nn.Conv1d(len(DESCRIPTORS) if k == 0 else hidden, hidden, 5, padding=2 ** (k + 1),
+                                dilation=2 ** k), nn.ReLU()]
+        self.temporal = nn.Sequential(*convs)
         self.head = nn.Linear(2 * hidden, 1)
 
     @property
     def radius(self) -> int:
-        """Frames on each side of a frame that its temporal features depend on (14)."""
+        """Frames on each side of a frame that its temporal features depend on (30 for 4 layers)."""
         return sum(c.dilation[0] * (c.kernel_size[0] - 1) // 2 for c in self.temporal if isinstance(c, nn.Conv1d))
 
     def forward(self, cameras: TrialInput) -> torch.Tensor:
@@ -150,7 +153,7 @@ def fit_trial_net(inputs: Sequence[TrialInput], labels: np.ndarray,
         raise ValueError(f"training needs slip and no-slip trials, got {slip.size} and {still.size}")
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
-    net = TrialNet(config.hidden)
+    net = TrialNet(config.hidden, config.layers)
     optimizer = torch.optim.AdamW(net.parameters(), config.lr, weight_decay=config.weight_decay)
     loss_fn = nn.BCEWithLogitsLoss()
     for _ in range(config.steps):
@@ -199,7 +202,7 @@ def read_trial_model(path: str | Path) -> tuple[TrialNet, ContactMotionParams] |
     if data["descriptors"] != list(DESCRIPTORS) or data["scale"] != SCALE.tolist():
         raise ValueError(f"{path}: descriptors {data['descriptors']} (scale {data['scale']}) differ from this "
                          f"code's {list(DESCRIPTORS)} ({SCALE.tolist()})")
-    net = TrialNet(int(data["config"]["hidden"]))
+    net = TrialNet(int(data["config"]["hidden"]), int(data["config"].get("layers", 3)))  # files before layers: 3
     net.load_state_dict(data["state_dict"])
     params = data["params"]
     return net.eval(), ContactMotionParams(**{**params, "size_px": tuple(params["size_px"])})

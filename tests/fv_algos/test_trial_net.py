@@ -110,3 +110,25 @@ def test_a_model_file_of_another_kind_is_refused(tmp_path: Path) -> None:
         load_trial_model(tmp_path / "old.pt")
 
 
+
+
+def test_layers_set_the_context_and_older_files_load_with_three(tmp_path: Path) -> None:
+    assert [TrialNet(4, layers).radius for layers in (1, 3, 4)] == [2, 14, 30]
+    net = TrialNet(4, 4)
+    for conv in net.temporal[::2]:  # positive weights: every input a frame depends on shows in it
+        torch.nn.init.constant_(conv.weight, 0.1)
+        torch.nn.init.zeros_(conv.bias)
+    with torch.no_grad():
+        features = [net.temporal(torch.eye(61)[k].expand(len(DESCRIPTORS), 61)[None])[0, :, 0] for k in (30, 31)]
+    assert features[0].min() > 0 and features[1].abs().max() == 0  # frame 0 sees frame 30, not 31
+    three = TrialNet(4, 3)
+    save_trial_model(tmp_path / "m.pt", three, TrialNetConfig(hidden=4, layers=3))
+    data = torch.load(tmp_path / "m.pt", weights_only=False)
+    del data["config"]["layers"]  # as written before the number of layers was a setting
+    torch.save(data, tmp_path / "old.pt")
+    again, _ = load_trial_model(tmp_path / "old.pt")
+    assert again.radius == 14
+    inputs, _ = _toy_trials(4)
+    np.testing.assert_allclose(trial_probability(again, inputs), trial_probability(three, inputs), rtol=1e-6)
+    with pytest.raises(ValueError, match="layers"):
+        TrialNetConfig(layers=0)
