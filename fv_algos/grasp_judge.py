@@ -3,9 +3,9 @@
 The trial network (:mod:`fv_algos.trial_net`) pools its temporal features over a whole trial.
 Online, after every frame, the judge gives P(slip) of the grasp so far: exactly what the network
 says of the trial cut at this frame (same descriptors, same pooling), at a cost that does not grow
-with the grasp's length. A frame's temporal features depend on the network's ``radius`` (14)
-frames on each side, so a frame more than ``radius`` frames old is final and only enters a running
-sum and maximum; each step recomputes the features of the newest frames from the last
+with the grasp's length. A frame's temporal features depend on the network's ``radius`` (30 for four
+layers) frames on each side, so a frame more than ``radius`` frames old is final and only enters a
+running sum and maximum; each step recomputes the features of the newest frames from the last
 2 * radius + 1 descriptor columns.
 """
 from __future__ import annotations
