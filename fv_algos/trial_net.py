@@ -3,8 +3,8 @@
 :func:`camera_descriptors` joins the contact-motion ``SERIES`` of a camera
 (:mod:`fv_algos.contact_motion`) and its displacement fields of the same frames into the
 ``DESCRIPTORS`` (C = 11) per frame, each divided by its ``SCALE`` so that all are of order 1.
-:class:`TrialNet` reads the descriptors of each camera with four dilated 1-D convolutions
-(61 frames of context), pools them over time (mean and max, so the trial's length does not
+:class:`TrialNet` reads the descriptors of each camera with (by default) four dilated 1-D
+convolutions (61 frames of context), pools them over time (mean and max, so the trial's length does not
 matter), averages the cameras and gives one slip logit per trial (slip when p >= 0.5; no
 threshold is tuned). The decision needs the whole trial (e.g. when the gripper releases); the
 series are accumulated online, frame by frame.

@@ -110,8 +110,6 @@ def test_a_model_file_of_another_kind_is_refused(tmp_path: Path) -> None:
         load_trial_model(tmp_path / "old.pt")
 
 
-
-
 def test_layers_set_the_context_and_older_files_load_with_three(tmp_path: Path) -> None:
     assert [TrialNet(4, layers).radius for layers in (1, 3, 4)] == [2, 14, 30]
     net = TrialNet(4, 4)
