@@ -4,8 +4,8 @@
 (:mod:`fv_algos.contact_motion`) and its displacement fields of the same frames into the
 ``DESCRIPTORS`` (C = 11) per frame, each divided by its ``SCALE`` so that all are of order 1.
 :class:`TrialNet` reads the descriptors of each camera with (by default) four dilated 1-D
-convolutions (61 frames of context), pools them over time (mean and max, so the trial's length does not
-matter), averages the cameras and gives one slip logit per trial (slip when p >= 0.5; no
+convolutions (61 frames of context), pools them over time (mean and max, so the trial's length
+does not matter), averages the cameras and gives one slip logit per trial (slip when p >= 0.5; no
 threshold is tuned). The decision needs the whole trial (e.g. when the gripper releases); the
 series are accumulated online, frame by frame.
 """
@@ -86,8 +86,8 @@ def trial_inputs(trials: Sequence[Trial], series: TrialSeries, fields: TrialFiel
 @dataclass(frozen=True)
 class TrialNetConfig:
     """hidden: channels of the temporal convolutions; layers: their number (dilations 1, 2, 4, ...:
-    a frame's features see 4 * (2**layers - 1) frames on each side). steps: optimizer steps of ``batch`` trials
-    (half slip, half no slip). lr, weight_decay: AdamW. gain: range of the random factor every
+    a frame's features see 2 * (2**layers - 1) frames on each side). steps: optimizer steps of
+    ``batch`` trials (half slip, half no slip). lr, weight_decay: AdamW. gain: range of the random factor every
     training trial's descriptors are multiplied by (with random left-right / up-down mirroring)."""
 
     hidden: int = 16
@@ -115,8 +115,9 @@ class TrialNet(nn.Module):
         super().__init__()
         convs: list[nn.Module] = []
         for k in range(layers):
-            convs += [nn.Conv1d(len(DESCRIPTORS) if k == 0 else hidden, hidden, 5, padding=2 ** (k + 1),
-                                dilation=2 ** k), nn.ReLU()]
+            dilation = 2 ** k  # kernel 5: 2 * dilation frames on each side, kept by as much padding
+            convs += [nn.Conv1d(len(DESCRIPTORS) if k == 0 else hidden, hidden, 5, padding=2 * dilation,
+                                dilation=dilation), nn.ReLU()]
         self.temporal = nn.Sequential(*convs)
         self.head = nn.Linear(2 * hidden, 1)
 
