@@ -43,9 +43,8 @@ class GraspJudge:
         self._series: collections.deque = collections.deque(maxlen=tail)  # (5,) contact-motion rows
         self._rows: collections.deque = collections.deque(maxlen=tail)  # (6,) field rows
         self._final = 0  # frames whose features are final
-        hidden = self.net.head.in_features // 2
-        self._sum = torch.zeros(hidden)  # (hidden,) sum of the final frames' features
-        self._max = torch.full((hidden,), -torch.inf)  # (hidden,) their maximum
+        self._sum = torch.zeros(self.net.width)  # (width,) sum of the final frames' features
+        self._max = torch.full((self.net.width,), -torch.inf)  # (width,) their maximum
 
     def step(self, image: np.ndarray, field: np.ndarray, valid_share: float) -> float:
         """P(slip) of the grasp up to and including this frame: ``image`` (H, W, 3) BGR uint8,
@@ -64,7 +63,7 @@ class GraspJudge:
         self._rows.append(field_row)
         self.frames += 1
         x = descriptor_matrix(np.stack(self._series), np.stack(self._rows), float(np.mean(self._contacts)))
-        h = self.net.temporal(x[None])[0]  # (hidden, tail): column j is frame frames - tail + j
+        h = self.net.temporal(x[None])[0]  # (width, tail): column j is frame frames - tail + j
         first_column = self.frames - h.shape[1]
         newly_final = self.frames - self.net.radius  # frames [self._final, newly_final) become final
         for frame in range(self._final, max(self._final, newly_final)):
@@ -73,4 +72,5 @@ class GraspJudge:
         self._final = max(self._final, newly_final)
         live = h[:, self._final - first_column:]  # never empty: the newest frame is never final
         peak = torch.maximum(self._max, live.amax(dim=1))
-        return torch.sigmoid(self.net.head(torch.cat([(self._sum + live.sum(dim=1)) / self.frames, peak]))).item()
+        pooled = torch.cat([(self._sum + live.sum(dim=1)) / self.frames, peak])
+        return torch.sigmoid(self.net.logit(pooled)).item()

@@ -6,7 +6,8 @@
 :class:`TrialNet` reads the descriptors of each camera with (by default) four dilated 1-D
 convolutions (61 frames of context), pools them over time (mean and max, so the trial's length
 does not matter), averages the cameras and gives one slip logit per trial (slip when p >= 0.5; no
-threshold is tuned). The decision needs the whole trial (e.g. when the gripper releases); the
+threshold is tuned); by default it is an ensemble of five such networks, started from different
+weights and trained side by side, whose logits are averaged. The decision needs the whole trial (e.g. when the gripper releases); the
 series are accumulated online, frame by frame.
 """
 from __future__ import annotations
@@ -86,12 +87,14 @@ def trial_inputs(trials: Sequence[Trial], series: TrialSeries, fields: TrialFiel
 @dataclass(frozen=True)
 class TrialNetConfig:
     """hidden: channels of the temporal convolutions; layers: their number (dilations 1, 2, 4, ...:
-    a frame's features see 2 * (2**layers - 1) frames on each side). steps: optimizer steps of
+    a frame's features see 2 * (2**layers - 1) frames on each side); members: networks in the
+    ensemble (each with its own weights and loss; the same batches). steps: optimizer steps of
     ``batch`` trials (half slip, half no slip). lr, weight_decay: AdamW. gain: range of the random factor every
     training trial's descriptors are multiplied by (with random left-right / up-down mirroring)."""
 
     hidden: int = 16
     layers: int = 4
+    members: int = 5
     steps: int = 1600
     batch: int = 8
     lr: float = 3e-3
@@ -101,25 +104,54 @@ class TrialNetConfig:
 
     def __post_init__(self) -> None:
         even_batch = self.batch >= 2 and self.batch % 2 == 0
-        if min(self.hidden, self.layers, self.steps) < 1 or not even_batch or not 0 < self.gain[0] <= self.gain[1]:
-            raise ValueError("TrialNetConfig needs hidden, layers, steps >= 1, an even batch >= 2 and "
+        if min(self.hidden, self.layers, self.members, self.steps) < 1 or not even_batch or not 0 < self.gain[0] <= self.gain[1]:
+            raise ValueError("TrialNetConfig needs hidden, layers, members, steps >= 1, an even batch >= 2 and "
                              f"0 < gain[0] <= gain[1], got {self}")
 
 
 class TrialNet(nn.Module):
-    """Cameras of one trial -> slip logit: per camera ``layers`` 1-D convolutions (kernel 5, dilation
-    1, 2, 4, ...) with ReLU over the (C, F) descriptors, then mean and max over the F frames
-    (2 * hidden); mean over the cameras; linear."""
+    """Cameras of one trial -> slip logit, the mean of ``members`` independent networks' logits. A
+    member: per camera ``layers`` 1-D convolutions (kernel 5, dilation 1, 2, 4, ...) with ReLU over
+    the (C, F) descriptors, then mean and max over the F frames (2 * hidden); mean over the
+    cameras; linear. The members are run as one network: member m owns channels m * hidden to
+    (m + 1) * hidden of every convolution (grouped after the first) and row m of the head, which
+    reads only those channels' pooled features."""
 
-    def __init__(self, hidden: int = 16, layers: int = 4) -> None:
+    def __init__(self, hidden: int = 16, layers: int = 4, members: int = 1) -> None:
         super().__init__()
+        self.hidden, self.layers, self.members = hidden, layers, members
+        width = self.width
         convs: list[nn.Module] = []
         for k in range(layers):
             dilation = 2 ** k  # kernel 5: 2 * dilation frames on each side, kept by as much padding
-            convs += [nn.Conv1d(len(DESCRIPTORS) if k == 0 else hidden, hidden, 5, padding=2 * dilation,
-                                dilation=dilation), nn.ReLU()]
+            convs += [nn.Conv1d(len(DESCRIPTORS) if k == 0 else width, width, 5, padding=2 * dilation,
+                                dilation=dilation, groups=1 if k == 0 else members), nn.ReLU()]
         self.temporal = nn.Sequential(*convs)
-        self.head = nn.Linear(2 * hidden, 1)
+        self.head = nn.Linear(2 * hidden, members)  # row m: member m's (mean, max) -> its logit
+
+    @property
+    def width(self) -> int:
+        """Channels of the temporal features, all members together."""
+        return self.members * self.hidden
+
+    def member_logits(self, pooled: torch.Tensor) -> torch.Tensor:
+        """(members,) logits from ``pooled`` (2 * width,): the mean over the frames of every channel,
+        then the maximum."""
+        own = pooled.view(2, self.members, self.hidden).transpose(0, 1).reshape(self.members, 2 * self.hidden)
+        return (self.head.weight * own).sum(dim=1) + self.head.bias
+
+    def logit(self, pooled: torch.Tensor) -> torch.Tensor:
+        """Scalar slip logit from ``pooled`` (as :meth:`member_logits`): the members' mean."""
+        return self.member_logits(pooled).mean()
+
+    def pooled(self, cameras: TrialInput) -> torch.Tensor:
+        """(2 * members * hidden,) mean and max over the frames of every channel, averaged over the
+        cameras (their (C, F) tensors, any F >= 1)."""
+        per_camera = []
+        for x in cameras:
+            h = self.temporal(x[None])[0]
+            per_camera.append(torch.cat([h.mean(dim=1), h.amax(dim=1)]))
+        return torch.stack(per_camera).mean(dim=0)
 
     @property
     def radius(self) -> int:
@@ -127,12 +159,8 @@ class TrialNet(nn.Module):
         return sum(c.dilation[0] * (c.kernel_size[0] - 1) // 2 for c in self.temporal if isinstance(c, nn.Conv1d))
 
     def forward(self, cameras: TrialInput) -> torch.Tensor:
-        """Scalar slip logit of one trial (its cameras' (C, F) tensors, any F >= 1)."""
-        pooled = []
-        for x in cameras:
-            h = self.temporal(x[None])[0]
-            pooled.append(torch.cat([h.mean(dim=1), h.amax(dim=1)]))
-        return self.head(torch.stack(pooled).mean(dim=0))[0]
+        """Scalar slip logit of one trial (its cameras' (C, F) tensors, any F >= 1): the members' mean."""
+        return self.logit(self.pooled(cameras))
 
 
 def _augment(x: torch.Tensor, rng: np.random.Generator, gain: tuple[float, float]) -> torch.Tensor:
@@ -147,20 +175,22 @@ def _augment(x: torch.Tensor, rng: np.random.Generator, gain: tuple[float, float
 def fit_trial_net(inputs: Sequence[TrialInput], labels: np.ndarray,
                   config: TrialNetConfig = TrialNetConfig()) -> TrialNet:
     """Train a :class:`TrialNet` on ``inputs`` with ``labels`` (M,) 0/1 (both classes needed):
-    AdamW on the binary cross-entropy of balanced batches of augmented trials."""
+    AdamW on every member's binary cross-entropy of balanced batches of augmented trials."""
     labels = np.asarray(labels)
     slip, still = np.flatnonzero(labels == 1), np.flatnonzero(labels == 0)
     if slip.size == 0 or still.size == 0:
         raise ValueError(f"training needs slip and no-slip trials, got {slip.size} and {still.size}")
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
-    net = TrialNet(config.hidden, config.layers)
+    net = TrialNet(config.hidden, config.layers, config.members)
     optimizer = torch.optim.AdamW(net.parameters(), config.lr, weight_decay=config.weight_decay)
     loss_fn = nn.BCEWithLogitsLoss()
     for _ in range(config.steps):
         picks = np.concatenate([rng.choice(slip, config.batch // 2), rng.choice(still, config.batch // 2)])
-        logits = torch.stack([net([_augment(x, rng, config.gain) for x in inputs[i]]) for i in picks])
-        loss = loss_fn(logits, torch.as_tensor(labels[picks], dtype=torch.float32))
+        logits = torch.stack([net.member_logits(net.pooled([_augment(x, rng, config.gain) for x in inputs[i]]))
+                              for i in picks])  # (batch, members)
+        target = torch.as_tensor(labels[picks], dtype=torch.float32)[:, None].expand_as(logits)
+        loss = loss_fn(logits, target)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -175,7 +205,11 @@ def trial_probability(net: TrialNet, inputs: Sequence[TrialInput]) -> np.ndarray
 
 def save_trial_model(path: str | Path, net: TrialNet, config: TrialNetConfig,
                      params: ContactMotionParams = ContactMotionParams()) -> Path:
-    """Write ``net`` (+ its training config, the descriptors and the contact-motion parameters)."""
+    """Write ``net`` (+ its training config, the descriptors and the contact-motion parameters);
+    ValueError when ``config`` gives another hidden, layers or members than ``net`` has."""
+    if (net.hidden, net.layers, net.members) != (config.hidden, config.layers, config.members):
+        raise ValueError(f"network of hidden {net.hidden}, layers {net.layers}, members {net.members} "
+                         f"saved with {config}")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"kind": KIND, "descriptors": list(DESCRIPTORS), "scale": SCALE.tolist(), "config": asdict(config),
@@ -203,7 +237,8 @@ def read_trial_model(path: str | Path) -> tuple[TrialNet, ContactMotionParams] |
     if data["descriptors"] != list(DESCRIPTORS) or data["scale"] != SCALE.tolist():
         raise ValueError(f"{path}: descriptors {data['descriptors']} (scale {data['scale']}) differ from this "
                          f"code's {list(DESCRIPTORS)} ({SCALE.tolist()})")
-    net = TrialNet(int(data["config"]["hidden"]), int(data["config"].get("layers", 3)))  # files before layers: 3
+    config = data["config"]  # files written before layers / members: 3 layers, 1 member
+    net = TrialNet(int(config["hidden"]), int(config.get("layers", 3)), int(config.get("members", 1)))
     net.load_state_dict(data["state_dict"])
     params = data["params"]
     return net.eval(), ContactMotionParams(**{**params, "size_px": tuple(params["size_px"])})

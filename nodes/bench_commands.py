@@ -17,6 +17,7 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "slip": ("nodes.slip_commands", "add_bench_parser"),
     "pipeline": ("nodes.bench_pipeline", "add_parser"),
     "soak": ("nodes.bench_soak", "add_parser"),
+    "judge": ("nodes.bench_judge", "add_parser"),
 }
 
 

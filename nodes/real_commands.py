@@ -78,6 +78,8 @@ def _fit_args(p: argparse.ArgumentParser, window_steps: int) -> None:
     p.add_argument("--hidden", type=int, default=16, help="hidden channels / units (default 16)")
     p.add_argument("--layers", type=int, default=None,
                    help="trial: temporal convolutions (dilations 1, 2, 4, ...; default TrialNetConfig's)")
+    p.add_argument("--members", type=int, default=None,
+                   help="trial: networks in the ensemble, their logits averaged (default TrialNetConfig's)")
     p.add_argument("--steps", type=int, default=None,
                    help=f"optimizer steps (default: trial: TrialNetConfig's, windows: {window_steps})")
     p.add_argument("--batch-size", type=int, default=None, help="default: trial: TrialNetConfig's, windows: 32")
@@ -137,6 +139,7 @@ def _trial_config(args: argparse.Namespace):
     torch.set_num_threads(1)
     default = TrialNetConfig()
     return TrialNetConfig(hidden=args.hidden, layers=_given(args.layers, default.layers),
+                          members=_given(args.members, default.members),
                           steps=_given(args.steps, default.steps),
                           batch=_given(args.batch_size, default.batch), lr=_given(args.lr, default.lr), seed=args.seed)
 

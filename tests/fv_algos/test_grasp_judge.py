@@ -29,9 +29,10 @@ def _offline(net: TrialNet, images: list[np.ndarray], fields: np.ndarray, shares
                      for k in range(1, len(images) + 1)])
 
 
-def test_running_probability_equals_the_network_on_every_prefix() -> None:
+@pytest.mark.parametrize("members", [1, 3])
+def test_running_probability_equals_the_network_on_every_prefix(members: int) -> None:
     torch.manual_seed(3)
-    net = TrialNet(8)
+    net = TrialNet(8, members=members)
     images, fields, shares = _grasp(3 * (2 * net.radius + 1), seed=0)  # 87 frames: 3x the judge's memory
     judge = GraspJudge(net)
     online = np.array([judge.step(i, f, s) for i, f, s in zip(images, fields, shares)])
@@ -45,7 +46,7 @@ def test_running_probability_equals_the_network_on_every_prefix() -> None:
 def test_from_file_reads_a_trial_model_and_refuses_other_files(tmp_path: Path) -> None:
     torch.manual_seed(0)
     net = TrialNet(4)
-    path = save_trial_model(tmp_path / "trial.pt", net, TrialNetConfig(hidden=4))
+    path = save_trial_model(tmp_path / "trial.pt", net, TrialNetConfig(hidden=4, members=1))
     images, fields, shares = _grasp(5, seed=1)
     judge = GraspJudge.from_file(path)
     online = [judge.step(i, f, s) for i, f, s in zip(images, fields, shares)]

@@ -168,7 +168,7 @@ def test_eval_trials_command_with_a_trial_level_model(isd_data: Path, tmp_path: 
         for p in net.parameters():
             p.zero_()
         net.head.bias.fill_(1.0)
-    path = save_trial_model(tmp_path / "trial.pt", net, TrialNetConfig(hidden=4))
+    path = save_trial_model(tmp_path / "trial.pt", net, TrialNetConfig(hidden=4, members=1))
     args = argparse.Namespace(model=str(path), trials=root, cache=tmp_path / "cache", workers=1, json=True)
     assert eval_trials_command(args) == 0
     report = json.loads(capsys.readouterr().out)
@@ -182,9 +182,10 @@ def test_real_train_writes_a_trial_model_that_fv_eval_reads(isd_data: Path, tmp_
     root = _subset(isd_data, tmp_path / "trials")
     out = tmp_path / "slip_mine_trial.pt"
     assert main(["real", "train", "--trials", str(root), "--cache", str(tmp_path / "cache"), "--steps", "5",
-                 "--hidden", "4", "--out", str(out)]) == 0
+                 "--hidden", "4", "--members", "2", "--out", str(out)]) == 0
     info = json.loads(out.with_suffix(".json").read_text())
-    assert info["trained_on"]["trials"] == 3 and info["config"]["steps"] == 5 and info["parameters"] > 0
+    assert info["trained_on"]["trials"] == 3 and info["config"]["steps"] == 5 and info["config"]["members"] == 2
+    assert info["parameters"] == 2 * 485  # per member: 224 + 3 * 84 in the convolutions, 9 in the head
     capsys.readouterr()
     assert main(["eval", "--trials", str(root), "--model", str(out), "--cache", str(tmp_path / "cache"), "--json"]) == 0
     report = json.loads(capsys.readouterr().out)

@@ -102,7 +102,7 @@ def test_a_model_file_of_another_kind_is_refused(tmp_path: Path) -> None:
     assert read_trial_model(tmp_path / "other.pt") is None
     with pytest.raises(ValueError, match="not a trial-level slip model"):
         load_trial_model(tmp_path / "other.pt")
-    save_trial_model(tmp_path / "m.pt", TrialNet(4), TrialNetConfig(hidden=4))
+    save_trial_model(tmp_path / "m.pt", TrialNet(4), TrialNetConfig(hidden=4, members=1))
     data = torch.load(tmp_path / "m.pt", weights_only=False)
     data["descriptors"] = data["descriptors"][:-1]
     torch.save(data, tmp_path / "old.pt")
@@ -110,7 +110,7 @@ def test_a_model_file_of_another_kind_is_refused(tmp_path: Path) -> None:
         load_trial_model(tmp_path / "old.pt")
 
 
-def test_layers_set_the_context_and_older_files_load_with_three(tmp_path: Path) -> None:
+def test_layers_set_the_context_and_older_files_load_with_three_layers_one_member(tmp_path: Path) -> None:
     assert [TrialNet(4, layers).radius for layers in (1, 3, 4)] == [2, 14, 30]
     net = TrialNet(4, 4)
     for conv in net.temporal[::2]:  # positive weights: every input a frame depends on shows in it
@@ -120,9 +120,9 @@ def test_layers_set_the_context_and_older_files_load_with_three(tmp_path: Path) 
         features = [net.temporal(torch.eye(61)[k].expand(len(DESCRIPTORS), 61)[None])[0, :, 0] for k in (30, 31)]
     assert features[0].min() > 0 and features[1].abs().max() == 0  # frame 0 sees frame 30, not 31
     three = TrialNet(4, 3)
-    save_trial_model(tmp_path / "m.pt", three, TrialNetConfig(hidden=4, layers=3))
+    save_trial_model(tmp_path / "m.pt", three, TrialNetConfig(hidden=4, layers=3, members=1))
     data = torch.load(tmp_path / "m.pt", weights_only=False)
-    del data["config"]["layers"]  # as written before the number of layers was a setting
+    del data["config"]["layers"], data["config"]["members"]  # as written before both were settings
     torch.save(data, tmp_path / "old.pt")
     again, _ = load_trial_model(tmp_path / "old.pt")
     assert again.radius == 14
@@ -130,3 +130,38 @@ def test_layers_set_the_context_and_older_files_load_with_three(tmp_path: Path) 
     np.testing.assert_allclose(trial_probability(again, inputs), trial_probability(three, inputs), rtol=1e-6)
     with pytest.raises(ValueError, match="layers"):
         TrialNetConfig(layers=0)
+
+
+def _member(net: TrialNet, m: int) -> TrialNet:
+    """Member ``m`` of ``net`` as a one-member network with the same weights."""
+    one = TrialNet(net.hidden, net.layers)
+    own = slice(m * net.hidden, (m + 1) * net.hidden)
+    with torch.no_grad():
+        for k, (conv, mine) in enumerate(zip(net.temporal[::2], one.temporal[::2])):
+            mine.weight.copy_(conv.weight[own])  # grouped after the first: the inputs are the member's own
+            mine.bias.copy_(conv.bias[own])
+        one.head.weight.copy_(net.head.weight[m:m + 1])
+        one.head.bias.copy_(net.head.bias[m:m + 1])
+    return one.eval()
+
+
+def test_an_ensemble_is_the_mean_of_independent_members(tmp_path: Path) -> None:
+    torch.manual_seed(0)
+    net = TrialNet(4, 2, members=3).eval()
+    inputs, _ = _toy_trials(6)
+    with torch.no_grad():
+        whole = torch.stack([net(x) for x in inputs])
+        members = torch.stack([torch.stack([_member(net, m)(x) for x in inputs]) for m in range(3)])
+    torch.testing.assert_close(whole, members.mean(dim=0), rtol=1e-5, atol=1e-6)
+    net.member_logits(net.pooled(inputs[0]))[1].backward()  # member 1's logit moves member 1's weights only
+    own = torch.arange(12) // 4 == 1
+    for conv in net.temporal[::2]:
+        assert conv.weight.grad[~own].abs().max() == 0 and conv.weight.grad[own].abs().max() > 0
+    assert net.head.weight.grad[[0, 2]].abs().max() == 0 and net.head.bias.grad[[0, 2]].abs().max() == 0
+    save_trial_model(tmp_path / "m.pt", net, TrialNetConfig(hidden=4, layers=2, members=3))
+    again, _ = load_trial_model(tmp_path / "m.pt")
+    np.testing.assert_allclose(trial_probability(again, inputs), torch.sigmoid(whole).numpy(), rtol=1e-6)
+    with pytest.raises(ValueError, match="members 3 saved with"):
+        save_trial_model(tmp_path / "m.pt", net, TrialNetConfig(hidden=4, layers=2, members=1))
+    with pytest.raises(ValueError, match="members"):
+        TrialNetConfig(members=0)
