@@ -7,8 +7,8 @@
 convolutions (61 frames of context), pools them over time (mean and max, so the trial's length
 does not matter), averages the cameras and gives one slip logit per trial (slip when p >= 0.5; no
 threshold is tuned); by default it is an ensemble of five such networks, started from different
-weights and trained side by side, whose logits are averaged. The decision needs the whole trial (e.g. when the gripper releases); the
-series are accumulated online, frame by frame.
+weights and trained side by side, whose logits are averaged. The decision needs the whole trial
+(e.g. when the gripper releases); the series are accumulated online, frame by frame.
 """
 from __future__ import annotations
 
@@ -104,7 +104,8 @@ class TrialNetConfig:
 
     def __post_init__(self) -> None:
         even_batch = self.batch >= 2 and self.batch % 2 == 0
-        if min(self.hidden, self.layers, self.members, self.steps) < 1 or not even_batch or not 0 < self.gain[0] <= self.gain[1]:
+        sizes = (self.hidden, self.layers, self.members, self.steps)
+        if min(sizes) < 1 or not even_batch or not 0 < self.gain[0] <= self.gain[1]:
             raise ValueError("TrialNetConfig needs hidden, layers, members, steps >= 1, an even batch >= 2 and "
                              f"0 < gain[0] <= gain[1], got {self}")
 
@@ -145,7 +146,7 @@ class TrialNet(nn.Module):
         return self.member_logits(pooled).mean()
 
     def pooled(self, cameras: TrialInput) -> torch.Tensor:
-        """(2 * members * hidden,) mean and max over the frames of every channel, averaged over the
+        """(2 * width,) mean and max over the frames of every channel, averaged over the
         cameras (their (C, F) tensors, any F >= 1)."""
         per_camera = []
         for x in cameras:

@@ -15,6 +15,7 @@ import time
 
 
 def add_parser(kinds: argparse._SubParsersAction, name: str) -> None:
+    """Add `fv bench NAME` (an entry of nodes.bench_commands.BENCHMARKS)."""
     p = kinds.add_parser(name, help="online trial model (grasp judge): time per frame per network shape")
     p.add_argument("--layers", type=int, nargs="+", default=[3, 4], help="temporal convolutions (default 3 4)")
     p.add_argument("--members", type=int, nargs="+", default=[1, 5], help="ensemble members (default 1 5)")
