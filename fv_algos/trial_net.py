@@ -35,6 +35,8 @@ DESCRIPTORS = (
     "imprint_change", "imprint_step",  # from SERIES, grey levels
 )
 SCALE = np.array([1.0, 1.0, 1.0, 5.0, 5.0, 5.0, 0.1, 1 / 3, 1 / 3, 10.0, 1.0], np.float32)
+# descriptors that are per-frame rates (divided by the factor a trial is stretched in time by)
+PER_FRAME = np.array([n in ("relative_px", "marker_px", "imprint_step") for n in DESCRIPTORS])
 # descriptor signs of the image mirrored left-right, and upside down
 MIRROR_X = np.array([1, 1, 1, 1, -1, 1, 1, 1, -1, 1, 1], np.float32)
 MIRROR_Y = np.array([1, 1, 1, 1, 1, -1, 1, 1, -1, 1, 1], np.float32)
@@ -90,7 +92,9 @@ class TrialNetConfig:
     a frame's features see 2 * (2**layers - 1) frames on each side); members: networks in the
     ensemble (each with its own weights and loss; the same batches). steps: optimizer steps of
     ``batch`` trials (half slip, half no slip). lr, weight_decay: AdamW. gain: range of the random factor every
-    training trial's descriptors are multiplied by (with random left-right / up-down mirroring)."""
+    training trial's descriptors are multiplied by (with random left-right / up-down mirroring).
+    stretch: every training trial is resampled in time by a factor drawn log-uniformly from
+    [1 / stretch, stretch] (the same motion, slower or faster; 1: never)."""
 
     hidden: int = 16
     layers: int = 4
@@ -100,14 +104,15 @@ class TrialNetConfig:
     lr: float = 3e-3
     weight_decay: float = 1e-2
     gain: tuple[float, float] = (0.8, 1.2)
+    stretch: float = 1.4
     seed: int = 0
 
     def __post_init__(self) -> None:
         even_batch = self.batch >= 2 and self.batch % 2 == 0
         sizes = (self.hidden, self.layers, self.members, self.steps)
-        if min(sizes) < 1 or not even_batch or not 0 < self.gain[0] <= self.gain[1]:
-            raise ValueError("TrialNetConfig needs hidden, layers, members, steps >= 1, an even batch >= 2 and "
-                             f"0 < gain[0] <= gain[1], got {self}")
+        if min(sizes) < 1 or not even_batch or not 0 < self.gain[0] <= self.gain[1] or not self.stretch >= 1:
+            raise ValueError("TrialNetConfig needs hidden, layers, members, steps >= 1, an even batch >= 2, "
+                             f"0 < gain[0] <= gain[1] and stretch >= 1, got {self}")
 
 
 class TrialNet(nn.Module):
@@ -148,11 +153,23 @@ class TrialNet(nn.Module):
     def pooled(self, cameras: TrialInput) -> torch.Tensor:
         """(2 * width,) mean and max over the frames of every channel, averaged over the
         cameras (their (C, F) tensors, any F >= 1)."""
-        per_camera = []
-        for x in cameras:
-            h = self.temporal(x[None])[0]
-            per_camera.append(torch.cat([h.mean(dim=1), h.amax(dim=1)]))
-        return torch.stack(per_camera).mean(dim=0)
+        return self.pooled_batch([cameras])[0]
+
+    def pooled_batch(self, trials: Sequence[TrialInput]) -> torch.Tensor:
+        """(M, 2 * width) :meth:`pooled` of ``trials`` (M trials, any cameras and lengths) in one pass:
+        every camera series is zero-padded to the longest, and the features of the padding frames
+        are zeroed after every convolution, so each series sees exactly the zero border it would
+        see alone and pooling ignores the padding."""
+        series = [x for cameras in trials for x in cameras]
+        lengths = torch.tensor([x.shape[1] for x in series])
+        mask = (torch.arange(int(lengths.max()))[None, :] < lengths[:, None]).to(series[0].dtype)[:, None]
+        h = torch.stack([nn.functional.pad(x, (0, mask.shape[2] - x.shape[1])) for x in series])
+        for layer in self.temporal:
+            h = layer(h) * mask if isinstance(layer, nn.ReLU) else layer(h)
+        per_series = torch.cat([h.sum(dim=2) / lengths[:, None], h.masked_fill(mask == 0, -torch.inf).amax(dim=2)], 1)
+        owner = torch.repeat_interleave(torch.arange(len(trials)), torch.tensor([len(c) for c in trials]))
+        summed = torch.zeros(len(trials), per_series.shape[1]).index_add_(0, owner, per_series)
+        return summed / torch.bincount(owner, minlength=len(trials))[:, None]
 
     @property
     def radius(self) -> int:
@@ -164,13 +181,31 @@ class TrialNet(nn.Module):
         return self.logit(self.pooled(cameras))
 
 
-def _augment(x: torch.Tensor, rng: np.random.Generator, gain: tuple[float, float]) -> torch.Tensor:
-    """``x`` (C, F) times a random gain, randomly mirrored left-right and up-down."""
+def stretch_in_time(x: torch.Tensor, factor: float) -> torch.Tensor:
+    """``x`` (C, F) descriptors resampled (linearly) to max(2, round(F * factor)) frames spanning
+    the same trial, the ``PER_FRAME`` rates divided by ``factor``: the same motion ``factor`` times
+    slower."""
+    frames = x.shape[1]
+    at = np.linspace(0.0, frames - 1, max(2, round(frames * factor)))
+    left = np.floor(at).astype(np.int64)
+    right = np.minimum(left + 1, frames - 1)
+    weight = torch.from_numpy((at - left).astype(np.float32))
+    scale = torch.from_numpy(np.where(PER_FRAME, 1.0 / factor, 1.0).astype(np.float32))[:, None]
+    return (x[:, left] * (1.0 - weight) + x[:, right] * weight) * scale
+
+
+def _augment(x: torch.Tensor, rng: np.random.Generator, config: TrialNetConfig) -> torch.Tensor:
+    """``x`` (C, F) times a random gain, randomly mirrored left-right and up-down, stretched in time
+    by a random factor (``config.gain``, ``config.stretch``)."""
     sign = np.ones(len(DESCRIPTORS), np.float32)
     for mirror in (MIRROR_X, MIRROR_Y):
         if rng.random() < 0.5:
             sign = sign * mirror
-    return x * torch.from_numpy(sign * np.float32(rng.uniform(*gain)))[:, None]
+    x = x * torch.from_numpy(sign * np.float32(rng.uniform(*config.gain)))[:, None]
+    if config.stretch == 1:
+        return x
+    log_stretch = np.log(config.stretch)
+    return stretch_in_time(x, float(np.exp(rng.uniform(-log_stretch, log_stretch))))
 
 
 def fit_trial_net(inputs: Sequence[TrialInput], labels: np.ndarray,
@@ -188,8 +223,8 @@ def fit_trial_net(inputs: Sequence[TrialInput], labels: np.ndarray,
     loss_fn = nn.BCEWithLogitsLoss()
     for _ in range(config.steps):
         picks = np.concatenate([rng.choice(slip, config.batch // 2), rng.choice(still, config.batch // 2)])
-        logits = torch.stack([net.member_logits(net.pooled([_augment(x, rng, config.gain) for x in inputs[i]]))
-                              for i in picks])  # (batch, members)
+        pooled = net.pooled_batch([[_augment(x, rng, config) for x in inputs[i]] for i in picks])
+        logits = torch.stack([net.member_logits(p) for p in pooled])  # (batch, members)
         target = torch.as_tensor(labels[picks], dtype=torch.float32)[:, None].expand_as(logits)
         loss = loss_fn(logits, target)
         optimizer.zero_grad()
@@ -199,9 +234,10 @@ def fit_trial_net(inputs: Sequence[TrialInput], labels: np.ndarray,
 
 
 @torch.no_grad()
-def trial_probability(net: TrialNet, inputs: Sequence[TrialInput]) -> np.ndarray:
-    """(M,) slip probability of each trial."""
-    return np.array([torch.sigmoid(net(x)).item() for x in inputs])
+def trial_probability(net: TrialNet, inputs: Sequence[TrialInput], batch: int = 16) -> np.ndarray:
+    """(M,) slip probability of each trial, ``batch`` trials per pass."""
+    pooled = [net.pooled_batch(inputs[k:k + batch]) for k in range(0, len(inputs), batch)]
+    return np.array([torch.sigmoid(net.logit(p)).item() for p in torch.cat(pooled)]) if pooled else np.zeros(0)
 
 
 def save_trial_model(path: str | Path, net: TrialNet, config: TrialNetConfig,

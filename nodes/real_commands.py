@@ -80,6 +80,9 @@ def _fit_args(p: argparse.ArgumentParser, window_steps: int) -> None:
                    help="trial: temporal convolutions (dilations 1, 2, 4, ...; default TrialNetConfig's)")
     p.add_argument("--members", type=int, default=None,
                    help="trial: networks in the ensemble, their logits averaged (default TrialNetConfig's)")
+    p.add_argument("--stretch", type=float, default=None,
+                   help="trial: training trials are resampled in time by a random factor in [1/S, S] "
+                        "(1: never; default TrialNetConfig's)")
     p.add_argument("--steps", type=int, default=None,
                    help=f"optimizer steps (default: trial: TrialNetConfig's, windows: {window_steps})")
     p.add_argument("--batch-size", type=int, default=None, help="default: trial: TrialNetConfig's, windows: 32")
@@ -140,6 +143,7 @@ def _trial_config(args: argparse.Namespace):
     default = TrialNetConfig()
     return TrialNetConfig(hidden=args.hidden, layers=_given(args.layers, default.layers),
                           members=_given(args.members, default.members),
+                          stretch=_given(args.stretch, default.stretch),
                           steps=_given(args.steps, default.steps),
                           batch=_given(args.batch_size, default.batch), lr=_given(args.lr, default.lr), seed=args.seed)
 

@@ -12,6 +12,7 @@ from fv_algos.real_trials import VideoFields
 from fv_algos.trial_net import (
     DESCRIPTORS,
     MIRROR_X,
+    PER_FRAME,
     SCALE,
     TrialNet,
     TrialNetConfig,
@@ -21,6 +22,7 @@ from fv_algos.trial_net import (
     load_trial_model,
     read_trial_model,
     save_trial_model,
+    stretch_in_time,
     trial_probability,
 )
 
@@ -84,6 +86,37 @@ def test_trial_net_learns_a_burst_whatever_the_length_and_round_trips(tmp_path: 
         fit_trial_net(inputs, np.zeros(40, int), config)
     with pytest.raises(ValueError, match="an even batch"):
         TrialNetConfig(batch=3)
+
+
+def test_a_batch_of_trials_pools_as_each_trial_alone() -> None:
+    torch.manual_seed(0)
+    net = TrialNet(8, 4, members=2)
+    trials = [[torch.randn(len(DESCRIPTORS), n) for n in lengths] for lengths in ([50, 70], [3], [200, 1], [120])]
+    alone = []
+    with torch.no_grad():
+        for cameras in trials:  # each camera through the convolutions on its own, pooled over its frames
+            features = [net.temporal(x[None])[0] for x in cameras]
+            alone.append(torch.stack([torch.cat([h.mean(dim=1), h.amax(dim=1)]) for h in features]).mean(dim=0))
+        together = net.pooled_batch(trials)
+    torch.testing.assert_close(together, torch.stack(alone), atol=1e-6, rtol=1e-5)
+    expected = [torch.sigmoid(net(cameras)).item() for cameras in trials]
+    np.testing.assert_allclose(trial_probability(net, trials, batch=3), expected, rtol=1e-5)
+
+
+def test_stretching_in_time_resamples_levels_and_slows_rates() -> None:
+    frames = 41
+    ramp = np.tile(np.linspace(0.0, 4.0, frames, dtype=np.float32), (len(DESCRIPTORS), 1))  # 0.1 per frame
+    slow = stretch_in_time(torch.from_numpy(ramp), 2.0).numpy()
+    assert slow.shape == (len(DESCRIPTORS), 82)
+    levels, rates = slow[~PER_FRAME], slow[PER_FRAME]
+    np.testing.assert_allclose(levels, np.tile(np.linspace(0.0, 4.0, 82), (len(levels), 1)), atol=1e-5)
+    np.testing.assert_allclose(rates, levels[:len(rates)] / 2.0, atol=1e-5)  # twice as slow: half per frame
+    assert {DESCRIPTORS[i] for i in np.flatnonzero(PER_FRAME)} == {"relative_px", "marker_px", "imprint_step"}
+    assert stretch_in_time(torch.from_numpy(ramp), 0.5).shape == (len(DESCRIPTORS), 20)
+    assert stretch_in_time(torch.from_numpy(ramp[:, :1]), 0.5).shape == (len(DESCRIPTORS), 2)
+    np.testing.assert_array_equal(stretch_in_time(torch.from_numpy(ramp), 1.0).numpy(), ramp)
+    with pytest.raises(ValueError, match="stretch >= 1"):
+        TrialNetConfig(stretch=0.5)
 
 
 def test_object_held_out_cross_validation_keeps_objects_apart() -> None:
