@@ -10,9 +10,11 @@ that move: the dark markers (the skin) and the shading of the object's imprint. 
 - ``marker_px``: mean optical-flow speed of the raw image (dominated by the markers), px/frame at
   ``size_px`` scale;
 - ``contact``: mean high-pass energy of the marker-free colour image (imprint shading), grey levels;
-- ``imprint_change``: mean |marker-free colour image - that of the reference frame| (summed over
-  B, G, R), grey levels: how far the imprint is from where the trial started (an object that
-  slips away or out of the grasp changes it for good);
+- ``imprint_change``: mean |marker-free colour image - that of the emptiest frame so far| (summed
+  over B, G, R), grey levels: how far the imprint is from the bare skin (an object that slips
+  away or out of the grasp brings it back). The emptiest frame is the one of least ``contact``
+  from the reference on: a camera's start-up frames, brighter or more textured than its bare
+  skin, never become it, so a stale reference does not shift the whole trial;
 - ``imprint_step``: the same against the previous frame, grey levels per frame.
 """
 from __future__ import annotations
@@ -30,7 +32,7 @@ import numpy as np
 from fv_algos.real_trials import VIDEO_SUFFIX, Trial, VideoKey, map_videos, read_frames, write_atomically
 
 SERIES = ("relative_px", "marker_px", "contact", "imprint_change", "imprint_step")
-SERIES_CACHE_VERSION = 2
+SERIES_CACHE_VERSION = 3
 
 
 @dataclass(frozen=True)
@@ -59,12 +61,12 @@ class _Prepared:
 
 class ContactMotion:
     """Per-frame ``SERIES`` of one camera, online: ``reset`` with the reference image, then ``step``
-    every frame."""
+    every frame; it keeps the previous frame and the emptiest one so far."""
 
     def __init__(self, params: ContactMotionParams = ContactMotionParams()) -> None:
         self.params = params
         self._kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (params.close_px, params.close_px))
-        self._reference: _Prepared | None = None
+        self._emptiest: _Prepared | None = None
         self._previous: _Prepared | None = None
 
     def _prepare(self, image: np.ndarray) -> _Prepared:
@@ -77,21 +79,25 @@ class ContactMotion:
 
     def reset(self, image: np.ndarray) -> np.ndarray:
         """Start from ``image`` (H, W, 3) BGR uint8; returns its row (0, 0, contact, 0, 0) float32."""
-        self._reference = self._previous = self._prepare(image)
-        return np.array([0.0, 0.0, self._reference.texture.mean(), 0.0, 0.0], np.float32)
+        self._emptiest = self._previous = self._prepare(image)
+        return np.array([0.0, 0.0, self._emptiest.texture.mean(), 0.0, 0.0], np.float32)
 
     def step(self, image: np.ndarray) -> np.ndarray:
-        """``SERIES`` (5,) float32 of ``image`` against the previous frame and the reference."""
-        if self._previous is None or self._reference is None:
+        """``SERIES`` (5,) float32 of ``image`` against the previous frame and the emptiest one so
+        far (this frame included)."""
+        if self._previous is None or self._emptiest is None:
             return self.reset(image)
         now, old = self._prepare(image), self._previous
+        contact = now.texture.mean()
+        if contact < self._emptiest.texture.mean():
+            self._emptiest = now
         raw_flow = _flow(old.grey, now.grey)
         imprint_flow = _flow(old.closed_grey, now.closed_grey)
         weight = np.clip(np.maximum(now.texture, old.texture) - self.params.texture_floor, 0.0, None)
         relative = float((np.linalg.norm(imprint_flow - raw_flow, axis=-1) * weight).sum() / (weight.sum() + 1e-6))
         self._previous = now
-        return np.array([relative, np.linalg.norm(raw_flow, axis=-1).mean(), now.texture.mean(),
-                         np.abs(now.closed - self._reference.closed).sum(axis=-1).mean(),
+        return np.array([relative, np.linalg.norm(raw_flow, axis=-1).mean(), contact,
+                         np.abs(now.closed - self._emptiest.closed).sum(axis=-1).mean(),
                          np.abs(now.closed - old.closed).sum(axis=-1).mean()], np.float32)
 
 

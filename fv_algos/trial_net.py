@@ -3,7 +3,9 @@
 :func:`camera_descriptors` joins the contact-motion ``SERIES`` of a camera
 (:mod:`fv_algos.contact_motion`) and its displacement fields of the same frames into the
 ``DESCRIPTORS`` (C = 11) per frame, each divided by its ``SCALE`` so that all are of order 1.
-:class:`TrialNet` reads the descriptors of each camera with (by default) four dilated 1-D
+:class:`TrialNet` clamps each descriptor to the range it saw in training (a new sensor's values
+beyond it cannot push the network further than any training trial did), then reads the
+descriptors of each camera with (by default) four dilated 1-D
 convolutions (61 frames of context), pools them over time (mean and max, so the trial's length
 does not matter), averages the cameras and gives one slip logit per trial (slip when p >= 0.5; no
 threshold is tuned); by default it is an ensemble of five such networks, started from different
@@ -28,7 +30,7 @@ from fv_algos.trial_eval import fold_summary, object_folds
 
 DESCRIPTORS = (
     "relative_px", "marker_px",  # from SERIES, px/frame at size_px scale
-    "contact_rise",  # contact minus that of the first 3 frames, grey levels
+    "contact_above_min",  # contact minus its least value so far in the trial, grey levels
     "field_px", "shear_x_px", "shear_y_px",  # grid means of |d|, dx, dy, px
     "invalid_share",  # share of reference markers not valid this frame
     "divergence", "curl",  # grid means of div d and curl d (d in px, per grid cell)
@@ -41,7 +43,6 @@ PER_FRAME = np.array([n in ("relative_px", "marker_px", "imprint_step") for n in
 MIRROR_X = np.array([1, 1, 1, 1, -1, 1, 1, 1, -1, 1, 1], np.float32)
 MIRROR_Y = np.array([1, 1, 1, 1, 1, -1, 1, 1, -1, 1, 1], np.float32)
 KIND = "trial_net"
-BASE_FRAMES = 3  # contact_rise is measured against the mean contact of a trial's first frames
 FIELD_ROWS = ("field_px", "shear_x_px", "shear_y_px", "invalid_share", "divergence", "curl")
 
 
@@ -56,15 +57,20 @@ def field_rows(fields: np.ndarray, valid_share: np.ndarray) -> np.ndarray:
                      (ddy_dx - ddx_dy).mean(axis=(1, 2))], axis=1).astype(np.float32)
 
 
-def descriptor_matrix(series: np.ndarray, rows: np.ndarray, contact_base: float | None = None) -> torch.Tensor:
+def descriptor_matrix(series: np.ndarray, rows: np.ndarray, contact_floor: float = np.inf) -> torch.Tensor:
     """(C, F) float32 ``DESCRIPTORS`` / ``SCALE`` from contact-motion ``series`` (F, 5) and
-    :func:`field_rows` ``rows`` (F, 6) of the same frames; contact_rise is taken against
-    ``contact_base`` (grey levels; None: the mean contact of the first ``BASE_FRAMES`` of these
-    frames, the trial's start); ValueError when the counts differ."""
+    :func:`field_rows` ``rows`` (F, 6) of the same frames; ValueError when the counts differ.
+
+    contact_above_min is the contact minus its running minimum, which starts from ``contact_floor``
+    (grey levels: the least contact of the trial's frames before these; inf when these frames
+    start the trial). A minimum, not the first frames' contact: start-up frames of a camera can be
+    brighter and more textured than the empty skin, and would make a base too high for the whole
+    trial; the least-textured frame seen so far is the skin with the least imprint."""
     if rows.shape[0] != series.shape[0]:
         raise ValueError(f"{series.shape[0]} contact-series frames but {rows.shape[0]} fields")
-    base = series[:BASE_FRAMES, 2].mean() if contact_base is None else contact_base
-    joined = np.stack([series[:, 0], series[:, 1], series[:, 2] - base, *rows.T,
+    contact = series[:, 2]
+    floor = np.minimum.accumulate(np.minimum(contact, contact_floor))
+    joined = np.stack([series[:, 0], series[:, 1], contact - floor, *rows.T,
                        series[:, 3], series[:, 4]]).astype(np.float32)
     return torch.from_numpy(np.nan_to_num(joined / SCALE[:, None], nan=0.0, posinf=0.0, neginf=0.0))
 
@@ -94,7 +100,8 @@ class TrialNetConfig:
     ``batch`` trials (half slip, half no slip). lr, weight_decay: AdamW. gain: range of the random factor every
     training trial's descriptors are multiplied by (with random left-right / up-down mirroring).
     stretch: every training trial is resampled in time by a factor drawn log-uniformly from
-    [1 / stretch, stretch] (the same motion, slower or faster; 1: never)."""
+    [1 / stretch, stretch] (the same motion, slower or faster; 1: never). clip: each descriptor is
+    clamped to its [clip, 1 - clip] quantiles over the training trials' frames (0: their min and max)."""
 
     hidden: int = 16
     layers: int = 4
@@ -105,19 +112,22 @@ class TrialNetConfig:
     weight_decay: float = 1e-2
     gain: tuple[float, float] = (0.8, 1.2)
     stretch: float = 1.4
+    clip: float = 0.0
     seed: int = 0
 
     def __post_init__(self) -> None:
         even_batch = self.batch >= 2 and self.batch % 2 == 0
         sizes = (self.hidden, self.layers, self.members, self.steps)
-        if min(sizes) < 1 or not even_batch or not 0 < self.gain[0] <= self.gain[1] or not self.stretch >= 1:
+        ranges = 0 < self.gain[0] <= self.gain[1] and self.stretch >= 1 and 0 <= self.clip < 0.5
+        if min(sizes) < 1 or not even_batch or not ranges:
             raise ValueError("TrialNetConfig needs hidden, layers, members, steps >= 1, an even batch >= 2, "
-                             f"0 < gain[0] <= gain[1] and stretch >= 1, got {self}")
+                             f"0 < gain[0] <= gain[1], stretch >= 1 and 0 <= clip < 0.5, got {self}")
 
 
 class TrialNet(nn.Module):
-    """Cameras of one trial -> slip logit, the mean of ``members`` independent networks' logits. A
-    member: per camera ``layers`` 1-D convolutions (kernel 5, dilation 1, 2, 4, ...) with ReLU over
+    """Cameras of one trial -> slip logit, the mean of ``members`` independent networks' logits. The
+    descriptors are first clamped to [``low``, ``high``] (C,) (buffers, saved with the weights;
+    unbounded until :meth:`set_range`). A member: per camera ``layers`` 1-D convolutions (kernel 5, dilation 1, 2, 4, ...) with ReLU over
     the (C, F) descriptors, then mean and max over the F frames (2 * hidden); mean over the
     cameras; linear. The members are run as one network: member m owns channels m * hidden to
     (m + 1) * hidden of every convolution (grouped after the first) and row m of the head, which
@@ -134,6 +144,21 @@ class TrialNet(nn.Module):
                                 dilation=dilation, groups=1 if k == 0 else members), nn.ReLU()]
         self.temporal = nn.Sequential(*convs)
         self.head = nn.Linear(2 * hidden, members)  # row m: member m's (mean, max) -> its logit
+        self.register_buffer("low", torch.full((len(DESCRIPTORS),), -torch.inf))
+        self.register_buffer("high", torch.full((len(DESCRIPTORS),), torch.inf))
+
+    def set_range(self, low: torch.Tensor, high: torch.Tensor) -> None:
+        """Clamp the descriptors to [``low``, ``high``] (C,) from now on."""
+        self.low.copy_(low)
+        self.high.copy_(high)
+
+    def clamped(self, x: torch.Tensor) -> torch.Tensor:
+        """``x`` (..., C, F) descriptors clamped to [``low``, ``high``]."""
+        return torch.minimum(torch.maximum(x, self.low[:, None]), self.high[:, None])
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, width, F) temporal features of descriptors ``x`` (N, C, F), clamped first."""
+        return self.temporal(self.clamped(x))
 
     @property
     def width(self) -> int:
@@ -163,7 +188,7 @@ class TrialNet(nn.Module):
         series = [x for cameras in trials for x in cameras]
         lengths = torch.tensor([x.shape[1] for x in series])
         mask = (torch.arange(int(lengths.max()))[None, :] < lengths[:, None]).to(series[0].dtype)[:, None]
-        h = torch.stack([nn.functional.pad(x, (0, mask.shape[2] - x.shape[1])) for x in series])
+        h = self.clamped(torch.stack([nn.functional.pad(x, (0, mask.shape[2] - x.shape[1])) for x in series])) * mask
         for layer in self.temporal:
             h = layer(h) * mask if isinstance(layer, nn.ReLU) else layer(h)
         per_series = torch.cat([h.sum(dim=2) / lengths[:, None], h.masked_fill(mask == 0, -torch.inf).amax(dim=2)], 1)
@@ -219,6 +244,8 @@ def fit_trial_net(inputs: Sequence[TrialInput], labels: np.ndarray,
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     net = TrialNet(config.hidden, config.layers, config.members)
+    frames = torch.cat([x for cameras in inputs for x in cameras], dim=1).numpy()  # (C, all frames)
+    net.set_range(*(torch.from_numpy(np.quantile(frames, q, axis=1).astype(np.float32)) for q in (config.clip, 1 - config.clip)))
     optimizer = torch.optim.AdamW(net.parameters(), config.lr, weight_decay=config.weight_decay)
     loss_fn = nn.BCEWithLogitsLoss()
     for _ in range(config.steps):

@@ -83,6 +83,9 @@ def _fit_args(p: argparse.ArgumentParser, window_steps: int) -> None:
     p.add_argument("--stretch", type=float, default=None,
                    help="trial: training trials are resampled in time by a random factor in [1/S, S] "
                         "(1: never; default TrialNetConfig's)")
+    p.add_argument("--clip", type=float, default=None,
+                   help="trial: every descriptor is clamped to its [C, 1 - C] quantiles over the training frames "
+                        "(0: their min and max; default TrialNetConfig's)")
     p.add_argument("--steps", type=int, default=None,
                    help=f"optimizer steps (default: trial: TrialNetConfig's, windows: {window_steps})")
     p.add_argument("--batch-size", type=int, default=None, help="default: trial: TrialNetConfig's, windows: 32")
@@ -143,7 +146,7 @@ def _trial_config(args: argparse.Namespace):
     default = TrialNetConfig()
     return TrialNetConfig(hidden=args.hidden, layers=_given(args.layers, default.layers),
                           members=_given(args.members, default.members),
-                          stretch=_given(args.stretch, default.stretch),
+                          stretch=_given(args.stretch, default.stretch), clip=_given(args.clip, default.clip),
                           steps=_given(args.steps, default.steps),
                           batch=_given(args.batch_size, default.batch), lr=_given(args.lr, default.lr), seed=args.seed)
 

@@ -8,11 +8,11 @@ import pytest
 from fv_algos.contact_motion import ContactMotion
 
 
-def _scene(imprint_shift_px: int, marker_shift_px: int) -> np.ndarray:
-    """320x240 BGR: a textured imprint (shifted right by ``imprint_shift_px``) under a grid of dark
-    markers (shifted right by ``marker_shift_px``)."""
+def _scene(imprint_shift_px: int, marker_shift_px: int, imprint: bool = True) -> np.ndarray:
+    """320x240 BGR: a textured imprint (shifted right by ``imprint_shift_px``; a bare, flat skin when
+    not ``imprint``) under a grid of dark markers (shifted right by ``marker_shift_px``)."""
     texture = cv2.GaussianBlur(np.random.default_rng(0).uniform(0, 255, (240, 400)).astype(np.float32), (0, 0), 6)
-    texture = 60 + 3.0 * (texture - texture.mean())
+    texture = 60 + 3.0 * (texture - texture.mean()) * imprint
     image = np.repeat(texture[:, 40 - imprint_shift_px: 360 - imprint_shift_px, None], 3, axis=2)
     image = np.clip(image, 0, 255).astype(np.uint8)
     for y in range(20, 240, 40):
@@ -23,12 +23,26 @@ def _scene(imprint_shift_px: int, marker_shift_px: int) -> np.ndarray:
 
 def test_relative_motion_is_small_when_imprint_sticks_and_large_when_it_slips() -> None:
     stick, slip = ContactMotion(), ContactMotion()
-    stick.reset(_scene(0, 0))
-    slip.reset(_scene(0, 0))
+    for motion in (stick, slip):
+        motion.reset(_scene(0, 0, imprint=False))  # the bare skin, then the object's imprint
+        touch = motion.step(_scene(0, 0))
     relative_stick, marker_stick, _, change_stick, step_stick = stick.step(_scene(8, 8))  # skin and imprint move together
     relative_slip, marker_slip, _, change_slip, step_slip = slip.step(_scene(8, 0))  # imprint moves, markers stay
     assert marker_stick > 1.0
     assert relative_slip > 3 * relative_stick
-    assert change_slip == pytest.approx(step_slip) and change_slip > 1.0  # one step from the reference
-    again = slip.step(_scene(8, 0))  # no further motion: the imprint is still away from the reference
+    assert touch[3] == pytest.approx(touch[4]) and touch[3] > 1.0  # the imprint appears on the bare skin
+    assert change_slip > 1.0 and step_slip > 1.0
+    again = slip.step(_scene(8, 0))  # no further motion: the imprint is still away from the bare skin
     assert again[4] < 0.1 * again[3] and again[3] == pytest.approx(change_slip, rel=1e-5)
+
+
+def test_imprint_change_is_measured_from_the_emptiest_frame_not_a_stale_reference() -> None:
+    motion = ContactMotion()
+    ghost = motion.reset(_scene(0, 0))  # a start-up frame showing an imprint that is not there
+    bare = motion.step(_scene(0, 0, imprint=False))
+    assert bare[2] < ghost[2] and bare[3] == 0.0  # the bare skin is now the emptiest frame
+    assert motion.step(_scene(0, 0, imprint=False))[3] == 0.0  # a still, bare skin has not changed
+    grasp = motion.step(_scene(8, 0))
+    fresh = ContactMotion()
+    fresh.reset(_scene(0, 0, imprint=False))
+    assert grasp[3] == pytest.approx(fresh.step(_scene(8, 0))[3], rel=1e-5)  # as if the trial had started bare

@@ -18,6 +18,8 @@ from fv_algos.trial_net import (
     TrialNetConfig,
     camera_descriptors,
     cross_validate_trials,
+    descriptor_matrix,
+    field_rows,
     fit_trial_net,
     load_trial_model,
     read_trial_model,
@@ -36,10 +38,14 @@ def _fields(frames: int, dx_px: float) -> VideoFields:
 
 def test_descriptors_closed_form_and_mirroring() -> None:
     series = np.zeros((12, 5), np.float32)
-    series[:, 2] = np.r_[np.full(3, 4.0), np.full(9, 6.0)]  # contact rises by 2 after the first 3 frames
+    series[:, 2] = np.r_[7.0, 4.0, 4.0, np.full(9, 6.0)]  # a bright start-up frame, then a rise of 2 above 4
     series[:, 3] = 10.0  # imprint 10 grey levels from the reference
     d = dict(zip(DESCRIPTORS, camera_descriptors(series, _fields(12, 2.5)).numpy() * SCALE[:, None]))
-    np.testing.assert_allclose(d["contact_rise"], np.r_[np.zeros(3), np.full(9, 2.0)], atol=1e-6)
+    np.testing.assert_allclose(d["contact_above_min"], np.r_[np.zeros(3), np.full(9, 2.0)], atol=1e-6)
+    rows = field_rows(_fields(12, 2.5).fields, np.full(12, 0.9, np.float32))
+    later = descriptor_matrix(series[5:], rows[5:], contact_floor=4.0).numpy()  # the floor of earlier frames given
+    np.testing.assert_allclose(later[2] * SCALE[2], 2.0, atol=1e-6)
+    np.testing.assert_allclose(descriptor_matrix(series[5:], rows[5:]).numpy()[2], 0.0)  # alone: 6 is its least
     np.testing.assert_allclose(d["shear_x_px"], 2.5)
     np.testing.assert_allclose(d["field_px"], 2.5)
     np.testing.assert_allclose(d["invalid_share"], 0.1, atol=1e-6)
@@ -101,6 +107,22 @@ def test_a_batch_of_trials_pools_as_each_trial_alone() -> None:
     torch.testing.assert_close(together, torch.stack(alone), atol=1e-6, rtol=1e-5)
     expected = [torch.sigmoid(net(cameras)).item() for cameras in trials]
     np.testing.assert_allclose(trial_probability(net, trials, batch=3), expected, rtol=1e-5)
+
+
+def test_descriptors_are_clamped_to_the_range_of_the_training_frames() -> None:
+    torch.set_num_threads(1)
+    inputs, labels = _toy_trials(10)
+    net = fit_trial_net(inputs, labels, TrialNetConfig(steps=2, members=1, clip=0.0))
+    frames = torch.cat([x for cameras in inputs for x in cameras], dim=1)
+    torch.testing.assert_close(net.low, frames.amin(dim=1))
+    torch.testing.assert_close(net.high, frames.amax(dim=1))
+    far = [[torch.where(x > 0, 1e6, -1e6) for x in inputs[0]]]  # a sensor far out of the training range
+    edge = [[torch.where(x > 0, net.high[:, None], net.low[:, None]) for x in inputs[0]]]
+    np.testing.assert_allclose(trial_probability(net, far), trial_probability(net, edge), rtol=1e-6)
+    quartiles = fit_trial_net(inputs, labels, TrialNetConfig(steps=2, members=1, clip=0.25))
+    torch.testing.assert_close(quartiles.high, torch.quantile(frames, 0.75, dim=1))
+    with pytest.raises(ValueError, match="0 <= clip < 0.5"):
+        TrialNetConfig(clip=0.5)
 
 
 def test_stretching_in_time_resamples_levels_and_slows_rates() -> None:
