@@ -178,23 +178,11 @@ class TrialNet(nn.Module):
     def pooled(self, cameras: TrialInput) -> torch.Tensor:
         """(2 * width,) mean and max over the frames of every channel, averaged over the
         cameras (their (C, F) tensors, any F >= 1)."""
-        return self.pooled_batch([cameras])[0]
-
-    def pooled_batch(self, trials: Sequence[TrialInput]) -> torch.Tensor:
-        """(M, 2 * width) :meth:`pooled` of ``trials`` (M trials, any cameras and lengths) in one pass:
-        every camera series is zero-padded to the longest, and the features of the padding frames
-        are zeroed after every convolution, so each series sees exactly the zero border it would
-        see alone and pooling ignores the padding."""
-        series = [x for cameras in trials for x in cameras]
-        lengths = torch.tensor([x.shape[1] for x in series])
-        mask = (torch.arange(int(lengths.max()))[None, :] < lengths[:, None]).to(series[0].dtype)[:, None]
-        h = self.clamped(torch.stack([nn.functional.pad(x, (0, mask.shape[2] - x.shape[1])) for x in series])) * mask
-        for layer in self.temporal:
-            h = layer(h) * mask if isinstance(layer, nn.ReLU) else layer(h)
-        per_series = torch.cat([h.sum(dim=2) / lengths[:, None], h.masked_fill(mask == 0, -torch.inf).amax(dim=2)], 1)
-        owner = torch.repeat_interleave(torch.arange(len(trials)), torch.tensor([len(c) for c in trials]))
-        summed = torch.zeros(len(trials), per_series.shape[1]).index_add_(0, owner, per_series)
-        return summed / torch.bincount(owner, minlength=len(trials))[:, None]
+        per_camera = []
+        for x in cameras:
+            h = self.features(x[None])[0]
+            per_camera.append(torch.cat([h.mean(dim=1), h.amax(dim=1)]))
+        return torch.stack(per_camera).mean(dim=0)
 
     @property
     def radius(self) -> int:
@@ -250,8 +238,8 @@ def fit_trial_net(inputs: Sequence[TrialInput], labels: np.ndarray,
     loss_fn = nn.BCEWithLogitsLoss()
     for _ in range(config.steps):
         picks = np.concatenate([rng.choice(slip, config.batch // 2), rng.choice(still, config.batch // 2)])
-        pooled = net.pooled_batch([[_augment(x, rng, config) for x in inputs[i]] for i in picks])
-        logits = torch.stack([net.member_logits(p) for p in pooled])  # (batch, members)
+        logits = torch.stack([net.member_logits(net.pooled([_augment(x, rng, config) for x in inputs[i]]))
+                              for i in picks])  # (batch, members)
         target = torch.as_tensor(labels[picks], dtype=torch.float32)[:, None].expand_as(logits)
         loss = loss_fn(logits, target)
         optimizer.zero_grad()
@@ -261,10 +249,9 @@ def fit_trial_net(inputs: Sequence[TrialInput], labels: np.ndarray,
 
 
 @torch.no_grad()
-def trial_probability(net: TrialNet, inputs: Sequence[TrialInput], batch: int = 16) -> np.ndarray:
-    """(M,) slip probability of each trial, ``batch`` trials per pass."""
-    pooled = [net.pooled_batch(inputs[k:k + batch]) for k in range(0, len(inputs), batch)]
-    return np.array([torch.sigmoid(net.logit(p)).item() for p in torch.cat(pooled)]) if pooled else np.zeros(0)
+def trial_probability(net: TrialNet, inputs: Sequence[TrialInput]) -> np.ndarray:
+    """(M,) slip probability of each trial."""
+    return np.array([torch.sigmoid(net(x)).item() for x in inputs])
 
 
 def save_trial_model(path: str | Path, net: TrialNet, config: TrialNetConfig,

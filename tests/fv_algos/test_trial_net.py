@@ -94,21 +94,6 @@ def test_trial_net_learns_a_burst_whatever_the_length_and_round_trips(tmp_path: 
         TrialNetConfig(batch=3)
 
 
-def test_a_batch_of_trials_pools_as_each_trial_alone() -> None:
-    torch.manual_seed(0)
-    net = TrialNet(8, 4, members=2)
-    trials = [[torch.randn(len(DESCRIPTORS), n) for n in lengths] for lengths in ([50, 70], [3], [200, 1], [120])]
-    alone = []
-    with torch.no_grad():
-        for cameras in trials:  # each camera through the convolutions on its own, pooled over its frames
-            features = [net.temporal(x[None])[0] for x in cameras]
-            alone.append(torch.stack([torch.cat([h.mean(dim=1), h.amax(dim=1)]) for h in features]).mean(dim=0))
-        together = net.pooled_batch(trials)
-    torch.testing.assert_close(together, torch.stack(alone), atol=1e-6, rtol=1e-5)
-    expected = [torch.sigmoid(net(cameras)).item() for cameras in trials]
-    np.testing.assert_allclose(trial_probability(net, trials, batch=3), expected, rtol=1e-5)
-
-
 def test_descriptors_are_clamped_to_the_range_of_the_training_frames() -> None:
     torch.set_num_threads(1)
     inputs, labels = _toy_trials(10)
