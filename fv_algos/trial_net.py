@@ -127,11 +127,11 @@ class TrialNetConfig:
 class TrialNet(nn.Module):
     """Cameras of one trial -> slip logit, the mean of ``members`` independent networks' logits. The
     descriptors are first clamped to [``low``, ``high``] (C,) (buffers, saved with the weights;
-    unbounded until :meth:`set_range`). A member: per camera ``layers`` 1-D convolutions (kernel 5, dilation 1, 2, 4, ...) with ReLU over
-    the (C, F) descriptors, then mean and max over the F frames (2 * hidden); mean over the
-    cameras; linear. The members are run as one network: member m owns channels m * hidden to
-    (m + 1) * hidden of every convolution (grouped after the first) and row m of the head, which
-    reads only those channels' pooled features."""
+    unbounded until :meth:`set_range`). A member: per camera ``layers`` 1-D convolutions (kernel 5,
+    dilation 1, 2, 4, ...) with ReLU over the (C, F) descriptors, then mean and max over the F
+    frames (2 * hidden); mean over the cameras; linear. The members are run as one network: member m
+    owns channels m * hidden to (m + 1) * hidden of every convolution (grouped after the first) and
+    row m of the head, which reads only those channels' pooled features."""
 
     def __init__(self, hidden: int = 16, layers: int = 4, members: int = 1) -> None:
         super().__init__()
@@ -233,7 +233,9 @@ def fit_trial_net(inputs: Sequence[TrialInput], labels: np.ndarray,
     rng = np.random.default_rng(config.seed)
     net = TrialNet(config.hidden, config.layers, config.members)
     frames = torch.cat([x for cameras in inputs for x in cameras], dim=1).numpy()  # (C, all frames)
-    net.set_range(*(torch.from_numpy(np.quantile(frames, q, axis=1).astype(np.float32)) for q in (config.clip, 1 - config.clip)))
+    low, high = (torch.from_numpy(np.quantile(frames, q, axis=1).astype(np.float32))
+                 for q in (config.clip, 1 - config.clip))
+    net.set_range(low, high)
     optimizer = torch.optim.AdamW(net.parameters(), config.lr, weight_decay=config.weight_decay)
     loss_fn = nn.BCEWithLogitsLoss()
     for _ in range(config.steps):
