@@ -9,13 +9,16 @@ that move: the dark markers (the skin) and the shading of the object's imprint. 
   ``close_px``), px/frame at ``size_px`` scale;
 - ``marker_px``: mean optical-flow speed of the raw image (dominated by the markers), px/frame at
   ``size_px`` scale;
-- ``contact``: mean high-pass energy of the marker-free colour image (imprint shading), grey levels;
+- ``contact_above_min``: mean high-pass energy of the marker-free colour image (imprint shading)
+  minus that of the emptiest frame so far, grey levels;
 - ``imprint_change``: mean |marker-free colour image - that of the emptiest frame so far| (summed
   over B, G, R), grey levels: how far the imprint is from the bare skin (an object that slips
-  away or out of the grasp brings it back). The emptiest frame is the one of least ``contact``
-  from the reference on: a camera's start-up frames, brighter or more textured than its bare
-  skin, never become it, so a stale reference does not shift the whole trial;
+  away or out of the grasp brings it back);
 - ``imprint_step``: the same against the previous frame, grey levels per frame.
+
+The emptiest frame is the one of least shading from the reference on (this frame included): a
+camera's start-up frames, brighter or more textured than its bare skin, never become it, so a
+stale reference does not shift the whole trial.
 """
 from __future__ import annotations
 
@@ -31,8 +34,8 @@ import numpy as np
 
 from fv_algos.real_trials import VIDEO_SUFFIX, Trial, VideoKey, map_videos, read_frames, write_atomically
 
-SERIES = ("relative_px", "marker_px", "contact", "imprint_change", "imprint_step")
-SERIES_CACHE_VERSION = 3
+SERIES = ("relative_px", "marker_px", "contact_above_min", "imprint_change", "imprint_step")
+SERIES_CACHE_VERSION = 4
 
 
 @dataclass(frozen=True)
@@ -51,12 +54,14 @@ class ContactMotionParams:
 @dataclass(frozen=True)
 class _Prepared:
     """One frame at ``size_px``: grey and marker-free grey (h, w) uint8, marker-free colour
-    (h, w, 3) float32 and its texture energy (h, w) float32."""
+    (h, w, 3) float32, its texture energy (h, w) float32 and that energy's mean (the shading,
+    grey levels)."""
 
     grey: np.ndarray
     closed_grey: np.ndarray
     closed: np.ndarray
     texture: np.ndarray
+    shading: float
 
 
 class ContactMotion:
@@ -75,12 +80,13 @@ class ContactMotion:
         closed_f = closed.astype(np.float32)
         texture = np.abs(closed_f - cv2.GaussianBlur(closed_f, (0, 0), self.params.sigma_px)).sum(axis=-1)
         return _Prepared(cv2.cvtColor(small, cv2.COLOR_BGR2GRAY), cv2.cvtColor(closed, cv2.COLOR_BGR2GRAY),
-                         closed_f, texture)
+                         closed_f, texture, float(texture.mean()))
 
     def reset(self, image: np.ndarray) -> np.ndarray:
-        """Start from ``image`` (H, W, 3) BGR uint8; returns its row (0, 0, contact, 0, 0) float32."""
+        """Start from ``image`` (H, W, 3) BGR uint8, the first emptiest frame; returns its row, zeros (5,)
+        float32."""
         self._emptiest = self._previous = self._prepare(image)
-        return np.array([0.0, 0.0, self._emptiest.texture.mean(), 0.0, 0.0], np.float32)
+        return np.zeros(len(SERIES), np.float32)
 
     def step(self, image: np.ndarray) -> np.ndarray:
         """``SERIES`` (5,) float32 of ``image`` against the previous frame and the emptiest one so
@@ -88,15 +94,14 @@ class ContactMotion:
         if self._previous is None or self._emptiest is None:
             return self.reset(image)
         now, old = self._prepare(image), self._previous
-        contact = now.texture.mean()
-        if contact < self._emptiest.texture.mean():
+        if now.shading < self._emptiest.shading:
             self._emptiest = now
         raw_flow = _flow(old.grey, now.grey)
         imprint_flow = _flow(old.closed_grey, now.closed_grey)
         weight = np.clip(np.maximum(now.texture, old.texture) - self.params.texture_floor, 0.0, None)
         relative = float((np.linalg.norm(imprint_flow - raw_flow, axis=-1) * weight).sum() / (weight.sum() + 1e-6))
         self._previous = now
-        return np.array([relative, np.linalg.norm(raw_flow, axis=-1).mean(), contact,
+        return np.array([relative, np.linalg.norm(raw_flow, axis=-1).mean(), now.shading - self._emptiest.shading,
                          np.abs(now.closed - self._emptiest.closed).sum(axis=-1).mean(),
                          np.abs(now.closed - old.closed).sum(axis=-1).mean()], np.float32)
 

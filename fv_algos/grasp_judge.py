@@ -38,7 +38,6 @@ class GraspJudge:
     def reset(self) -> None:
         """Forget the grasp: the next ``step`` is the reference frame of a new one."""
         self.frames = 0
-        self._floor = np.inf  # least contact of the frames that have left the tail, grey levels
         tail = 2 * self.net.radius + 1
         self._series: collections.deque = collections.deque(maxlen=tail)  # (5,) contact-motion rows
         self._rows: collections.deque = collections.deque(maxlen=tail)  # (6,) field rows
@@ -57,12 +56,10 @@ class GraspJudge:
     def push(self, row: np.ndarray, field_row: np.ndarray) -> float:
         """:meth:`step` from a frame's contact-motion row (5,) (``fv_algos.contact_motion.SERIES``)
         and its :func:`fv_algos.trial_net.field_rows` row (6,) (e.g. from cached series and fields)."""
-        if len(self._series) == self._series.maxlen:  # the oldest row leaves the tail
-            self._floor = min(self._floor, float(self._series[0][2]))
         self._series.append(row)
         self._rows.append(field_row)
         self.frames += 1
-        x = descriptor_matrix(np.stack(self._series), np.stack(self._rows), self._floor)
+        x = descriptor_matrix(np.stack(self._series), np.stack(self._rows))
         h = self.net.features(x[None])[0]  # (width, tail): column j is frame frames - tail + j
         first_column = self.frames - h.shape[1]
         newly_final = self.frames - self.net.radius  # frames [self._final, newly_final) become final

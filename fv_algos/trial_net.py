@@ -30,7 +30,7 @@ from fv_algos.trial_eval import fold_summary, object_folds
 
 DESCRIPTORS = (
     "relative_px", "marker_px",  # from SERIES, px/frame at size_px scale
-    "contact_above_min",  # contact minus its least value so far in the trial, grey levels
+    "contact_above_min",  # from SERIES, grey levels
     "field_px", "shear_x_px", "shear_y_px",  # grid means of |d|, dx, dy, px
     "invalid_share",  # share of reference markers not valid this frame
     "divergence", "curl",  # grid means of div d and curl d (d in px, per grid cell)
@@ -57,20 +57,12 @@ def field_rows(fields: np.ndarray, valid_share: np.ndarray) -> np.ndarray:
                      (ddy_dx - ddx_dy).mean(axis=(1, 2))], axis=1).astype(np.float32)
 
 
-def descriptor_matrix(series: np.ndarray, rows: np.ndarray, contact_floor: float = np.inf) -> torch.Tensor:
+def descriptor_matrix(series: np.ndarray, rows: np.ndarray) -> torch.Tensor:
     """(C, F) float32 ``DESCRIPTORS`` / ``SCALE`` from contact-motion ``series`` (F, 5) and
-    :func:`field_rows` ``rows`` (F, 6) of the same frames; ValueError when the counts differ.
-
-    contact_above_min is the contact minus its running minimum, which starts from ``contact_floor``
-    (grey levels: the least contact of the trial's frames before these; inf when these frames
-    start the trial). A minimum, not the first frames' contact: start-up frames of a camera can be
-    brighter and more textured than the empty skin, and would make a base too high for the whole
-    trial; the least-textured frame seen so far is the skin with the least imprint."""
+    :func:`field_rows` ``rows`` (F, 6) of the same frames; ValueError when the counts differ."""
     if rows.shape[0] != series.shape[0]:
         raise ValueError(f"{series.shape[0]} contact-series frames but {rows.shape[0]} fields")
-    contact = series[:, 2]
-    floor = np.minimum.accumulate(np.minimum(contact, contact_floor))
-    joined = np.stack([series[:, 0], series[:, 1], contact - floor, *rows.T,
+    joined = np.stack([series[:, 0], series[:, 1], series[:, 2], *rows.T,
                        series[:, 3], series[:, 4]]).astype(np.float32)
     return torch.from_numpy(np.nan_to_num(joined / SCALE[:, None], nan=0.0, posinf=0.0, neginf=0.0))
 
@@ -152,13 +144,9 @@ class TrialNet(nn.Module):
         self.low.copy_(low)
         self.high.copy_(high)
 
-    def clamped(self, x: torch.Tensor) -> torch.Tensor:
-        """``x`` (..., C, F) descriptors clamped to [``low``, ``high``]."""
-        return torch.minimum(torch.maximum(x, self.low[:, None]), self.high[:, None])
-
     def features(self, x: torch.Tensor) -> torch.Tensor:
         """(N, width, F) temporal features of descriptors ``x`` (N, C, F), clamped first."""
-        return self.temporal(self.clamped(x))
+        return self.temporal(torch.clamp(x, self.low[:, None], self.high[:, None]))
 
     @property
     def width(self) -> int:

@@ -40,9 +40,11 @@ def test_imprint_change_is_measured_from_the_emptiest_frame_not_a_stale_referenc
     motion = ContactMotion()
     ghost = motion.reset(_scene(0, 0))  # a start-up frame showing an imprint that is not there
     bare = motion.step(_scene(0, 0, imprint=False))
-    assert bare[2] < ghost[2] and bare[3] == 0.0  # the bare skin is now the emptiest frame
+    assert bare[2] == 0.0 and bare[3] == 0.0 and not ghost.any()  # the bare skin is now the emptiest frame
     assert motion.step(_scene(0, 0, imprint=False))[3] == 0.0  # a still, bare skin has not changed
     grasp = motion.step(_scene(8, 0))
     fresh = ContactMotion()
     fresh.reset(_scene(0, 0, imprint=False))
-    assert grasp[3] == pytest.approx(fresh.step(_scene(8, 0))[3], rel=1e-5)  # as if the trial had started bare
+    started_bare = fresh.step(_scene(8, 0))
+    assert grasp[2] > 1.0 and grasp[2] == pytest.approx(started_bare[2], rel=1e-5)  # shading above the bare skin
+    assert grasp[3] == pytest.approx(started_bare[3], rel=1e-5)  # as if the trial had started bare
