@@ -47,6 +47,14 @@ class TrackerParams:
         array edge (sqrt(N) of N markers), and at least 2, of both markers and detections
         are left unmatched (a lattice matched one pitch off leaves a whole edge row so);
         fewer go to the local re-acquisition, which costs far less.
+    rest_ratio: radius of the return to rest of 'assignment': when all markers but fewer
+        than the global fallback's trigger have a detection this close to their reference
+        position, the skin is back at rest; a match that claims a marker moved more than
+        ``gate_ratio`` or left one unpaired is then wrong (e.g. locked one pitch off by a
+        jump the velocity could not follow): the markers take those detections and the
+        velocity restarts from 0. A deformed skin cannot put nearly every marker on a
+        reference position (a whole lattice shifted by one pitch leaves an edge row
+        without one); 0 disables it.
     """
 
     method: Literal["nearest", "assignment"] = "assignment"
@@ -59,6 +67,7 @@ class TrackerParams:
     use_velocity: bool = True
     transport_ratio: float = 2.0
     transport_edge_share: float = 0.25
+    rest_ratio: float = 0.15
 
     def __post_init__(self) -> None:
         if self.method not in ("nearest", "assignment"):
@@ -73,6 +82,8 @@ class TrackerParams:
             raise ValueError(f"tolerance_ratio must be > 0, got {self.tolerance_ratio}")
         if self.transport_ratio < 0.0:
             raise ValueError(f"transport_ratio must be >= 0, got {self.transport_ratio}")
+        if not 0.0 <= self.rest_ratio < 0.5:
+            raise ValueError(f"rest_ratio must be in [0, 0.5), got {self.rest_ratio}")
         if not 0.0 <= self.transport_edge_share <= 1.0:
             raise ValueError(f"transport_edge_share must be in [0, 1], got {self.transport_edge_share}")
         if self.area_ratio_max != 0.0 and not self.area_ratio_max > 1.0:
@@ -273,19 +284,48 @@ class Tracker:
             raise ValueError(f"detections: {det.shape[0]} centres but {areas.shape[0]} areas")
         finite = np.all(np.isfinite(det), axis=1) & np.isfinite(areas)
         det, areas = det[finite], areas[finite]
+        at_rest = False
         if self.params.method == "nearest":
             matched = self._match_nearest(det)
         else:
             matched = self._match_assignment(det, areas)
+            rest = self._rest_match(det, matched)
+            at_rest = rest is not None
+            matched = matched if rest is None else rest
         seen = matched >= 0
         new = self._cur.copy()
         new[seen] = det[matched[seen]]
-        both = seen & self._valid
+        both = seen & self._valid & (not at_rest)
         self._velocity = np.where(both[:, None], new - self._cur, 0.0)
         self._cur = new
         self._valid = seen
         self._since = np.where(seen, 0, self._since + 1)
         return self.state
+
+    def _rest_match(self, det: np.ndarray, matched: np.ndarray) -> np.ndarray | None:
+        """The return to rest (`TrackerParams.rest_ratio`): (N,) int64 detection index per
+        marker (-1 = none), or None when the skin is not at rest or `matched` (N,) agrees
+        (checked only when `matched` leaves a marker unpaired or moved beyond the gate).
+
+        At rest each marker takes the detection within the radius of its reference position;
+        a marker with none keeps its pair in `matched` when no other marker took that
+        detection. det: (M, 2) px."""
+        radius = self.params.rest_ratio * self.pitch_px
+        if radius == 0.0 or det.shape[0] == 0:
+            return None
+        seen = matched >= 0
+        moved = np.hypot(*(det[matched[seen]] - self._ref[seen]).T)
+        if seen.all() and not np.any(moved > self.params.gate_ratio * self.pitch_px):
+            return None
+        dist, idx = cKDTree(det).query(self._ref, k=1, distance_upper_bound=radius)
+        near = np.isfinite(dist)
+        if np.count_nonzero(~near) >= self._transport_trigger:
+            return None
+        rest = np.where(near, idx, matched).astype(np.int64)
+        taken = np.zeros(det.shape[0], dtype=bool)
+        taken[idx[near]] = True
+        rest[~near & seen] = np.where(taken[matched[~near & seen]], -1, matched[~near & seen])
+        return None if np.array_equal(rest, matched) else rest
 
     def _match_nearest(self, det: np.ndarray) -> np.ndarray:
         """The paper: nearest detection within the gate, several markers may share one."""

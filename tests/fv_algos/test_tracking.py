@@ -127,6 +127,36 @@ def test_abrupt_stop_and_return_keep_identities() -> None:
         assert np.abs(state.current_px - truth).max() < 1e-9, k
 
 
+@pytest.mark.parametrize(("pitches", "sigma"), [(2.25, 2.0), (2.25, 3.0), (3.0, 6.0)])
+def test_a_skin_back_at_rest_is_matched_at_rest_after_a_jump_the_tracker_lost(pitches: float, sigma: float) -> None:
+    """A bump of 2.25-3 pitches in one frame from rest is not followed (no velocity, nearest
+    detections are other markers'); when the skin is back at rest the markers are back on their
+    reference positions, velocity 0, and the next motion is followed. Without the return to
+    rest (rest_ratio 0) the wrong identities stay."""
+    jump = _det(_bump(REF, pitches * PITCH, sigma_px=sigma * PITCH), 1)
+    locked = Tracker(_det(REF, None), TrackerParams(rest_ratio=0.0))
+    locked.step(jump)
+    assert np.abs(locked.step(_det(REF, 2)).current_px - REF).max() > 0.5 * PITCH
+    tracker = Tracker(_det(REF, None))
+    tracker.step(jump)
+    state = tracker.step(_det(REF, 2))
+    assert state.valid.all()
+    assert np.array_equal(state.current_px, REF)
+    truth = _bump(REF, 0.4 * PITCH)
+    assert np.abs(tracker.step(_det(truth, 3)).current_px - truth).max() < 1e-9
+
+
+def test_a_lattice_moved_by_one_pitch_is_not_taken_for_rest() -> None:
+    """Every marker moved by exactly one pitch sits on a neighbour's reference position, but an
+    edge row of reference positions is left empty: the motion is kept, not undone."""
+    tracker = Tracker(_det(REF, None))
+    for k, share in enumerate((0.25, 0.5, 0.75, 1.0, 1.0)):
+        truth = REF + np.array([share * PITCH, 0.0])
+        state = tracker.step(_det(truth, k))
+        assert state.valid.all()
+        assert np.abs(state.current_px - truth).max() < 1e-9, k
+
+
 def test_paper_nearest_can_share_a_detection_assignment_cannot() -> None:
     midpoint = 0.5 * (REF[0] + REF[1])
     points = np.vstack([midpoint, REF[2:]])
