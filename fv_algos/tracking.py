@@ -270,6 +270,7 @@ class Tracker:
         self._graph, self._spacing = neighbour_graph(ref, self.params.neighbours)
         self.pitch_px = float(np.median(self._spacing)) if ref.shape[0] > 1 else 1.0
         self._transport_trigger = max(2, int(np.ceil(self.params.transport_edge_share * np.sqrt(ref.shape[0]))))
+        self._rest_probe = np.linspace(0, ref.shape[0] - 1, min(ref.shape[0], 2 * self._transport_trigger)).astype(int)
 
     @property
     def state(self) -> TrackState:
@@ -316,6 +317,11 @@ class Tracker:
         seen = matched >= 0
         moved = np.hypot(*(det[matched[seen]] - self._ref[seen]).T)
         if seen.all() and not np.any(moved > self.params.gate_ratio * self.pitch_px):
+            return None
+        # A few markers spread over the array first: a deformed skin fails them at once.
+        probe = self._ref[self._rest_probe]
+        gap = np.einsum("ijk,ijk->ij", probe[:, None, :] - det[None], probe[:, None, :] - det[None]).min(axis=1)
+        if np.count_nonzero(gap > radius * radius) >= self._transport_trigger:
             return None
         dist, idx = cKDTree(det).query(self._ref, k=1, distance_upper_bound=radius)
         near = np.isfinite(dist)
