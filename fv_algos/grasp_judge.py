@@ -33,7 +33,8 @@ class GraspJudge:
     def from_file(cls, path: str | Path) -> GraspJudge:
         """A judge with the network and contact-motion parameters of a trial model file
         (:func:`fv_algos.trial_net.save_trial_model`); ValueError for any other file."""
-        return cls(*load_trial_model(path))
+        model = load_trial_model(path)
+        return cls(model.net, model.params)
 
     def reset(self) -> None:
         """Forget the grasp: the next ``step`` is the reference frame of a new one."""

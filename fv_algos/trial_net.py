@@ -17,6 +17,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -93,7 +94,10 @@ class TrialNetConfig:
     training trial's descriptors are multiplied by (with random left-right / up-down mirroring).
     stretch: every training trial is resampled in time by a factor drawn log-uniformly from
     [1 / stretch, stretch] (the same motion, slower or faster; 1: never). clip: each descriptor is
-    clamped to its [clip, 1 - clip] quantiles over the training trials' frames (0: their min and max)."""
+    clamped to its [clip, 1 - clip] quantiles over the training trials' frames (0: their min and max).
+    reference_frame: the frame of every video taken as the skin at rest, where the descriptors
+    start (frame 0 of the GelSight Mini videos is often stale); saved with the model, so that
+    `fv eval` judges the same frames."""
 
     hidden: int = 16
     layers: int = 4
@@ -105,15 +109,18 @@ class TrialNetConfig:
     gain: tuple[float, float] = (0.8, 1.2)
     stretch: float = 1.4
     clip: float = 0.0
+    reference_frame: int = 1
     seed: int = 0
 
     def __post_init__(self) -> None:
         even_batch = self.batch >= 2 and self.batch % 2 == 0
         sizes = (self.hidden, self.layers, self.members, self.steps)
-        ranges = 0 < self.gain[0] <= self.gain[1] and self.stretch >= 1 and 0 <= self.clip < 0.5
+        ranges = (0 < self.gain[0] <= self.gain[1] and self.stretch >= 1 and 0 <= self.clip < 0.5
+                  and self.reference_frame >= 0)
         if min(sizes) < 1 or not even_batch or not ranges:
             raise ValueError("TrialNetConfig needs hidden, layers, members, steps >= 1, an even batch >= 2, "
-                             f"0 < gain[0] <= gain[1], stretch >= 1 and 0 <= clip < 0.5, got {self}")
+                             f"0 < gain[0] <= gain[1], stretch >= 1, 0 <= clip < 0.5 and reference_frame >= 0, "
+                             f"got {self}")
 
 
 class TrialNet(nn.Module):
@@ -268,24 +275,35 @@ def _read(path: str | Path) -> dict | None:
     return data if isinstance(data, dict) and data.get("kind") == KIND else None
 
 
-def read_trial_model(path: str | Path) -> tuple[TrialNet, ContactMotionParams] | None:
-    """The network and contact-motion parameters of a file written by :func:`save_trial_model`, or
-    None when ``path`` holds another kind of file (one read either way); ValueError when it was
-    written for other descriptors."""
+class TrialModel(NamedTuple):
+    """A trial-level model file: the network, its contact-motion parameters and the frame of each
+    video it takes as the reference (`TrialNetConfig.reference_frame`)."""
+
+    net: TrialNet
+    params: ContactMotionParams
+    reference_frame: int
+
+
+def read_trial_model(path: str | Path) -> TrialModel | None:
+    """The :class:`TrialModel` of a file written by :func:`save_trial_model`, or None when ``path``
+    holds another kind of file (one read either way); ValueError when it was written for other
+    descriptors. Files written before layers / members / reference_frame: 3 layers, 1 member,
+    frame 1."""
     data = _read(path)
     if data is None:
         return None
     if data["descriptors"] != list(DESCRIPTORS) or data["scale"] != SCALE.tolist():
         raise ValueError(f"{path}: descriptors {data['descriptors']} (scale {data['scale']}) differ from this "
                          f"code's {list(DESCRIPTORS)} ({SCALE.tolist()})")
-    config = data["config"]  # files written before layers / members: 3 layers, 1 member
+    config = data["config"]
     net = TrialNet(int(config["hidden"]), int(config.get("layers", 3)), int(config.get("members", 1)))
     net.load_state_dict(data["state_dict"])
     params = data["params"]
-    return net.eval(), ContactMotionParams(**{**params, "size_px": tuple(params["size_px"])})
+    return TrialModel(net.eval(), ContactMotionParams(**{**params, "size_px": tuple(params["size_px"])}),
+                      int(config.get("reference_frame", 1)))
 
 
-def load_trial_model(path: str | Path) -> tuple[TrialNet, ContactMotionParams]:
+def load_trial_model(path: str | Path) -> TrialModel:
     """:func:`read_trial_model`, with a ValueError when ``path`` holds another kind of file."""
     model = read_trial_model(path)
     if model is None:

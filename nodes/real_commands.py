@@ -21,8 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # torch is imported only where a model is used
-    from fv_algos.contact_motion import ContactMotionParams
-    from fv_algos.trial_net import TrialNet
+    from fv_algos.trial_net import TrialModel
 
 DEFAULT_CACHE = Path.home() / ".cache" / "fingervision" / "real_fields"
 
@@ -86,6 +85,9 @@ def _fit_args(p: argparse.ArgumentParser, window_steps: int) -> None:
     p.add_argument("--clip", type=float, default=None,
                    help="trial: every descriptor is clamped to its [C, 1 - C] quantiles over the training frames "
                         "(0: their min and max; default TrialNetConfig's)")
+    p.add_argument("--reference-frame", type=int, default=None,
+                   help="trial: the frame of each video taken as the skin at rest, where the descriptors start "
+                        "(default TrialNetConfig's: the cameras' stale start-up frames come before it)")
     p.add_argument("--steps", type=int, default=None,
                    help=f"optimizer steps (default: trial: TrialNetConfig's, windows: {window_steps})")
     p.add_argument("--batch-size", type=int, default=None, help="default: trial: TrialNetConfig's, windows: 32")
@@ -103,12 +105,13 @@ def _rule(args: argparse.Namespace):
     return TrialRule(stride=args.stride, **overrides)
 
 
-def _load(trials_dir: Path, cache: Path | None, workers: int):
-    """(trials, fields, seconds) of the trials in ``trials_dir``, fields cached under ``cache`` (None: no cache)."""
+def _load(trials_dir: Path, cache: Path | None, workers: int, reference_frame: int = 1):
+    """(trials, fields, seconds) of the trials in ``trials_dir`` from ``reference_frame`` of each video on,
+    fields cached under ``cache`` (None: no cache)."""
     from fv_algos.real_trials import read_trials, trial_fields
     trials = read_trials(trials_dir)
     started = time.perf_counter()
-    fields = trial_fields(trials, cache, workers=workers)
+    fields = trial_fields(trials, cache, workers=workers, reference_frame=reference_frame)
     return trials, fields, time.perf_counter() - started
 
 
@@ -147,17 +150,18 @@ def _trial_config(args: argparse.Namespace):
     return TrialNetConfig(hidden=args.hidden, layers=_given(args.layers, default.layers),
                           members=_given(args.members, default.members),
                           stretch=_given(args.stretch, default.stretch), clip=_given(args.clip, default.clip),
+                          reference_frame=_given(args.reference_frame, default.reference_frame),
                           steps=_given(args.steps, default.steps),
                           batch=_given(args.batch_size, default.batch), lr=_given(args.lr, default.lr), seed=args.seed)
 
 
-def _trial_inputs(args: argparse.Namespace):
-    """(trials, per-trial descriptor inputs, labels (n_trials,)) of ``args.trials``."""
+def _trial_inputs(args: argparse.Namespace, reference_frame: int):
+    """(trials, per-trial descriptor inputs, labels (n_trials,)) of ``args.trials`` from ``reference_frame`` on."""
     import numpy as np
     from fv_algos.contact_motion import trial_series
     from fv_algos.trial_net import trial_inputs
-    trials, fields, _ = _load(args.trials, args.cache, args.workers)
-    series = trial_series(trials, args.cache, workers=args.workers)
+    trials, fields, _ = _load(args.trials, args.cache, args.workers, reference_frame)
+    series = trial_series(trials, args.cache, reference_frame, workers=args.workers)
     return trials, trial_inputs(trials, series, fields), np.array([t.label for t in trials])
 
 
@@ -166,7 +170,7 @@ def _cv(args: argparse.Namespace) -> int:
     if args.method == "trial":
         from fv_algos.trial_net import cross_validate_trials
         config = _trial_config(args)
-        trials, inputs, labels = _trial_inputs(args)
+        trials, inputs, labels = _trial_inputs(args, config.reference_frame)
         report = cross_validate_trials(inputs, labels, [t.object for t in trials], args.folds, args.seed, config)
         report["config"] = {"method": "trial", **asdict(config), "folds": args.folds}
     else:
@@ -240,7 +244,7 @@ def _train_trial(args: argparse.Namespace) -> int:
     from fv_algos.trial_net import DESCRIPTORS, fit_trial_net, judge_trials, save_trial_model, trial_probability
     started = time.perf_counter()
     config = _trial_config(args)
-    trials, inputs, labels = _trial_inputs(args)
+    trials, inputs, labels = _trial_inputs(args, config.reference_frame)
     net = fit_trial_net(inputs, labels, config)
     path = save_trial_model(args.out, net, config)
     info = {
@@ -268,17 +272,18 @@ def resolve_trial_model(name: str) -> Path:
     return shipped if shipped.is_file() else model_path(name)
 
 
-def _eval_trial_net(args: argparse.Namespace, net: TrialNet, params: ContactMotionParams) -> dict[str, object]:
-    """Report of the trial-level model ``net`` (with its contact-motion ``params``) on ``args.trials``
-    (video to decision)."""
+def _eval_trial_net(args: argparse.Namespace, model: TrialModel) -> dict[str, object]:
+    """Report of the trial-level ``model`` on ``args.trials`` (video to decision, from the model's
+    reference frame of each video on)."""
     import numpy as np
     from fv_algos.real_trials import tracking_quality
     from fv_algos.contact_motion import trial_series
     from fv_algos.trial_net import judge_trials, trial_inputs, trial_probability
-    trials, fields, field_s = _load(args.trials, getattr(args, "cache", None), getattr(args, "workers", 1))
-    series = trial_series(trials, getattr(args, "cache", None), params=params, workers=getattr(args, "workers", 1))
+    cache, workers = getattr(args, "cache", None), getattr(args, "workers", 1)
+    trials, fields, field_s = _load(args.trials, cache, workers, model.reference_frame)
+    series = trial_series(trials, cache, model.reference_frame, model.params, workers=workers)
     labels = np.array([t.label for t in trials])
-    report = judge_trials(trial_probability(net, trial_inputs(trials, series, fields)), labels)
+    report = judge_trials(trial_probability(model.net, trial_inputs(trials, series, fields)), labels)
     return {"trial_accuracy": report["trial_accuracy"], "n_trials": report["n_trials"], "window_accuracy": None,
             "n_windows": 0, "confusion": report["confusion"], "trial_f1": report["trial_f1"], "threshold": 0.5,
             "method": "trial (trial-level: no windows, window_accuracy is null)", "fields_s": field_s,
@@ -302,7 +307,7 @@ def eval_trials_command(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     path = resolve_trial_model(args.model)
     trial_model = read_trial_model(path)
-    out = _eval_windows(args, path) if trial_model is None else _eval_trial_net(args, *trial_model)
+    out = _eval_windows(args, path) if trial_model is None else _eval_trial_net(args, trial_model)
     wall = time.perf_counter() - started
     out = {"model": str(path), **out, "wall_s": wall, "s_per_trial": wall / out["n_trials"],
            "ms_per_frame": 1e3 * wall / out.pop("frames")}

@@ -11,6 +11,8 @@ every field of it, with the camera image of the same stamp (`/camera/image`), up
 running P(slip) of the grasp (`fv_algos.grasp_judge`). Its SlipState's window_stamps_ns
 holds the grasp's first and current stamps. That answer is the grasp's outcome so far, to be
 read at the end of a test motion: early in a grasp it often says slip (README, real sensors).
+It was trained from frame `reference_frame` of each recording on (logged at start): the
+tracker's `reference_frame` should be the same (launch/video.yaml does so).
 
 `model` is a shipped model name (`sim_cnn_lstm`: per-field CNN then LSTM, the default and
 the fastest; `sim_fast`: the ConvLSTM with 16 hidden channels; `sim`: the paper's ConvLSTM;
@@ -30,8 +32,7 @@ from msgs import DisplacementField, Image, MarkerArray, SlipState
 from nodes.node import Node
 
 if TYPE_CHECKING:  # torch is imported only where a model is used
-    from fv_algos.contact_motion import ContactMotionParams
-    from fv_algos.trial_net import TrialNet
+    from fv_algos.trial_net import TrialModel
 
 IMAGE_BUFFER = 64  # camera images kept for the fields still to come (trial models), frames
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "fv_algos" / "weights"
@@ -84,7 +85,7 @@ class SlipDetectorNode(Node):
         self.counters.update(decisions=0, invalid_windows=0, skipped=0)
         trial_model = read_trial_model(path)
         if trial_model is not None:
-            self.setup_grasp(*trial_model)
+            self.setup_grasp(trial_model)
         else:
             self.setup_window(path)
 
@@ -98,7 +99,7 @@ class SlipDetectorNode(Node):
                                         stale_after_s=p.input_timeout_s or None)
         self.log.info("model %s: window %d, grid %d", p.model, cfg.window, cfg.grid)
 
-    def setup_grasp(self, net: TrialNet, params: ContactMotionParams) -> None:
+    def setup_grasp(self, model: TrialModel) -> None:
         import torch
 
         from fv_algos.grasp_judge import GraspJudge
@@ -106,7 +107,7 @@ class SlipDetectorNode(Node):
         if p.device != "cpu":
             raise ValueError(f"a trial model runs on the cpu only, not device {p.device!r}")
         torch.set_num_threads(p.threads)
-        self.judge = GraspJudge(net, params)
+        self.judge = GraspJudge(model.net, model.params)
         self.images: collections.OrderedDict[int, Image] = collections.OrderedDict()  # by stamp, oldest first
         self.grasp_start_ns: int | None = None
         self.reference_markers = 0
@@ -115,7 +116,9 @@ class SlipDetectorNode(Node):
         self.subscribe("/field", DisplacementField, self.on_grasp_field, depth=IMAGE_BUFFER,
                        stale_after_s=p.input_timeout_s or None)
         self.counters.update(grasps=0, unmatched_fields=0)
-        self.log.info("model %s: trial model, judges each grasp from the tracker's reference on", p.model)
+        self.log.info("model %s: trial model, judges each grasp from the tracker's reference on (trained with "
+                      "the reference at frame %d of each video: give the tracker reference_frame %d)",
+                      p.model, model.reference_frame, model.reference_frame)
 
     def decide(self, probability: float) -> None:
         """Update the slip state with threshold and hysteresis (kept between the two bounds)."""

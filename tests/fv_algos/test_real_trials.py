@@ -182,11 +182,15 @@ def test_real_train_writes_a_trial_model_that_fv_eval_reads(isd_data: Path, tmp_
     root = _subset(isd_data, tmp_path / "trials")
     out = tmp_path / "slip_mine_trial.pt"
     assert main(["real", "train", "--trials", str(root), "--cache", str(tmp_path / "cache"), "--steps", "5",
-                 "--hidden", "4", "--members", "2", "--out", str(out)]) == 0
+                 "--hidden", "4", "--members", "2", "--reference-frame", "5", "--out", str(out)]) == 0
     info = json.loads(out.with_suffix(".json").read_text())
     assert info["trained_on"]["trials"] == 3 and info["config"]["steps"] == 5 and info["config"]["members"] == 2
     assert info["parameters"] == 2 * 485  # per member: 224 + 3 * 84 in the convolutions, 9 in the head
+    assert info["config"]["reference_frame"] == 5
+    cached = sorted((tmp_path / "cache").glob("*.np[yz]"))
+    assert len(cached) == 12  # fields and contact series of 6 videos, from frame 5 on
     capsys.readouterr()
     assert main(["eval", "--trials", str(root), "--model", str(out), "--cache", str(tmp_path / "cache"), "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["n_trials"] == 3 and report["method"].startswith("trial") and report["window_accuracy"] is None
+    assert sorted((tmp_path / "cache").glob("*.np[yz]")) == cached  # fv eval judged the model's frames

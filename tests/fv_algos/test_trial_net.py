@@ -73,19 +73,22 @@ def _toy_trials(n: int, seed: int = 0) -> tuple[list[list[torch.Tensor]], np.nda
 def test_trial_net_learns_a_burst_whatever_the_length_and_round_trips(tmp_path: Path) -> None:
     torch.set_num_threads(1)
     inputs, labels = _toy_trials(40)
-    config = TrialNetConfig(steps=60, seed=1)
+    config = TrialNetConfig(steps=60, reference_frame=7, seed=1)
     net = fit_trial_net(inputs, labels, config)
     test_inputs, test_labels = _toy_trials(20, seed=5)
     assert ((trial_probability(net, test_inputs) >= 0.5) == test_labels).mean() >= 0.9
     path = save_trial_model(tmp_path / "m.pt", net, config)
     assert read_trial_model(path) is not None
-    again, params = load_trial_model(path)
+    again, params, reference_frame = load_trial_model(path)
     np.testing.assert_allclose(trial_probability(again, test_inputs), trial_probability(net, test_inputs), rtol=1e-6)
     assert params.size_px == (80, 60)
+    assert reference_frame == 7
     with pytest.raises(ValueError, match="slip and no-slip trials"):
         fit_trial_net(inputs, np.zeros(40, int), config)
     with pytest.raises(ValueError, match="an even batch"):
         TrialNetConfig(batch=3)
+    with pytest.raises(ValueError, match="reference_frame >= 0"):
+        TrialNetConfig(reference_frame=-1)
 
 
 def test_descriptors_are_clamped_to_the_range_of_the_training_frames() -> None:
@@ -144,7 +147,7 @@ def test_a_model_file_of_another_kind_is_refused(tmp_path: Path) -> None:
         load_trial_model(tmp_path / "old.pt")
 
 
-def test_layers_set_the_context_and_older_files_load_with_three_layers_one_member(tmp_path: Path) -> None:
+def test_layers_set_the_context_and_older_files_load_with_three_layers_one_member_frame_1(tmp_path: Path) -> None:
     assert [TrialNet(4, layers).radius for layers in (1, 3, 4)] == [2, 14, 30]
     net = TrialNet(4, 4)
     for conv in net.temporal[::2]:  # positive weights: every input a frame depends on shows in it
@@ -156,10 +159,10 @@ def test_layers_set_the_context_and_older_files_load_with_three_layers_one_membe
     three = TrialNet(4, 3)
     save_trial_model(tmp_path / "m.pt", three, TrialNetConfig(hidden=4, layers=3, members=1))
     data = torch.load(tmp_path / "m.pt", weights_only=False)
-    del data["config"]["layers"], data["config"]["members"]  # as written before both were settings
-    torch.save(data, tmp_path / "old.pt")
-    again, _ = load_trial_model(tmp_path / "old.pt")
-    assert again.radius == 14
+    del data["config"]["layers"], data["config"]["members"], data["config"]["reference_frame"]  # as written
+    torch.save(data, tmp_path / "old.pt")  # before they were settings
+    again, _, reference_frame = load_trial_model(tmp_path / "old.pt")
+    assert again.radius == 14 and reference_frame == 1
     inputs, _ = _toy_trials(4)
     np.testing.assert_allclose(trial_probability(again, inputs), trial_probability(three, inputs), rtol=1e-6)
     with pytest.raises(ValueError, match="layers"):
@@ -193,7 +196,7 @@ def test_an_ensemble_is_the_mean_of_independent_members(tmp_path: Path) -> None:
         assert conv.weight.grad[~own].abs().max() == 0 and conv.weight.grad[own].abs().max() > 0
     assert net.head.weight.grad[[0, 2]].abs().max() == 0 and net.head.bias.grad[[0, 2]].abs().max() == 0
     save_trial_model(tmp_path / "m.pt", net, TrialNetConfig(hidden=4, layers=2, members=3))
-    again, _ = load_trial_model(tmp_path / "m.pt")
+    again = load_trial_model(tmp_path / "m.pt").net
     np.testing.assert_allclose(trial_probability(again, inputs), torch.sigmoid(whole).numpy(), rtol=1e-6)
     with pytest.raises(ValueError, match="members 3 saved with"):
         save_trial_model(tmp_path / "m.pt", net, TrialNetConfig(hidden=4, layers=2, members=1))
