@@ -290,7 +290,7 @@ class Tracker:
             matched = self._match_nearest(det)
         else:
             matched = self._match_assignment(det, areas)
-            rest = self._rest_match(det, matched)
+            rest = self._rest_match(det, areas, matched)
             at_rest = rest is not None
             matched = matched if rest is None else rest
         seen = matched >= 0
@@ -303,14 +303,14 @@ class Tracker:
         self._since = np.where(seen, 0, self._since + 1)
         return self.state
 
-    def _rest_match(self, det: np.ndarray, matched: np.ndarray) -> np.ndarray | None:
+    def _rest_match(self, det: np.ndarray, areas: np.ndarray, matched: np.ndarray) -> np.ndarray | None:
         """The return to rest (`TrackerParams.rest_ratio`): (N,) int64 detection index per
         marker (-1 = none), or None when the skin is not at rest or `matched` (N,) agrees
         (checked only when `matched` leaves a marker unpaired or moved beyond the gate).
 
-        At rest each marker takes the detection within the radius of its reference position;
-        a marker with none keeps its pair in `matched` when no other marker took that
-        detection. det: (M, 2) px."""
+        At rest each marker takes the detection within the radius of its reference position
+        (when it passes the area check); a marker with none keeps its pair in `matched` when no
+        other marker took that detection. det: (M, 2) px, areas: (M,) px^2."""
         radius = self.params.rest_ratio * self.pitch_px
         if radius == 0.0 or det.shape[0] == 0:
             return None
@@ -324,13 +324,13 @@ class Tracker:
         if np.count_nonzero(gap > radius * radius) >= self._transport_trigger:
             return None
         dist, idx = cKDTree(det).query(self._ref, k=1, distance_upper_bound=radius)
-        near = np.isfinite(dist)
-        if np.count_nonzero(~near) >= self._transport_trigger:
+        rows, cols = self._area_checked(np.flatnonzero(np.isfinite(dist)), idx[np.isfinite(dist)], areas)
+        if self._ref.shape[0] - rows.size >= self._transport_trigger:
             return None
-        rest = np.where(near, idx, matched).astype(np.int64)
         taken = np.zeros(det.shape[0], dtype=bool)
-        taken[idx[near]] = True
-        rest[~near & seen] = np.where(taken[matched[~near & seen]], -1, matched[~near & seen])
+        taken[cols] = True
+        rest = np.where(seen & ~taken[np.maximum(matched, 0)], matched, -1)
+        rest[rows] = cols
         return None if np.array_equal(rest, matched) else rest
 
     def _match_nearest(self, det: np.ndarray) -> np.ndarray:
