@@ -268,6 +268,8 @@ def test_reference_reset_and_bad_input() -> None:
         TrackerParams(method="kalman")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="transport_edge_share"):
         TrackerParams(transport_edge_share=1.5)
+    with pytest.raises(ValueError, match="rest_ratio"):
+        TrackerParams(rest_ratio=0.5)  # half a pitch would reach the neighbours' reference positions
 
 
 def test_neighbour_consistency_flags_a_swap_not_a_smooth_field() -> None:
