@@ -315,13 +315,11 @@ class Tracker:
         if radius == 0.0 or det.shape[0] == 0:
             return None
         seen = matched >= 0
-        moved = np.hypot(*(det[matched[seen]] - self._ref[seen]).T)
-        if seen.all() and not np.any(moved > self.params.gate_ratio * self.pitch_px):
+        if seen.all() and np.all(np.hypot(*(det[matched] - self._ref).T) <= self.params.gate_ratio * self.pitch_px):
             return None
         # A few markers spread over the array first: a deformed skin fails them at once.
-        probe = self._ref[self._rest_probe]
-        gap = np.einsum("ijk,ijk->ij", probe[:, None, :] - det[None], probe[:, None, :] - det[None]).min(axis=1)
-        if np.count_nonzero(gap > radius * radius) >= self._transport_trigger:
+        gap = self._ref[self._rest_probe, None, :] - det[None]
+        if np.count_nonzero(np.einsum("ijk,ijk->ij", gap, gap).min(axis=1) > radius * radius) >= self._transport_trigger:
             return None
         dist, idx = cKDTree(det).query(self._ref, k=1, distance_upper_bound=radius)
         rows, cols = self._area_checked(np.flatnonzero(np.isfinite(dist)), idx[np.isfinite(dist)], areas)

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # torch is imported only where a model is used
+    from fv_algos.contact_motion import ContactMotionParams
     from fv_algos.trial_net import TrialModel
 
 DEFAULT_CACHE = Path.home() / ".cache" / "fingervision" / "real_fields"
@@ -155,14 +156,17 @@ def _trial_config(args: argparse.Namespace):
                           batch=_given(args.batch_size, default.batch), lr=_given(args.lr, default.lr), seed=args.seed)
 
 
-def _trial_inputs(args: argparse.Namespace, reference_frame: int):
-    """(trials, per-trial descriptor inputs, labels (n_trials,)) of ``args.trials`` from ``reference_frame`` on."""
+def _trial_inputs(args: argparse.Namespace, reference_frame: int, params: ContactMotionParams | None = None):
+    """(trials, fields, field seconds, per-trial descriptor inputs, labels (n_trials,)) of ``args.trials``,
+    fields and contact series (``params``, None: the defaults) from ``reference_frame`` of each video on;
+    ``args.cache`` / ``args.workers`` when given (else no cache, one process)."""
     import numpy as np
-    from fv_algos.contact_motion import trial_series
+    from fv_algos.contact_motion import ContactMotionParams, trial_series
     from fv_algos.trial_net import trial_inputs
-    trials, fields, _ = _load(args.trials, args.cache, args.workers, reference_frame)
-    series = trial_series(trials, args.cache, reference_frame, workers=args.workers)
-    return trials, trial_inputs(trials, series, fields), np.array([t.label for t in trials])
+    cache, workers = getattr(args, "cache", None), getattr(args, "workers", 1)
+    trials, fields, field_s = _load(args.trials, cache, workers, reference_frame)
+    series = trial_series(trials, cache, reference_frame, params or ContactMotionParams(), workers=workers)
+    return trials, fields, field_s, trial_inputs(trials, series, fields), np.array([t.label for t in trials])
 
 
 def _cv(args: argparse.Namespace) -> int:
@@ -170,7 +174,7 @@ def _cv(args: argparse.Namespace) -> int:
     if args.method == "trial":
         from fv_algos.trial_net import cross_validate_trials
         config = _trial_config(args)
-        trials, inputs, labels = _trial_inputs(args, config.reference_frame)
+        trials, _, _, inputs, labels = _trial_inputs(args, config.reference_frame)
         report = cross_validate_trials(inputs, labels, [t.object for t in trials], args.folds, args.seed, config)
         report["config"] = {"method": "trial", **asdict(config), "folds": args.folds}
     else:
@@ -244,7 +248,7 @@ def _train_trial(args: argparse.Namespace) -> int:
     from fv_algos.trial_net import DESCRIPTORS, fit_trial_net, judge_trials, save_trial_model, trial_probability
     started = time.perf_counter()
     config = _trial_config(args)
-    trials, inputs, labels = _trial_inputs(args, config.reference_frame)
+    trials, _, _, inputs, labels = _trial_inputs(args, config.reference_frame)
     net = fit_trial_net(inputs, labels, config)
     path = save_trial_model(args.out, net, config)
     info = {
@@ -275,15 +279,10 @@ def resolve_trial_model(name: str) -> Path:
 def _eval_trial_net(args: argparse.Namespace, model: TrialModel) -> dict[str, object]:
     """Report of the trial-level ``model`` on ``args.trials`` (video to decision, from the model's
     reference frame of each video on)."""
-    import numpy as np
     from fv_algos.real_trials import tracking_quality
-    from fv_algos.contact_motion import trial_series
-    from fv_algos.trial_net import judge_trials, trial_inputs, trial_probability
-    cache, workers = getattr(args, "cache", None), getattr(args, "workers", 1)
-    trials, fields, field_s = _load(args.trials, cache, workers, model.reference_frame)
-    series = trial_series(trials, cache, model.reference_frame, model.params, workers=workers)
-    labels = np.array([t.label for t in trials])
-    report = judge_trials(trial_probability(model.net, trial_inputs(trials, series, fields)), labels)
+    from fv_algos.trial_net import judge_trials, trial_probability
+    _, fields, field_s, inputs, labels = _trial_inputs(args, model.reference_frame, model.params)
+    report = judge_trials(trial_probability(model.net, inputs), labels)
     return {"trial_accuracy": report["trial_accuracy"], "n_trials": report["n_trials"], "window_accuracy": None,
             "n_windows": 0, "confusion": report["confusion"], "trial_f1": report["trial_f1"], "threshold": 0.5,
             "method": "trial (trial-level: no windows, window_accuracy is null)", "fields_s": field_s,

@@ -79,15 +79,15 @@ def test_video_launch_with_the_trial_model_judges_the_grasp_as_offline(bus_env, 
     """launch/video.yaml replays a real grasp whole: one decision per frame from the model's reference
     frame on (the launch file's default), each the trial model's P(slip) of the grasp so far, as
     `fv eval` computes it from the same video."""
-    import yaml
-
     from fv_algos.contact_motion import contact_series
     from fv_algos.grasp_judge import GraspJudge
     from fv_algos.real_trials import read_frames, video_fields
     from fv_algos.trial_net import field_rows, load_trial_model
-    start = load_trial_model(model_path("gelsight_trial")).reference_frame
-    assert yaml.safe_load((REPO / "launch" / "video.yaml").read_text())["args"]["reference_frame"]["default"] == start
+    from nodes.launch_file import load_launch
     video = isd_data / "train" / "marker_pen" / "exp_num_2" / "camera_0.avi"  # a slip, 53 frames
+    start = load_trial_model(model_path("gelsight_trial")).reference_frame
+    tracker = next(n for n in load_launch(REPO / "launch" / "video.yaml", {"video": str(video)}) if n.kind == "tracker")
+    assert tracker.params["reference_frame"] == start
     fields = video_fields(video, reference_frame=start)
     series = contact_series(read_frames(video), reference_frame=start)
     judge = GraspJudge.from_file(model_path("gelsight_trial"))
