@@ -16,12 +16,14 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # torch is imported only where a model is used
     from fv_algos.contact_motion import ContactMotionParams
+    from fv_algos.real_trials import Trial
     from fv_algos.trial_net import TrialModel
 
 DEFAULT_CACHE = Path.home() / ".cache" / "fingervision" / "real_fields"
@@ -281,12 +283,21 @@ def _eval_trial_net(args: argparse.Namespace, model: TrialModel) -> dict[str, ob
     reference frame of each video on)."""
     from fv_algos.real_trials import tracking_quality
     from fv_algos.trial_net import judge_trials, trial_probability
-    _, fields, field_s, inputs, labels = _trial_inputs(args, model.reference_frame, model.params)
+    trials, fields, field_s, inputs, labels = _trial_inputs(args, model.reference_frame, model.params)
     report = judge_trials(trial_probability(model.net, inputs), labels)
     return {"trial_accuracy": report["trial_accuracy"], "n_trials": report["n_trials"], "window_accuracy": None,
             "n_windows": 0, "confusion": report["confusion"], "trial_f1": report["trial_f1"], "threshold": 0.5,
             "method": "trial (trial-level: no windows, window_accuracy is null)", "fields_s": field_s,
-            "frames": int(sum(v.fields.shape[0] for v in fields.values())), "tracking": tracking_quality(fields)}
+            "frames": int(sum(v.fields.shape[0] for v in fields.values())), "tracking": tracking_quality(fields),
+            "trials": _decisions(trials, report["probability"], 0.5)}
+
+
+def _decisions(trials: Sequence[Trial], scores: Sequence[float], threshold: float) -> list[dict[str, object]]:
+    """Per trial: its name, object, label ('slip' / 'no_slip'), slip score (p or window score), the
+    decision (score >= ``threshold``) and whether it is right."""
+    return [{"trial": t.name, "object": t.object, "label": ("no_slip", "slip")[t.label], "score": float(score),
+             "slip": bool(score >= threshold), "correct": bool(score >= threshold) == bool(t.label)}
+            for t, score in zip(trials, scores)]
 
 
 def eval_trials_command(args: argparse.Namespace) -> int:
@@ -296,7 +307,8 @@ def eval_trials_command(args: argparse.Namespace) -> int:
     args.cache (None: fields are computed, not cached) and args.workers. The window stride, top-k
     and trial threshold come from the model's JSON sidecar (`slip_<name>.json`) when it has them,
     else the TrialRule defaults and threshold 0.5. Prints trial_accuracy, n_trials,
-    window_accuracy, confusion ([[TN, FP], [FN, TP]] at trial level), the timing and tracking quality.
+    window_accuracy, confusion ([[TN, FP], [FN, TP]] at trial level), the timing, tracking quality and
+    each trial's score and decision (without --json: the misjudged trials).
     A trial-level model (:func:`resolve_trial_model`) has no windows: its window_accuracy is null."""
     import cv2
     import torch
@@ -316,6 +328,9 @@ def eval_trials_command(args: argparse.Namespace) -> int:
         window = "n/a" if out["window_accuracy"] is None else f"{out['window_accuracy']:.3f}"
         print(f"{out['n_trials']} trials: trial accuracy {out['trial_accuracy']:.3f}, window accuracy "
               f"{window}, confusion {out['confusion']} ({wall:.0f} s, {out['s_per_trial']:.2f} s/trial)")
+        for t in out["trials"]:
+            if not t["correct"]:
+                print(f"  wrong: {t['trial']} ({t['object']}): {t['label']}, score {t['score']:.2f}")
     return 0
 
 
@@ -337,4 +352,5 @@ def _eval_windows(args: argparse.Namespace, path: Path) -> dict[str, object]:
             "window_accuracy": report["window_accuracy"], "n_windows": report["n_windows"],
             "confusion": report["confusion"], "trial_f1": report["trial_f1"], "threshold": threshold,
             "rule": asdict(rule), "method": "windows", "fields_s": field_s,
-            "frames": int(sum(v.fields.shape[0] for v in fields.values())), "tracking": tracking_quality(fields)}
+            "frames": int(sum(v.fields.shape[0] for v in fields.values())), "tracking": tracking_quality(fields),
+            "trials": _decisions(trials, report["scores"], threshold)}

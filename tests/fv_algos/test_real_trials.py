@@ -145,6 +145,8 @@ def test_eval_trials_command_from_video_to_decision(isd_data: Path, tmp_path: Pa
     assert 0.0 <= report["window_accuracy"] <= 1.0
     assert np.sum(report["confusion"]) == 3
     assert report["tracking"]["videos"] == 6
+    assert [t["trial"] for t in report["trials"]] == [t.name for t in read_trials(root)]
+    assert sum(t["correct"] for t in report["trials"]) == round(3 * report["trial_accuracy"])
 
 
 def test_fit_fine_tunes_from_a_checkpoint(isd_data: Path, tmp_path: Path) -> None:
@@ -175,6 +177,12 @@ def test_eval_trials_command_with_a_trial_level_model(isd_data: Path, tmp_path: 
     assert report["n_trials"] == 3 and report["window_accuracy"] is None
     assert report["confusion"] == [[0, 1], [0, 2]] and report["trial_accuracy"] == pytest.approx(2 / 3)
     assert len(list((tmp_path / "cache").glob("*__contact__*.npy"))) == 6
+    still = [t.name for t in read_trials(root) if t.label == 0]
+    assert [t["trial"] for t in report["trials"] if not t["correct"]] == still
+    assert all(t["slip"] and t["score"] == pytest.approx(1 / (1 + np.exp(-1))) for t in report["trials"])
+    assert eval_trials_command(argparse.Namespace(**{**vars(args), "json": False})) == 0
+    wrong = [line for line in capsys.readouterr().out.splitlines() if line.startswith("  wrong: ")]
+    assert wrong == [f"  wrong: {still[0]} (blue_mug): no_slip, score 0.73"]
 
 
 def test_real_train_writes_a_trial_model_that_fv_eval_reads(isd_data: Path, tmp_path: Path, capsys) -> None:

@@ -24,6 +24,9 @@ def test_eval_trials_on_two_real_trials(isd_data: Path, tmp_path: Path) -> None:
     assert 0.0 <= report["trial_accuracy"] <= 1.0
     assert report["window_accuracy"] is None  # the shipped gelsight decision is trial-level: no windows
     assert sum(map(sum, report["confusion"])) == 2
+    assert [(t["trial"], t["label"]) for t in report["trials"]] == [("t0", "slip"), ("t1", "no_slip")]
+    assert [t["correct"] for t in report["trials"]].count(True) == round(2 * report["trial_accuracy"])
+    assert all(0.0 <= t["score"] <= 1.0 and t["slip"] == (t["score"] >= 0.5) for t in report["trials"])
     assert report["tracking"]["videos"] == 4 and report["tracking"]["valid_share_mean"] > 0.9
 
 
