@@ -68,7 +68,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _data_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trials", type=Path, required=True, help="folder with labels.csv and the trial folders")
     p.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help=f"field cache folder (default {DEFAULT_CACHE})")
-    p.add_argument("--workers", type=int, default=1, help="processes for the fields and contact motion (default 1)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="processes for the fields, the contact motion and the folds of `cv --method trial` (default 1)")
 
 
 def _fit_args(p: argparse.ArgumentParser, window_steps: int) -> None:
@@ -177,7 +178,8 @@ def _cv(args: argparse.Namespace) -> int:
         from fv_algos.trial_net import cross_validate_trials
         config = _trial_config(args)
         trials, _, _, inputs, labels = _trial_inputs(args, config.reference_frame)
-        report = cross_validate_trials(inputs, labels, [t.object for t in trials], args.folds, args.seed, config)
+        report = cross_validate_trials(inputs, labels, [t.object for t in trials], args.folds, args.seed, config,
+                                       args.workers)
         report["config"] = {"method": "trial", **asdict(config), "folds": args.folds}
     else:
         from fv_algos.trial_eval import cross_validate, trial_windows

@@ -132,6 +132,8 @@ def test_object_held_out_cross_validation_keeps_objects_apart() -> None:
     for fold in report["folds"]:  # every test object is absent from its fold's training trials
         assert {objects[i] for i in fold["trials"]} == set(fold["objects"])
     assert sum(fold["n_trials"] for fold in report["folds"]) == 30
+    in_two = cross_validate_trials(inputs, labels, objects, folds=3, config=TrialNetConfig(steps=40), workers=2)
+    assert in_two == report  # folds in two spawned processes: the same figures
 
 
 def test_a_model_file_of_another_kind_is_refused(tmp_path: Path) -> None:
