@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # torch is imported only where a model is used
     from fv_algos.contact_motion import ContactMotionParams
-    from fv_algos.real_trials import Trial
+    from fv_algos.real_trials import Trial, TrialFields
     from fv_algos.trial_net import TrialModel
 
 DEFAULT_CACHE = Path.home() / ".cache" / "fingervision" / "real_fields"
@@ -283,23 +283,28 @@ def resolve_trial_model(name: str) -> Path:
 def _eval_trial_net(args: argparse.Namespace, model: TrialModel) -> dict[str, object]:
     """Report of the trial-level ``model`` on ``args.trials`` (video to decision, from the model's
     reference frame of each video on)."""
-    from fv_algos.real_trials import tracking_quality
     from fv_algos.trial_net import judge_trials, trial_probability
     trials, fields, field_s, inputs, labels = _trial_inputs(args, model.reference_frame, model.params)
     report = judge_trials(trial_probability(model.net, inputs), labels)
     return {"trial_accuracy": report["trial_accuracy"], "n_trials": report["n_trials"], "window_accuracy": None,
             "n_windows": 0, "confusion": report["confusion"], "trial_f1": report["trial_f1"], "threshold": 0.5,
-            "method": "trial (trial-level: no windows, window_accuracy is null)", "fields_s": field_s,
-            "frames": int(sum(v.fields.shape[0] for v in fields.values())), "tracking": tracking_quality(fields),
-            "trials": _decisions(trials, report["probability"], 0.5)}
+            "method": "trial (trial-level: no windows, window_accuracy is null)",
+            **_path_report(trials, fields, field_s, report["probability"], 0.5)}
 
 
-def _decisions(trials: Sequence[Trial], scores: Sequence[float], threshold: float) -> list[dict[str, object]]:
-    """Per trial: its name, object, label ('slip' / 'no_slip'), slip score (p or window score), the
-    decision (score >= ``threshold``) and whether it is right."""
-    return [{"trial": t.name, "object": t.object, "label": ("no_slip", "slip")[t.label], "score": float(score),
-             "slip": bool(score >= threshold), "correct": bool(score >= threshold) == bool(t.label)}
-            for t, score in zip(trials, scores)]
+def _path_report(trials: Sequence[Trial], fields: TrialFields, field_s: float, scores: Sequence[float],
+                 threshold: float) -> dict[str, object]:
+    """What both kinds of model report of the video-to-decision path: the fields' seconds and frames,
+    the tracking quality, and per trial its name, object, label ('slip' / 'no_slip'), slip score (p
+    or window score), decision (score >= ``threshold``) and whether it is right."""
+    from fv_algos.real_trials import tracking_quality
+    decisions = []
+    for t, score in zip(trials, scores):
+        slip = bool(score >= threshold)
+        decisions.append({"trial": t.name, "object": t.object, "label": ("no_slip", "slip")[t.label],
+                          "score": float(score), "slip": slip, "correct": slip == bool(t.label)})
+    return {"fields_s": field_s, "frames": int(sum(v.fields.shape[0] for v in fields.values())),
+            "tracking": tracking_quality(fields), "trials": decisions}
 
 
 def eval_trials_command(args: argparse.Namespace) -> int:
@@ -309,7 +314,7 @@ def eval_trials_command(args: argparse.Namespace) -> int:
     args.cache (None: fields are computed, not cached) and args.workers. The window stride, top-k
     and trial threshold come from the model's JSON sidecar (`slip_<name>.json`) when it has them,
     else the TrialRule defaults and threshold 0.5. Prints trial_accuracy, n_trials,
-    window_accuracy, confusion ([[TN, FP], [FN, TP]] at trial level), the timing, tracking quality and
+    window_accuracy, confusion ([[TN, FP], [FN, TP]] at trial level), the timing (frames judged included), tracking quality and
     each trial's score and decision (without --json: the misjudged trials).
     A trial-level model (:func:`resolve_trial_model`) has no windows: its window_accuracy is null."""
     import cv2
@@ -323,7 +328,7 @@ def eval_trials_command(args: argparse.Namespace) -> int:
     out = _eval_windows(args, path) if trial_model is None else _eval_trial_net(args, trial_model)
     wall = time.perf_counter() - started
     out = {"model": str(path), **out, "wall_s": wall, "s_per_trial": wall / out["n_trials"],
-           "ms_per_frame": 1e3 * wall / out.pop("frames")}
+           "ms_per_frame": 1e3 * wall / out["frames"]}
     if args.json:
         print(json.dumps(out, indent=2))
     else:
@@ -339,7 +344,6 @@ def eval_trials_command(args: argparse.Namespace) -> int:
 def _eval_windows(args: argparse.Namespace, path: Path) -> dict[str, object]:
     """Report of the window classifier checkpoint at ``path`` on ``args.trials`` (video to decision)."""
     import numpy as np
-    from fv_algos.real_trials import tracking_quality
     from fv_algos.slip.classifier import SlipClassifier
     from fv_algos.trial_eval import TrialRule, judge, trial_windows
     sidecar = path.with_suffix(".json")
@@ -353,6 +357,5 @@ def _eval_windows(args: argparse.Namespace, path: Path) -> dict[str, object]:
     return {"trial_accuracy": report["trial_accuracy"], "n_trials": report["n_trials"],
             "window_accuracy": report["window_accuracy"], "n_windows": report["n_windows"],
             "confusion": report["confusion"], "trial_f1": report["trial_f1"], "threshold": threshold,
-            "rule": asdict(rule), "method": "windows", "fields_s": field_s,
-            "frames": int(sum(v.fields.shape[0] for v in fields.values())), "tracking": tracking_quality(fields),
-            "trials": _decisions(trials, report["scores"], threshold)}
+            "rule": asdict(rule), "method": "windows",
+            **_path_report(trials, fields, field_s, report["scores"], threshold)}
