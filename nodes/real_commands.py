@@ -314,8 +314,9 @@ def eval_trials_command(args: argparse.Namespace) -> int:
     args.cache (None: fields are computed, not cached) and args.workers. The window stride, top-k
     and trial threshold come from the model's JSON sidecar (`slip_<name>.json`) when it has them,
     else the TrialRule defaults and threshold 0.5. Prints trial_accuracy, n_trials,
-    window_accuracy, confusion ([[TN, FP], [FN, TP]] at trial level), the timing (frames judged included), tracking quality and
-    each trial's score and decision (without --json: the misjudged trials).
+    window_accuracy, confusion ([[TN, FP], [FN, TP]] at trial level), the timing (frames judged
+    included), tracking quality and each trial's score and decision (without --json: the misjudged
+    trials).
     A trial-level model (:func:`resolve_trial_model`) has no windows: its window_accuracy is null."""
     import cv2
     import torch
