@@ -14,9 +14,7 @@ weights and trained side by side, whose logits are averaged. The decision needs 
 """
 from __future__ import annotations
 
-import multiprocessing
 from collections.abc import Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from functools import partial
@@ -31,7 +29,7 @@ from fv_algos.contact_motion import ContactMotionParams, TrialSeries
 from fv_algos.real_trials import CAMERAS, Trial, TrialFields, VideoFields
 from fv_algos.slip.classifier import LOAD_ERRORS
 from fv_algos.slip.evaluate import classification_metrics
-from fv_algos.trial_eval import fold_summary, object_folds
+from fv_algos.trial_eval import fold_summary, map_folds, object_folds
 
 DESCRIPTORS = (
     "relative_px", "marker_px",  # from SERIES, px/frame at size_px scale
@@ -336,10 +334,6 @@ def judge_trials(probability: np.ndarray, labels: np.ndarray) -> dict[str, objec
             "n_trials": m.n, "probability": np.asarray(probability).tolist()}
 
 
-def _one_thread() -> None:
-    torch.set_num_threads(1)
-
-
 def _held_out_probability(inputs: Sequence[TrialInput], labels: np.ndarray, config: TrialNetConfig,
                           test: np.ndarray) -> np.ndarray:
     """Slip probability of the ``test`` trials (mask (M,)) from a network trained on the others."""
@@ -349,24 +343,17 @@ def _held_out_probability(inputs: Sequence[TrialInput], labels: np.ndarray, conf
 
 def cross_validate_trials(inputs: Sequence[TrialInput], labels: np.ndarray, objects: Sequence[str], folds: int,
                           seed: int = 0, config: TrialNetConfig = TrialNetConfig(),
-                          workers: int = 1) -> dict[str, object]:
+                          workers: int = 1, progress: bool = False) -> dict[str, object]:
     """Object-held-out cross-validation of :class:`TrialNet`: ``folds`` object groups (dealt with
     ``seed``; ``folds`` = number of objects leaves one object out), a network trained per fold on
     the other objects' trials, the folds in ``workers`` spawned processes of one torch thread each
-    (1: in this process; the same figures either way). Returns {"folds": per fold objects, trials,
+    (1: in this process; the same figures either way; :func:`map_folds`), with a progress bar
+    over the folds when ``progress``. Returns {"folds": per fold objects, trials,
     trial accuracy, confusion; "summary": mean, std, min, worst fold, pooled accuracy and confusion}."""
-    if workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
     names, labels = np.asarray(objects), np.asarray(labels)
     groups = object_folds(objects, folds, seed)
     tests = [np.isin(names, group) for group in groups]
-    held_out = partial(_held_out_probability, inputs, labels, config)
-    if workers == 1:
-        probabilities = list(map(held_out, tests))
-    else:
-        with ProcessPoolExecutor(min(workers, len(tests)), mp_context=multiprocessing.get_context("spawn"),
-                                 initializer=_one_thread) as pool:
-            probabilities = list(pool.map(held_out, tests))
+    probabilities = map_folds(partial(_held_out_probability, inputs, labels, config), tests, workers, progress)
     rows = [{"fold": k, "objects": group, "trials": np.flatnonzero(test).tolist(),
              **judge_trials(probability, labels[test])}
             for k, (group, test, probability) in enumerate(zip(groups, tests, probabilities))]

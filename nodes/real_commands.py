@@ -21,6 +21,8 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from nodes.arg_types import positive_int
+
 if TYPE_CHECKING:  # torch is imported only where a model is used
     from fv_algos.contact_motion import ContactMotionParams
     from fv_algos.real_trials import Trial, TrialFields
@@ -60,7 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", required=True, help="shipped model name (gelsight, sim) or checkpoint path")
     p.add_argument("--trials", type=Path, required=True, help="folder with labels.csv and <trial>/camera_0.avi")
     p.add_argument("--cache", type=Path, default=None, help="reuse / write cached fields here (default: none)")
-    p.add_argument("--workers", type=int, default=1, help="processes for the fields and contact motion (default 1)")
+    p.add_argument("--workers", type=positive_int, default=1, help="processes for the fields and contact motion (default 1)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=eval_trials_command)
 
@@ -68,8 +70,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _data_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trials", type=Path, required=True, help="folder with labels.csv and the trial folders")
     p.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help=f"field cache folder (default {DEFAULT_CACHE})")
-    p.add_argument("--workers", type=int, default=1,
-                   help="processes for the fields, the contact motion and the folds of `cv --method trial` (default 1)")
+    p.add_argument("--workers", type=positive_int, default=1,
+                   help="processes for the fields, the contact motion and the folds of `cv` (default 1)")
 
 
 def _fit_args(p: argparse.ArgumentParser, window_steps: int) -> None:
@@ -179,7 +181,7 @@ def _cv(args: argparse.Namespace) -> int:
         config = _trial_config(args)
         trials, _, _, inputs, labels = _trial_inputs(args, config.reference_frame)
         report = cross_validate_trials(inputs, labels, [t.object for t in trials], args.folds, args.seed, config,
-                                       args.workers)
+                                       args.workers, progress=True)
         report["config"] = {"method": "trial", **asdict(config), "folds": args.folds}
     else:
         from fv_algos.trial_eval import cross_validate, trial_windows
@@ -188,7 +190,7 @@ def _cv(args: argparse.Namespace) -> int:
         trials, fields, _ = _load(args.trials, args.cache, args.workers)
         data = trial_windows(trials, fields, config.train.model.window, config.rule)
         init = None if args.init is None else str(model_path(args.init))
-        report = cross_validate(data, config, args.folds, args.seed, init)
+        report = cross_validate(data, config, args.folds, args.seed, init, workers=args.workers)
     report["wall_s"] = time.perf_counter() - started
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)

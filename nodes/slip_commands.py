@@ -8,6 +8,8 @@ import shlex
 import time
 from pathlib import Path
 
+from nodes.arg_types import positive_int
+
 SPLITS = {"sequence": "sequence", "paper": "random", "object": "object"}
 """CLI split name -> fv_algos.slip.windows split kind ("paper" = the paper's random windows)."""
 
@@ -21,7 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--frames", type=int, default=15, help="frames per sequence (default 15)")
     q.add_argument("--fps", type=float, default=15.0, help="frame rate, Hz (default 15)")
     q.add_argument("--seed", type=int, default=0, help="master seed (default 0)")
-    q.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")
+    q.add_argument("--workers", type=positive_int, default=2, help="worker processes (default 2)")
     q.add_argument("--preset", default="default", help="perception preset: paper, default, fastest")
     q.add_argument("--no-progress", action="store_true", help="no progress bar")
     q.set_defaults(func=_dataset_sim)
@@ -45,7 +47,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "<trial>/camera_0.avi [camera_2.avi]: judge --model on it, from video to decision")
     p.add_argument("--model", help="with --trials: shipped model name (sim, gelsight) or checkpoint path")
     p.add_argument("--cache", type=Path, help="with --trials: folder to cache the fields in (default: none)")
-    p.add_argument("--workers", type=int, default=2, help="with --trials: processes for the fields (default 2)")
+    p.add_argument("--workers", type=positive_int, default=2, help="with --trials: processes for the fields (default 2)")
     p.add_argument("--models", type=Path, default=None,
                    help="checkpoint folder: DIR/<split>_<model>[_variant]/ as fv train writes; missing ones are "
                         "trained there (default OUT/models)")

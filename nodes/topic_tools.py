@@ -18,6 +18,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from nodes.arg_types import positive_float
+
 STATUS_TOPIC = "/status"
 STALE_AFTER_S = 3.0
 DISCOVERY_S = 0.3
@@ -321,13 +323,6 @@ def _pub(args: argparse.Namespace) -> int:
 
 
 # -- command line ----------------------------------------------------------------------
-def _positive(text: str) -> float:
-    value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"{text} is not > 0")
-    return value
-
-
 def register(sub: argparse._SubParsersAction) -> None:
     topic = sub.add_parser("topic", help="inspect and publish topics (list, info, echo, hz, bw, delay, pub)")
     verbs = topic.add_subparsers(dest="verb", required=True, metavar="VERB")
@@ -344,13 +339,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     for p in (verb("list", "topics of the running nodes", _topic_list, with_topic=False),
               verb("info", "type, publishers and subscribers of a topic", _topic_info)):
-        p.add_argument("--wait", type=_positive, default=DISCOVERY_S, help="seconds to collect node status")
+        p.add_argument("--wait", type=positive_float, default=DISCOVERY_S, help="seconds to collect node status")
     verbs.choices["list"].add_argument("-t", "--show-types", action="store_true", help="show message types")
 
     p = verb("echo", "print messages (one JSON object per line with --json)", _echo)
     p.add_argument("--count", "-n", type=int, default=None, help="stop after N messages")
     p.add_argument("--once", action="store_true", help="print one message and exit")
-    p.add_argument("--timeout", type=_positive, default=None, help="exit 1 when no message comes for S seconds")
+    p.add_argument("--timeout", type=positive_float, default=None, help="exit 1 when no message comes for S seconds")
     p.add_argument("--no-arr", action="store_true", help="leave array fields out")
     p.add_argument("--full-arrays", action="store_true", help="print whole arrays, not a summary")
 
@@ -359,14 +354,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                                   ("delay", "delay of receive time after the header stamp_ns", _delay)):
         p = verb(name, help_text, func)
         p.add_argument("--window", "-w", type=int, default=10_000, help="messages the statistics cover")
-        p.add_argument("--duration", type=_positive, default=None,
+        p.add_argument("--duration", type=positive_float, default=None,
                        help="measure for S seconds, print once and exit (default: print every second)")
 
     p = verb("pub", "publish a message: fv topic pub /slip SlipState '{probability: 0.9, slip: true}'", _pub,
              with_json=False)
     p.add_argument("type", help="message type, e.g. SlipState")
     p.add_argument("values", nargs="?", default="", help="fields as YAML, e.g. '{slip: true}'")
-    p.add_argument("--rate", "-r", type=_positive, default=1.0, help="messages per second (default 1)")
+    p.add_argument("--rate", "-r", type=positive_float, default=1.0, help="messages per second (default 1)")
     p.add_argument("--count", "--times", "-t", type=int, default=None, help="publish N messages, then exit")
     p.add_argument("--once", "-1", action="store_true", help="publish one message and exit")
     p.add_argument("--latched", action="store_true", help="latched: late subscribers get the last message")

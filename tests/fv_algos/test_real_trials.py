@@ -202,3 +202,28 @@ def test_real_train_writes_a_trial_model_that_fv_eval_reads(isd_data: Path, tmp_
     report = json.loads(capsys.readouterr().out)
     assert report["n_trials"] == 3 and report["method"].startswith("trial") and report["window_accuracy"] is None
     assert sorted((tmp_path / "cache").glob("*.np[yz]")) == cached  # fv eval judged the model's frames
+
+
+def test_window_cross_validation_gives_the_same_folds_in_two_processes(tmp_path: Path) -> None:
+    from fv_algos.real_trials import Trial, VideoFields
+    from fv_algos.trial_eval import cross_validate, fit_config
+    rng = np.random.default_rng(0)
+    trials, fields = [], {}
+    for i in range(6):  # three objects, one slip (growing shear) and one still trial each
+        trial = Trial(f"t{i}", f"o{i // 2}", i % 2, tmp_path, {"camera_0": tmp_path / "camera_0.avi"})
+        motion = np.linspace(0.0, 12.0 * trial.label, 20)[:, None, None, None] * np.ones((20, 30, 30, 3))
+        video = (motion + rng.normal(0.0, 0.05, motion.shape)).astype(np.float16)
+        fields[(trial.name, "camera_0")] = VideoFields(video, np.ones(20, bool), np.ones(20, np.float32),
+                                                       np.zeros(20, np.int32), 40, 0.1)
+        trials.append(trial)
+    data = trial_windows(trials, fields, 10, TrialRule(stride=5))
+    config = fit_config("lstm", 8, steps=3, batch_size=8)
+    one = cross_validate(data, config, folds=3, progress=False)
+    two = cross_validate(data, config, folds=3, progress=False, workers=2)
+    for report in (one, two):  # training time is measured, so it differs; everything else must not
+        for fold in report["folds"]:
+            fold["training"].pop("windows_per_s")
+            fold["training"]["monitor"].pop("elapsed_s")
+    assert two == one and sorted(f["objects"] for f in one["folds"]) == [["o0"], ["o1"], ["o2"]]
+    with pytest.raises(ValueError, match="workers must be >= 1"):
+        cross_validate(data, config, folds=3, progress=False, workers=0)
