@@ -263,7 +263,10 @@ def map_videos(trials: Sequence[Trial], compute: Callable[[Path], T], workers: i
                desc: str = "videos") -> dict[VideoKey, T]:
     """``compute(video)`` of every camera of every trial, keyed (trial name, camera), in ``workers``
     processes (1 = this one; ``compute`` must then be picklable: a module-level function or a
-    functools.partial of one). One progress bar (in frames) covers the whole set."""
+    functools.partial of one). One progress bar (in frames) covers the whole set. ValueError when
+    ``workers`` < 1."""
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
     videos = [(t.name, cam, path) for t in trials for cam, path in t.videos.items()]
     sizes = [frame_count(path) for _, _, path in videos]
     out: dict[VideoKey, T] = {}

@@ -10,7 +10,16 @@ import numpy as np
 import pytest
 import torch
 
-from fv_algos.real_trials import read_trials, trial_fields, tracking_quality, video_fields, write_atomically
+from fv_algos.real_trials import (
+    Trial,
+    VideoFields,
+    map_videos,
+    read_trials,
+    trial_fields,
+    tracking_quality,
+    video_fields,
+    write_atomically,
+)
 from fv_algos.slip.classifier import Checkpoint, save_checkpoint
 from fv_algos.slip.models import ModelConfig, build_model
 from fv_algos.trial_eval import (
@@ -73,6 +82,12 @@ def test_video_fields_track_every_frame_without_swaps(isd_data: Path) -> None:
     assert result.n_markers >= 30
     quality = result.quality()
     assert quality["valid_share_mean"] > 0.95 and quality["swaps"] == 0
+
+
+def test_map_videos_refuses_fewer_than_one_worker(tmp_path: Path) -> None:
+    trial = Trial("t0", "o0", 0, tmp_path, {"camera_0": tmp_path / "camera_0.avi"})
+    with pytest.raises(ValueError, match="workers must be >= 1, got 0"):
+        map_videos([trial], str, workers=0)
 
 
 def test_field_cache_round_trip(isd_data: Path, tmp_path: Path) -> None:
@@ -205,7 +220,6 @@ def test_real_train_writes_a_trial_model_that_fv_eval_reads(isd_data: Path, tmp_
 
 
 def test_window_cross_validation_gives_the_same_folds_in_two_processes(tmp_path: Path) -> None:
-    from fv_algos.real_trials import Trial, VideoFields
     from fv_algos.trial_eval import cross_validate, fit_config
     rng = np.random.default_rng(0)
     trials, fields = [], {}
