@@ -108,3 +108,13 @@ def test_shipped_sim_models_load_and_separate_slip(name: str) -> None:
     slip = simulate_sequence(held_out, 0, "translational").fields[:10]
     stuck = simulate_sequence(held_out, 1, "holding").fields[:10]
     assert classifier.predict(slip) > classifier.predict(stuck)
+
+
+@pytest.mark.parametrize("argv", [["real", "cv", "--trials", "x", "--workers", "0"],
+                                  ["eval", "--trials", "x", "--workers", "-1"],
+                                  ["dataset", "sim", "--out", "x.npz", "--workers", "two"]])
+def test_worker_counts_below_one_are_refused_by_name(argv: list[str], capsys) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "argument --workers" in err and ("not >= 1" in err or "whole number" in err)
