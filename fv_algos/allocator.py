@@ -7,8 +7,9 @@ ConvLSTM's training step: 7.8 million minor faults and 14 s of system time in 40
 the wall time). The dynamic threshold also moves as block sizes vary, which lets the heap grow
 by fragmentation over hours. :func:`steady_malloc` fixes both thresholds, so freed memory is
 kept and reused: resident memory settles at the working set's peak and stays there.
-Process entry points call it: the `fv` command (so every node, training run and benchmark)
-and `python -m fv_algos.slip.train` (what torchrun starts).
+Process entry points call it: the `fv` command (so every node, training run and benchmark),
+`python -m fv_algos.slip.train` (what torchrun starts) and the spawned processes of
+:func:`fv_algos.trial_eval.map_folds` (cross-validation folds).
 """
 from __future__ import annotations
 

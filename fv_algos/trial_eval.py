@@ -34,6 +34,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from fv_algos.allocator import steady_malloc
 from fv_algos.real_trials import CAMERAS, Trial, TrialFields
 from fv_algos.slip.classifier import load_checkpoint, predict_proba
 from fv_algos.slip.evaluate import classification_metrics, predict_rows
@@ -242,9 +243,11 @@ _fold: Callable[[object], object] | None = None  # a map_folds worker process's 
 
 
 def _start_worker(fold: Callable) -> None:
-    """Process-pool initializer of :func:`map_folds`: one torch thread, and the fold function
-    (with its data), sent once per process."""
+    """Process-pool initializer of :func:`map_folds`: the `fv` process's malloc settings (a spawned
+    process starts without them), one torch thread, and the fold function (with its data), sent
+    once per process."""
     global _fold
+    steady_malloc()
     torch.set_num_threads(1)
     _fold = fold
 

@@ -163,14 +163,13 @@ def _trial_config(args: argparse.Namespace):
 
 def _trial_inputs(args: argparse.Namespace, reference_frame: int, params: ContactMotionParams | None = None):
     """(trials, fields, field seconds, per-trial descriptor inputs, labels (n_trials,)) of ``args.trials``,
-    fields and contact series (``params``, None: the defaults) from ``reference_frame`` of each video on;
-    ``args.cache`` / ``args.workers`` when given (else no cache, one process)."""
+    fields and contact series (``params``, None: the defaults) from ``reference_frame`` of each video on,
+    cached under ``args.cache`` (None: no cache), in ``args.workers`` processes."""
     import numpy as np
     from fv_algos.contact_motion import ContactMotionParams, trial_series
     from fv_algos.trial_net import trial_inputs
-    cache, workers = getattr(args, "cache", None), getattr(args, "workers", 1)
-    trials, fields, field_s = _load(args.trials, cache, workers, reference_frame)
-    series = trial_series(trials, cache, reference_frame, params or ContactMotionParams(), workers=workers)
+    trials, fields, field_s = _load(args.trials, args.cache, args.workers, reference_frame)
+    series = trial_series(trials, args.cache, reference_frame, params or ContactMotionParams(), workers=args.workers)
     return trials, fields, field_s, trial_inputs(trials, series, fields), np.array([t.label for t in trials])
 
 
@@ -354,7 +353,7 @@ def _eval_windows(args: argparse.Namespace, path: Path) -> dict[str, object]:
     rule = TrialRule(**info["fit"]["rule"]) if "fit" in info else TrialRule()
     threshold = float(info.get("trial_threshold", 0.5))
     classifier = SlipClassifier(path, threads=1)
-    trials, fields, field_s = _load(args.trials, getattr(args, "cache", None), getattr(args, "workers", 1))
+    trials, fields, field_s = _load(args.trials, args.cache, args.workers)
     data = trial_windows(trials, fields, classifier.config.window, rule)
     report = judge(classifier.model, data, np.arange(len(trials)), threshold, rule.top_k)
     return {"trial_accuracy": report["trial_accuracy"], "n_trials": report["n_trials"],

@@ -26,6 +26,8 @@ from fv_algos.trial_eval import (
     TrialRule,
     balanced_rows,
     choose_threshold,
+    cross_validate,
+    fit_config,
     object_folds,
     trial_scores,
     trial_windows,
@@ -165,7 +167,7 @@ def test_eval_trials_command_from_video_to_decision(isd_data: Path, tmp_path: Pa
 
 
 def test_fit_fine_tunes_from_a_checkpoint(isd_data: Path, tmp_path: Path) -> None:
-    from fv_algos.trial_eval import fit, fit_config
+    from fv_algos.trial_eval import fit
     root = _subset(isd_data, tmp_path / "trials")
     trials = read_trials(root)
     data = trial_windows(trials, trial_fields(trials, tmp_path / "cache", progress=False), 10, TrialRule(stride=5))
@@ -220,7 +222,6 @@ def test_real_train_writes_a_trial_model_that_fv_eval_reads(isd_data: Path, tmp_
 
 
 def test_window_cross_validation_gives_the_same_folds_in_two_processes(tmp_path: Path) -> None:
-    from fv_algos.trial_eval import cross_validate, fit_config
     rng = np.random.default_rng(0)
     trials, fields = [], {}
     for i in range(6):  # three objects, one slip (growing shear) and one still trial each
