@@ -46,6 +46,7 @@ PER_FRAME = np.array([n in ("relative_px", "marker_px", "imprint_step") for n in
 MIRROR_X = np.array([1, 1, 1, 1, -1, 1, 1, 1, -1, 1, 1], np.float32)
 MIRROR_Y = np.array([1, 1, 1, 1, 1, -1, 1, 1, -1, 1, 1], np.float32)
 KIND = "trial_net"
+HELD_PREFIX_MIN_FRAMES = 10  # shortest beginning of a held grasp trained on (0.4 s at 25 fps)
 FIELD_ROWS = ("field_px", "shear_x_px", "shear_y_px", "invalid_share", "divergence", "curl")
 
 
@@ -97,7 +98,10 @@ class TrialNetConfig:
     stretch: every training trial is resampled in time by a factor drawn log-uniformly from
     [1 / stretch, stretch] (the same motion, slower or faster; 1: never). clip: each descriptor is
     clamped to its [clip, 1 - clip] quantiles over the training trials' frames (0: their min and max).
-    reference_frame: the frame of every video taken as the skin at rest, where the descriptors
+    held_prefix: probability that a no-slip training trial is cut to its first k frames (both
+    cameras, k uniform in [min(10, F), F]): a held grasp is held from its start, so the running
+    P(slip) of a grasp in progress (:mod:`fv_algos.grasp_judge`) learns that a short still grasp is
+    not a slip (0: never). reference_frame: the frame of every video taken as the skin at rest, where the descriptors
     start (frame 0 of the GelSight Mini videos is often stale); saved with the model, so that
     `fv eval` judges the same frames."""
 
@@ -111,6 +115,7 @@ class TrialNetConfig:
     gain: tuple[float, float] = (0.8, 1.2)
     stretch: float = 1.4
     clip: float = 0.0
+    held_prefix: float = 0.0
     reference_frame: int = 1
     seed: int = 0
 
@@ -118,11 +123,11 @@ class TrialNetConfig:
         even_batch = self.batch >= 2 and self.batch % 2 == 0
         sizes = (self.hidden, self.layers, self.members, self.steps)
         ranges = (0 < self.gain[0] <= self.gain[1] and self.stretch >= 1 and 0 <= self.clip < 0.5
-                  and self.reference_frame >= 0)
+                  and 0 <= self.held_prefix <= 1 and self.reference_frame >= 0)
         if min(sizes) < 1 or not even_batch or not ranges:
             raise ValueError("TrialNetConfig needs hidden, layers, members, steps >= 1, an even batch >= 2, "
-                             f"0 < gain[0] <= gain[1], stretch >= 1, 0 <= clip < 0.5 and reference_frame >= 0, "
-                             f"got {self}")
+                             f"0 < gain[0] <= gain[1], stretch >= 1, 0 <= clip < 0.5, 0 <= held_prefix <= 1 and "
+                             f"reference_frame >= 0, got {self}")
 
 
 class TrialNet(nn.Module):
@@ -218,6 +223,17 @@ def _augment(x: torch.Tensor, rng: np.random.Generator, config: TrialNetConfig) 
     return stretch_in_time(x, float(np.exp(rng.uniform(-log_stretch, log_stretch))))
 
 
+def _held_prefix(cameras: TrialInput, rng: np.random.Generator, probability: float) -> TrialInput:
+    """With ``probability``, the cameras' (C, F) descriptors cut to their first k frames, k uniform in
+    [min(10, F), F] (F: the shortest camera's frames); otherwise ``cameras`` as they are (and no
+    random draw when ``probability`` is 0)."""
+    if probability == 0 or rng.random() >= probability:
+        return cameras
+    frames = min(x.shape[1] for x in cameras)
+    keep = int(rng.integers(min(HELD_PREFIX_MIN_FRAMES, frames), frames + 1))
+    return [x[:, :keep] for x in cameras]
+
+
 @contextmanager
 def _without_onednn() -> Iterator[None]:
     """PyTorch's own convolutions inside: oneDNN builds a kernel for every new input length, and a
@@ -250,8 +266,9 @@ def fit_trial_net(inputs: Sequence[TrialInput], labels: np.ndarray,
     with _without_onednn():
         for _ in range(config.steps):
             picks = np.concatenate([rng.choice(slip, config.batch // 2), rng.choice(still, config.batch // 2)])
-            logits = torch.stack([net.member_logits(net.pooled([_augment(x, rng, config) for x in inputs[i]]))
-                                  for i in picks])  # (batch, members)
+            cut = [_held_prefix(inputs[i], rng, config.held_prefix) if labels[i] == 0 else inputs[i] for i in picks]
+            logits = torch.stack([net.member_logits(net.pooled([_augment(x, rng, config) for x in cameras]))
+                                  for cameras in cut])  # (batch, members)
             target = torch.as_tensor(labels[picks], dtype=torch.float32)[:, None].expand_as(logits)
             loss = loss_fn(logits, target)
             optimizer.zero_grad()

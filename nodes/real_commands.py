@@ -91,6 +91,10 @@ def _fit_args(p: argparse.ArgumentParser, window_steps: int) -> None:
     p.add_argument("--clip", type=float, default=None,
                    help="trial: every descriptor is clamped to its [C, 1 - C] quantiles over the training frames "
                         "(0: their min and max; default TrialNetConfig's)")
+    p.add_argument("--held-prefix", type=float, default=None,
+                   help="trial: probability that a no-slip training trial is cut to its first 10 or more frames, "
+                        "so the running P(slip) of a grasp in progress starts low (0: never; default "
+                        "TrialNetConfig's)")
     p.add_argument("--reference-frame", type=int, default=None,
                    help="trial: the frame of each video taken as the skin at rest, where the descriptors start "
                         "(default TrialNetConfig's: the cameras' stale start-up frames come before it)")
@@ -156,6 +160,7 @@ def _trial_config(args: argparse.Namespace):
     return TrialNetConfig(hidden=args.hidden, layers=_given(args.layers, default.layers),
                           members=_given(args.members, default.members),
                           stretch=_given(args.stretch, default.stretch), clip=_given(args.clip, default.clip),
+                          held_prefix=_given(args.held_prefix, default.held_prefix),
                           reference_frame=_given(args.reference_frame, default.reference_frame),
                           steps=_given(args.steps, default.steps),
                           batch=_given(args.batch_size, default.batch), lr=_given(args.lr, default.lr), seed=args.seed)

@@ -16,6 +16,7 @@ from fv_algos.trial_net import (
     SCALE,
     TrialNet,
     TrialNetConfig,
+    _held_prefix,
     camera_descriptors,
     cross_validate_trials,
     fit_trial_net,
@@ -121,6 +122,26 @@ def test_stretching_in_time_resamples_levels_and_slows_rates() -> None:
     np.testing.assert_array_equal(stretch_in_time(torch.from_numpy(ramp), 1.0).numpy(), ramp)
     with pytest.raises(ValueError, match="stretch >= 1"):
         TrialNetConfig(stretch=0.5)
+
+
+def test_a_held_prefix_cuts_both_cameras_to_one_beginning_of_ten_frames_or_more() -> None:
+    cameras = [torch.arange(11 * 40, dtype=torch.float32).view(11, 40), torch.zeros(11, 42)]
+    rng = np.random.default_rng(0)
+    state = rng.bit_generator.state
+    assert _held_prefix(cameras, rng, 0.0) is cameras and rng.bit_generator.state == state  # no draw at 0
+    kept = set()
+    for _ in range(300):
+        cut = _held_prefix(cameras, rng, 1.0)
+        assert cut[0].shape[1] == cut[1].shape[1]
+        torch.testing.assert_close(cut[0], cameras[0][:, :cut[0].shape[1]])
+        kept.add(cut[0].shape[1])
+    assert min(kept) == 10 and max(kept) == 40 and len(kept) == 31  # every length of the shorter camera
+    short = [torch.zeros(11, 4)]
+    assert _held_prefix(short, rng, 1.0)[0].shape == (11, 4)
+    cut_share = np.mean([_held_prefix(cameras, rng, 0.3) is not cameras for _ in range(2000)])
+    assert 0.25 < cut_share < 0.35
+    with pytest.raises(ValueError, match="0 <= held_prefix <= 1"):
+        TrialNetConfig(held_prefix=1.5)
 
 
 def test_object_held_out_cross_validation_keeps_objects_apart() -> None:
