@@ -5,19 +5,21 @@ ConvLSTM for P(slip), and decides with a threshold and optional hysteresis. Ever
 enters the window, but when the model falls behind (newer fields already queued) only the
 newest window is judged: the skipped decisions are counted, and latency stays one model call.
 
-A trial model (`gelsight_trial`) judges the whole grasp so far: a grasp starts at the
-tracker's reference (`/markers/reference`, latched: a new one after `/tracker/reset`), and
+A trial model (`gelsight_online`, `gelsight_trial`) judges the whole grasp so far: a grasp
+starts at the tracker's reference (`/markers/reference`, latched: a new one after `/tracker/reset`), and
 every field of it, with the camera image of the same stamp (`/camera/image`), updates the
 running P(slip) of the grasp (`fv_algos.grasp_judge`). Its SlipState's window_stamps_ns
 holds the grasp's first and current stamps. That answer is the grasp's outcome so far, to be
-read at the end of a test motion: early in a grasp it often says slip (README, real sensors).
+read at the end of a test motion with `gelsight_trial`, which early in a grasp often says slip;
+`gelsight_online` was also trained on the beginnings of held grasps, so its P(slip) starts low
+(README, real sensors).
 It was trained from frame `reference_frame` of each recording on (logged at start): the
 tracker's `reference_frame` should be the same (launch/video.yaml does so).
 
 `model` is a shipped model name (`sim_cnn_lstm`: per-field CNN then LSTM, the default and
 the fastest; `sim_fast`: the ConvLSTM with 16 hidden channels; `sim`: the paper's ConvLSTM;
-`gelsight`: the paper's ConvLSTM trained on real GelSight Mini grasps; `gelsight_trial`:
-the trial model for GelSight Mini-class sensors) or a checkpoint path."""
+`gelsight`: the paper's ConvLSTM trained on real GelSight Mini grasps; `gelsight_trial` and
+`gelsight_online`: the trial models for GelSight Mini-class sensors) or a checkpoint path."""
 from __future__ import annotations
 
 import collections
@@ -53,7 +55,8 @@ def model_path(name: str) -> Path:
 
 @dataclass
 class SlipDetectorParams:
-    model: str = "sim_cnn_lstm"  # shipped model (sim_cnn_lstm, sim_fast, sim, gelsight, gelsight_trial) or path
+    model: str = "sim_cnn_lstm"  # shipped model (sim_cnn_lstm, sim_fast, sim, gelsight, gelsight_trial,
+    # gelsight_online) or path
     threshold: float = 0.5  # P(slip) above which the state is slip
     hysteresis: float = 0.0  # slip turns on above threshold + h and off below threshold - h
     threads: int = 1  # torch threads for inference

@@ -77,20 +77,23 @@ def test_trial_model_refuses_grey_images_by_name() -> None:
 
 def test_video_launch_with_the_trial_model_judges_the_grasp_as_offline(bus_env, spawn, isd_data: Path) -> None:
     """launch/video.yaml replays a real grasp whole: one decision per frame from the model's reference
-    frame on (the launch file's default), each the trial model's P(slip) of the grasp so far, as
-    `fv eval` computes it from the same video."""
+    frame on (the launch file's default), each the default trial model's (gelsight_online) P(slip)
+    of the grasp so far, as `fv eval` computes it from the same video."""
     from fv_algos.contact_motion import contact_series
     from fv_algos.grasp_judge import GraspJudge
     from fv_algos.real_trials import read_frames, video_fields
     from fv_algos.trial_net import field_rows, load_trial_model
     from nodes.launch_file import load_launch
     video = isd_data / "train" / "marker_pen" / "exp_num_2" / "camera_0.avi"  # a slip, 53 frames
-    start = load_trial_model(model_path("gelsight_trial")).reference_frame
-    tracker = next(n for n in load_launch(REPO / "launch" / "video.yaml", {"video": str(video)}) if n.kind == "tracker")
-    assert tracker.params["reference_frame"] == start
+    nodes = {n.kind: n for n in load_launch(REPO / "launch" / "video.yaml", {"video": str(video)})}
+    name = nodes["slip_detector"].params["model"]
+    assert name == "gelsight_online"
+    start = load_trial_model(model_path(name)).reference_frame
+    trained_from = load_trial_model(model_path("gelsight_trial")).reference_frame
+    assert nodes["tracker"].params["reference_frame"] == start == trained_from
     fields = video_fields(video, reference_frame=start)
     series = contact_series(read_frames(video), reference_frame=start)
-    judge = GraspJudge.from_file(model_path("gelsight_trial"))
+    judge = GraspJudge.from_file(model_path(name))
     expected = [judge.push(s, r) for s, r in zip(series, field_rows(fields.fields, fields.valid_share))]
     with TopicReader(["/slip"]) as reader:
         spawn("launch", str(REPO / "launch" / "video.yaml"), f"video:={video}")
@@ -99,7 +102,7 @@ def test_video_launch_with_the_trial_model_judges_the_grasp_as_offline(bus_env, 
     got = [s.msg for s in states]
     assert len({int(m.window_stamps_ns[0]) for m in got}) == 1 and got[0].window_stamps_ns[0] == got[0].stamp_ns
     np.testing.assert_allclose([m.probability for m in got], expected, atol=1e-4)
-    assert got[-1].slip and got[-1].model == "gelsight_trial"
+    assert got[-1].slip and got[-1].model == name
 
 
 def test_tracker_reset_starts_a_new_grasp(bus_env, spawn, isd_data: Path) -> None:
