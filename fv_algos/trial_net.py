@@ -99,11 +99,11 @@ class TrialNetConfig:
     [1 / stretch, stretch] (the same motion, slower or faster; 1: never). clip: each descriptor is
     clamped to its [clip, 1 - clip] quantiles over the training trials' frames (0: their min and max).
     held_prefix: probability that a no-slip training trial is cut to its first k frames (both
-    cameras, k uniform in [min(10, F), F]): a held grasp is held from its start, so the running
-    P(slip) of a grasp in progress (:mod:`fv_algos.grasp_judge`) learns that a short still grasp is
-    not a slip (0: never). reference_frame: the frame of every video taken as the skin at rest, where the descriptors
-    start (frame 0 of the GelSight Mini videos is often stale); saved with the model, so that
-    `fv eval` judges the same frames."""
+    cameras, k uniform in [min(HELD_PREFIX_MIN_FRAMES, F), F]): a held grasp is held from its start,
+    so the running P(slip) of a grasp in progress (:mod:`fv_algos.grasp_judge`) learns that a short
+    still grasp is not a slip (0: never). reference_frame: the frame of every video taken as the
+    skin at rest, where the descriptors start (frame 0 of the GelSight Mini videos is often stale);
+    saved with the model, so that `fv eval` judges the same frames."""
 
     hidden: int = 16
     layers: int = 4
@@ -225,7 +225,7 @@ def _augment(x: torch.Tensor, rng: np.random.Generator, config: TrialNetConfig) 
 
 def _held_prefix(cameras: TrialInput, rng: np.random.Generator, probability: float) -> TrialInput:
     """With ``probability``, the cameras' (C, F) descriptors cut to their first k frames, k uniform in
-    [min(10, F), F] (F: the shortest camera's frames); otherwise ``cameras`` as they are (and no
+    [min(HELD_PREFIX_MIN_FRAMES, F), F] (F: the shortest camera's frames); otherwise ``cameras`` as they are (and no
     random draw when ``probability`` is 0)."""
     if probability == 0 or rng.random() >= probability:
         return cameras

@@ -62,7 +62,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", required=True, help="shipped model name (gelsight, sim) or checkpoint path")
     p.add_argument("--trials", type=Path, required=True, help="folder with labels.csv and <trial>/camera_0.avi")
     p.add_argument("--cache", type=Path, default=None, help="reuse / write cached fields here (default: none)")
-    p.add_argument("--workers", type=positive_int, default=1, help="processes for the fields and contact motion (default 1)")
+    p.add_argument("--workers", type=positive_int, default=1,
+                   help="processes for the fields and contact motion (default 1)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=eval_trials_command)
 

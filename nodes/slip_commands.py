@@ -47,7 +47,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "<trial>/camera_0.avi [camera_2.avi]: judge --model on it, from video to decision")
     p.add_argument("--model", help="with --trials: shipped model name (sim, gelsight) or checkpoint path")
     p.add_argument("--cache", type=Path, help="with --trials: folder to cache the fields in (default: none)")
-    p.add_argument("--workers", type=positive_int, default=2, help="with --trials: processes for the fields (default 2)")
+    p.add_argument("--workers", type=positive_int, default=2,
+                   help="with --trials: processes for the fields (default 2)")
     p.add_argument("--models", type=Path, default=None,
                    help="checkpoint folder: DIR/<split>_<model>[_variant]/ as fv train writes; missing ones are "
                         "trained there (default OUT/models)")

@@ -6,8 +6,8 @@ enters the window, but when the model falls behind (newer fields already queued)
 newest window is judged: the skipped decisions are counted, and latency stays one model call.
 
 A trial model (`gelsight_online`, `gelsight_trial`) judges the whole grasp so far: a grasp
-starts at the tracker's reference (`/markers/reference`, latched: a new one after `/tracker/reset`), and
-every field of it, with the camera image of the same stamp (`/camera/image`), updates the
+starts at the tracker's reference (`/markers/reference`, latched: a new one after
+`/tracker/reset`), and every field of it, with the camera image of the same stamp (`/camera/image`), updates the
 running P(slip) of the grasp (`fv_algos.grasp_judge`). Its SlipState's window_stamps_ns
 holds the grasp's first and current stamps. That answer is the grasp's outcome so far, to be
 read at the end of a test motion with `gelsight_trial`, which early in a grasp often says slip;
@@ -55,8 +55,7 @@ def model_path(name: str) -> Path:
 
 @dataclass
 class SlipDetectorParams:
-    model: str = "sim_cnn_lstm"  # shipped model (sim_cnn_lstm, sim_fast, sim, gelsight, gelsight_trial,
-    # gelsight_online) or path
+    model: str = "sim_cnn_lstm"  # shipped model name (the module docstring lists them) or checkpoint path
     threshold: float = 0.5  # P(slip) above which the state is slip
     hysteresis: float = 0.0  # slip turns on above threshold + h and off below threshold - h
     threads: int = 1  # torch threads for inference
