@@ -14,6 +14,7 @@ weights and trained side by side, whose logits are averaged. The decision needs 
 """
 from __future__ import annotations
 
+import collections
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
@@ -196,6 +197,52 @@ class TrialNet(nn.Module):
         return self.logit(self.pooled(cameras))
 
 
+class RunningTrial:
+    """P(slip) of one camera's grasp so far, from its descriptor columns pushed one frame at a time:
+    after every frame exactly what ``net`` says of the camera's descriptors cut at that frame (same
+    features, same pooling), at a cost that does not grow with the grasp's length. A frame's features
+    depend on ``net.radius`` frames on each side, so a frame more than ``radius`` frames old is final
+    and only enters a running sum and maximum; each :meth:`push` recomputes the features of the
+    newest frames from the last 2 * radius + 1 columns."""
+
+    def __init__(self, net: TrialNet) -> None:
+        self.net = net
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the grasp: the next :meth:`push` is its first frame."""
+        self.frames = 0
+        self._columns: collections.deque = collections.deque(maxlen=2 * self.net.radius + 1)  # (C,) each
+        self._final = 0  # frames whose features are final
+        self._sum = torch.zeros(self.net.width)  # (width,) sum of the final frames' features
+        self._max = torch.full((self.net.width,), -torch.inf)  # (width,) their maximum
+
+    @torch.no_grad()
+    def push(self, column: torch.Tensor) -> float:
+        """P(slip) of the grasp up to and including the frame of ``column`` (C,) (its descriptors,
+        as a column of :func:`descriptor_matrix`)."""
+        self._columns.append(column)
+        self.frames += 1
+        h = self.net.features(torch.stack(tuple(self._columns), dim=1)[None])[0]  # (width, columns)
+        first_column = self.frames - h.shape[1]  # column j is frame first_column + j
+        newly_final = self.frames - self.net.radius  # frames [self._final, newly_final) become final
+        for frame in range(self._final, max(self._final, newly_final)):
+            self._sum += h[:, frame - first_column]
+            self._max = torch.maximum(self._max, h[:, frame - first_column])
+        self._final = max(self._final, newly_final)
+        live = h[:, self._final - first_column:]  # never empty: the newest frame is never final
+        peak = torch.maximum(self._max, live.amax(dim=1))
+        pooled = torch.cat([(self._sum + live.sum(dim=1)) / self.frames, peak])
+        return torch.sigmoid(self.net.logit(pooled)).item()
+
+
+def running_probability(net: TrialNet, x: torch.Tensor) -> np.ndarray:
+    """(F,) float64 P(slip) of one camera's (C, F) descriptors cut at every frame: entry t is what
+    the pipeline's slip detector publishes after frame t (frame 0: the reference)."""
+    running = RunningTrial(net.eval())
+    return np.array([running.push(x[:, t]) for t in range(x.shape[1])])
+
+
 def stretch_in_time(x: torch.Tensor, factor: float) -> torch.Tensor:
     """``x`` (C, F) descriptors resampled (linearly) to max(2, round(F * factor)) frames spanning
     the same trial, the ``PER_FRAME`` rates divided by ``factor``: the same motion ``factor`` times
@@ -351,27 +398,39 @@ def judge_trials(probability: np.ndarray, labels: np.ndarray) -> dict[str, objec
             "n_trials": m.n, "probability": np.asarray(probability).tolist()}
 
 
-def _held_out_probability(inputs: Sequence[TrialInput], labels: np.ndarray, config: TrialNetConfig,
-                          test: np.ndarray) -> np.ndarray:
-    """Slip probability of the ``test`` trials (mask (M,)) from a network trained on the others."""
+def _held_out(inputs: Sequence[TrialInput], labels: np.ndarray, config: TrialNetConfig, online: bool,
+              test: np.ndarray) -> tuple[np.ndarray, list[list[np.ndarray]] | None]:
+    """Slip probability (T,) of the ``test`` trials (mask (M,)) from a network trained on the others,
+    and when ``online`` each test trial's per-camera :func:`running_probability` (else None)."""
     net = fit_trial_net([inputs[i] for i in np.flatnonzero(~test)], labels[~test], config)
-    return trial_probability(net, [inputs[i] for i in np.flatnonzero(test)])
+    tested = [inputs[i] for i in np.flatnonzero(test)]
+    running = [[running_probability(net, x) for x in cameras] for cameras in tested] if online else None
+    return trial_probability(net, tested), running
 
 
 def cross_validate_trials(inputs: Sequence[TrialInput], labels: np.ndarray, objects: Sequence[str], folds: int,
                           seed: int = 0, config: TrialNetConfig = TrialNetConfig(),
-                          workers: int = 1, progress: bool = False) -> dict[str, object]:
+                          workers: int = 1, progress: bool = False, online: bool = False) -> dict[str, object]:
     """Object-held-out cross-validation of :class:`TrialNet`: ``folds`` object groups (dealt with
     ``seed``; ``folds`` = number of objects leaves one object out), a network trained per fold on
     the other objects' trials, the folds in ``workers`` spawned processes of one torch thread each
     (1: in this process; the same figures either way; :func:`map_folds`), with a progress bar
     over the folds when ``progress``. Returns {"folds": per fold objects, trials,
-    trial accuracy, confusion; "summary": mean, std, min, worst fold, pooled accuracy and confusion}."""
+    trial accuracy, confusion; "summary": mean, std, min, worst fold, pooled accuracy and confusion}
+    and, when ``online``, "running": per trial (in the order of ``inputs``), per camera, the held-out
+    network's P(slip) after every frame as a list (:func:`running_probability`)."""
     names, labels = np.asarray(objects), np.asarray(labels)
     groups = object_folds(objects, folds, seed)
     tests = [np.isin(names, group) for group in groups]
-    probabilities = map_folds(partial(_held_out_probability, inputs, labels, config), tests, workers, progress)
+    results = map_folds(partial(_held_out, inputs, labels, config, online), tests, workers, progress)
     rows = [{"fold": k, "objects": group, "trials": np.flatnonzero(test).tolist(),
              **judge_trials(probability, labels[test])}
-            for k, (group, test, probability) in enumerate(zip(groups, tests, probabilities))]
-    return {"folds": rows, "summary": fold_summary(rows)}
+            for k, (group, test, (probability, _)) in enumerate(zip(groups, tests, results))]
+    report: dict[str, object] = {"folds": rows, "summary": fold_summary(rows)}
+    if online:
+        running: list[list[list[float]]] = [[] for _ in inputs]
+        for test, (_, fold_running) in zip(tests, results):
+            for i, cameras in zip(np.flatnonzero(test), fold_running):
+                running[i] = [series.tolist() for series in cameras]
+        report["running"] = running
+    return report

@@ -21,7 +21,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from nodes.arg_types import positive_int
+from nodes.arg_types import positive_float, positive_int
 
 if TYPE_CHECKING:  # torch is imported only where a model is used
     from fv_algos.contact_motion import ContactMotionParams
@@ -47,6 +47,17 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "e.g. 29, leaves one object out)")
     p.add_argument("--init", default=None, help="fine-tune every fold from this checkpoint or shipped model name (e.g. sim); "
                    "its architecture is used and --steps counts the extra steps")
+    p.add_argument("--online", action="store_true",
+                   help="trial: also run every held-out network frame by frame over its test grasps, one camera "
+                        "at a time (what the pipeline publishes on /slip), and report how early P(slip) tells "
+                        "slips from held grasps; --out then also holds every camera's running P(slip)")
+    p.add_argument("--fps", type=positive_float, default=25.0,
+                   help="--online: the videos' frame rate, for times in seconds (default 25)")
+    p.add_argument("--alarm", type=_alarm_rule, action="append", default=None, metavar="P[:FROM[:ROW]]",
+                   help="--online: an alarm rule, raised when P(slip) >= P for ROW frames in a row from frame "
+                        "FROM on (repeat the flag for several; default a set from 0.5:0:1 to 0.99:100:10)")
+    p.add_argument("--plot", type=Path, default=None,
+                   help="--online: PNG of the share of held and slip cameras at P(slip) >= 0.5 over time")
     p.add_argument("--out", type=Path, default=None, help="also write the full report (JSON) here")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=_cv)
@@ -66,6 +77,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="processes for the fields and contact motion (default 1)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=eval_trials_command)
+
+
+def _alarm_rule(text: str):
+    """An :class:`fv_algos.grasp_alarm.AlarmRule` from ``P[:FROM[:ROW]]`` (argparse type)."""
+    from fv_algos.grasp_alarm import AlarmRule
+    try:
+        return AlarmRule.parse(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 def _data_args(p: argparse.ArgumentParser) -> None:
@@ -181,14 +201,21 @@ def _trial_inputs(args: argparse.Namespace, reference_frame: int, params: Contac
 
 def _cv(args: argparse.Namespace) -> int:
     started = time.perf_counter()
+    online_flags = [f for f, v in (("--alarm", args.alarm), ("--plot", args.plot)) if v is not None]
+    if online_flags and not args.online:
+        raise SystemExit(f"fv real cv: {' and '.join(online_flags)} need --online")
     if args.method == "trial":
         from fv_algos.trial_net import cross_validate_trials
         config = _trial_config(args)
         trials, _, _, inputs, labels = _trial_inputs(args, config.reference_frame)
         report = cross_validate_trials(inputs, labels, [t.object for t in trials], args.folds, args.seed, config,
-                                       args.workers, progress=True)
+                                       args.workers, progress=True, online=args.online)
         report["config"] = {"method": "trial", **asdict(config), "folds": args.folds}
+        if args.online:
+            report["online"] = _online_report(report["running"], labels, args)
     else:
+        if args.online:
+            raise SystemExit("fv real cv: --online needs --method trial (a window model has no running P(slip))")
         from fv_algos.trial_eval import cross_validate, trial_windows
         from nodes.slip_detector import model_path
         config = _fit_config(args)
@@ -200,6 +227,7 @@ def _cv(args: argparse.Namespace) -> int:
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(report, indent=1))
+    report.pop("running", None)
     if args.json:
         print(json.dumps(report, indent=2))
     else:
@@ -213,7 +241,43 @@ def _cv(args: argparse.Namespace) -> int:
         print(f"object-held-out trial accuracy {s['trial_accuracy_mean']:.3f} +/- {s['trial_accuracy_std']:.3f} "
               f"(worst fold {s['worst_fold']}: {s['trial_accuracy_min']:.3f}; pooled {s['pooled_trial_accuracy']:.3f})"
               f"{window}")
+        if args.online:
+            _print_online(report["online"])
     return 0
+
+
+def _online_report(running: list, labels, args: argparse.Namespace) -> dict[str, object]:
+    """:func:`fv_algos.grasp_alarm.online_summary` of the held-out networks' running P(slip), with
+    ``args.alarm`` rules (None: the defaults); the ``args.plot`` PNG when given."""
+    from fv_algos.grasp_alarm import DEFAULT_RULES, above_curves, online_summary
+    summary = online_summary(running, labels, args.fps, rules=args.alarm or DEFAULT_RULES)
+    if args.plot is not None:
+        from nodes.plots import curve_plot
+        held, slips = above_curves(running, labels)
+        seconds = [t / args.fps for t in range(held.size)]
+        curve_plot({"held grasps' cameras": (seconds, held * 100), "slips' cameras": (seconds, slips * 100)},
+                   args.plot, title="held-out networks, frame by frame: cameras at P(slip) >= 0.5",
+                   x_label="time after the reference frame (s)", y_label="% of the cameras still recording")
+        summary["plot"] = str(args.plot)
+    return summary
+
+
+def _print_online(online: dict) -> None:
+    """The online part of a `fv real cv --online` report as text."""
+    def pct(share) -> str:
+        return "-" if share is None else f"{100 * share:.0f}%"
+    cameras = online["cameras"]
+    print(f"running P(slip), {cameras['held']} held and {cameras['slip']} slip cameras; one camera right at the "
+          f"end of its grasp: {pct(online['camera_end_accuracy'])}")
+    for row in online["at"]:
+        print(f"  at {row['seconds']:g} s: P >= 0.5 for {pct(row['held_above'])} of {row['held_recording']} held, "
+              f"{pct(row['slip_above'])} of {row['slip_recording']} slip cameras")
+    for row in online["alarms"]:
+        first = "-" if row["slip_median_first_s"] is None else f"{row['slip_median_first_s']:.1f} s"
+        print(f"  alarm {row['rule']}: {pct(row['held_alarmed'])} of held, {pct(row['slip_alarmed'])} of slip "
+              f"cameras; slips' median first alarm {first}")
+    if "plot" in online:
+        print(f"  plot: {online['plot']}")
 
 
 def _train(args: argparse.Namespace) -> int:

@@ -41,10 +41,10 @@ SHORT_TRIALS = {  # trial -> (object, label): the shortest slip trials and the s
 }
 
 
-def _subset(isd: Path, root: Path) -> Path:
-    """A trials folder in ``root`` with SHORT_TRIALS (trial folders linked, not copied)."""
+def _subset(isd: Path, root: Path, trials: dict[str, tuple[str, str]] = SHORT_TRIALS) -> Path:
+    """A trials folder in ``root`` with ``trials`` (trial -> (object, label); folders linked, not copied)."""
     lines = ["trial,object,label"]
-    for name, (obj, label) in SHORT_TRIALS.items():
+    for name, (obj, label) in trials.items():
         (root / name).parent.mkdir(parents=True, exist_ok=True)
         (root / name).symlink_to(isd / name, target_is_directory=True)
         lines.append(f"{name},{obj},{label}")
@@ -219,6 +219,58 @@ def test_real_train_writes_a_trial_model_that_fv_eval_reads(isd_data: Path, tmp_
     report = json.loads(capsys.readouterr().out)
     assert report["n_trials"] == 3 and report["method"].startswith("trial") and report["window_accuracy"] is None
     assert sorted((tmp_path / "cache").glob("*.np[yz]")) == cached  # fv eval judged the model's frames
+
+
+def test_real_cv_online_reports_how_early_the_held_out_networks_tell_slips(isd_data: Path, tmp_path: Path,
+                                                                           capsys) -> None:
+    from nodes.cli import main
+    # two groups, each with a slip and a held grasp, so that every training fold has both
+    trials = {**{name: ("a" if name.startswith("train/nylon") or name.startswith("train/blue") else "b", label)
+                 for name, (_, label) in SHORT_TRIALS.items()},
+              "train/cheese_tube/exp_num_3": ("b", "no_slip")}
+    root = _subset(isd_data, tmp_path / "trials", trials)
+    out, plot = tmp_path / "cv.json", tmp_path / "online.png"
+    argv = ["real", "cv", "--trials", str(root), "--cache", str(tmp_path / "cache"), "--folds", "2", "--steps", "5",
+            "--hidden", "4", "--members", "1", "--online", "--alarm", "0.5:25:5", "--plot", str(plot)]
+    assert main([*argv, "--out", str(out), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    online = report["online"]
+    assert "running" not in report and online["cameras"] == {"held": 4, "slip": 4} and online["fps"] == 25.0
+    assert [row["frame"] for row in online["at"]] == [10, 25, 50, 100, 200, 300]
+    assert [row["rule"] for row in online["alarms"]] == ["P >= 0.5 from frame 25, 5 in a row"]
+    assert plot.stat().st_size > 0 and online["plot"] == str(plot)
+    running = json.loads(out.read_text())["running"]  # per trial, per camera: P(slip) after every frame
+    read = read_trials(root)
+    fields = trial_fields(read, tmp_path / "cache")
+    assert [[len(c) for c in cameras] for cameras in running] == [
+        [fields[(t.name, c)].fields.shape[0] for c in ("camera_0", "camera_2")] for t in read]
+    def logit(p: float) -> float:
+        return float(np.log(p / (1.0 - p)))
+    for fold in report["folds"]:  # the head is linear in the pooled features, which average the cameras:
+        for i, p in zip(fold["trials"], fold["probability"]):  # the trial's logit is its cameras' last ones' mean
+            assert logit(p) == pytest.approx(np.mean([logit(c[-1]) for c in running[i]]), abs=1e-4)
+    assert main([*argv]) == 0  # the text report names every check time and rule
+    text = capsys.readouterr().out
+    assert "at 0.4 s: P >= 0.5 for" in text and "alarm P >= 0.5 from frame 25, 5 in a row:" in text
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--plot", "x.png"], "--plot need --online"),
+    (["--online", "--method", "windows"], "--online needs --method trial"),
+])
+def test_real_cv_online_flags_are_checked(argv: list[str], message: str, capsys) -> None:
+    from nodes.cli import main
+    with pytest.raises(SystemExit, match=message):
+        main(["real", "cv", "--trials", "x", *argv])
+
+
+@pytest.mark.parametrize("rule", ["0.5:x", "1.5", "0.5:1:2:3", "0.5:-1"])
+def test_real_cv_refuses_a_bad_alarm_rule_by_name(rule: str, capsys) -> None:
+    from nodes.cli import main
+    with pytest.raises(SystemExit) as exit_info:
+        main(["real", "cv", "--trials", "x", "--online", "--alarm", rule])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "argument --alarm" in err and f"alarm rule {rule!r}" in err
 
 
 def test_window_cross_validation_gives_the_same_folds_in_two_processes(tmp_path: Path) -> None:

@@ -22,6 +22,7 @@ from fv_algos.trial_net import (
     fit_trial_net,
     load_trial_model,
     read_trial_model,
+    running_probability,
     save_trial_model,
     stretch_in_time,
     trial_probability,
@@ -155,6 +156,19 @@ def test_object_held_out_cross_validation_keeps_objects_apart() -> None:
     assert sum(fold["n_trials"] for fold in report["folds"]) == 30
     in_two = cross_validate_trials(inputs, labels, objects, folds=3, config=TrialNetConfig(steps=40), workers=2)
     assert in_two == report  # folds in two spawned processes: the same figures
+    assert "running" not in report
+    online = cross_validate_trials(inputs, labels, objects, folds=3, config=TrialNetConfig(steps=40), online=True)
+    assert online["folds"] == report["folds"]  # the online pass changes no figure
+    assert [[len(series) for series in cameras] for cameras in online["running"]] == [
+        [x.shape[1] for x in cameras] for cameras in inputs]
+
+
+def test_running_probability_is_the_network_on_every_prefix() -> None:
+    torch.manual_seed(0)
+    net = TrialNet(4, members=2).eval()
+    x = torch.randn(len(DESCRIPTORS), 3 * (2 * net.radius + 1))  # three times the running memory
+    offline = [trial_probability(net, [[x[:, :t]]])[0] for t in range(1, x.shape[1] + 1)]
+    np.testing.assert_allclose(running_probability(net, x), offline, atol=1e-5)
 
 
 def test_a_model_file_of_another_kind_is_refused(tmp_path: Path) -> None:
