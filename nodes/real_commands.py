@@ -47,17 +47,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "e.g. 29, leaves one object out)")
     p.add_argument("--init", default=None, help="fine-tune every fold from this checkpoint or shipped model name (e.g. sim); "
                    "its architecture is used and --steps counts the extra steps")
-    p.add_argument("--online", action="store_true",
-                   help="trial: also run every held-out network frame by frame over its test grasps, one camera "
-                        "at a time (what the pipeline publishes on /slip), and report how early P(slip) tells "
-                        "slips from held grasps; --out then also holds every camera's running P(slip)")
-    p.add_argument("--fps", type=positive_float, default=25.0,
-                   help="--online: the videos' frame rate, for times in seconds (default 25)")
-    p.add_argument("--alarm", type=_alarm_rule, action="append", default=None, metavar="P[:FROM[:ROW]]",
-                   help="--online: an alarm rule, raised when P(slip) >= P for ROW frames in a row from frame "
-                        "FROM on (repeat the flag for several; default a set from 0.5:0:1 to 0.99:100:10)")
-    p.add_argument("--plot", type=Path, default=None,
-                   help="--online: PNG of the share of held and slip cameras at P(slip) >= 0.5 over time")
+    online_flags(p)
     p.add_argument("--out", type=Path, default=None, help="also write the full report (JSON) here")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=_cv)
@@ -75,8 +65,36 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cache", type=Path, default=None, help="reuse / write cached fields here (default: none)")
     p.add_argument("--workers", type=positive_int, default=1,
                    help="processes for the fields and contact motion (default 1)")
+    online_flags(p)
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=eval_trials_command)
+
+
+def online_flags(p: argparse.ArgumentParser) -> None:
+    """--online, --fps, --alarm and --plot: a trial-level model run frame by frame (`fv real cv`,
+    `fv eval --trials`; :func:`check_online` refuses them where they do not apply)."""
+    p.add_argument("--online", action="store_true",
+                   help="trial-level models: also run the model frame by frame over every grasp, one camera at a "
+                        "time (what the pipeline publishes on /slip; in `fv real cv` each fold's held-out network), "
+                        "and report how early P(slip) tells slips from held grasps (`fv real cv --out` then also "
+                        "holds every camera's running P(slip))")
+    p.add_argument("--fps", type=positive_float, default=25.0,
+                   help="--online: the videos' frame rate, for times in seconds (default 25)")
+    p.add_argument("--alarm", type=_alarm_rule, action="append", default=None, metavar="P[:FROM[:ROW]]",
+                   help="--online: an alarm rule, raised when P(slip) >= P for ROW frames in a row from frame "
+                        "FROM on (repeat the flag for several; default a set from 0.5:0:1 to 0.99:100:10)")
+    p.add_argument("--plot", type=Path, default=None,
+                   help="--online: PNG of the share of held and slip cameras at P(slip) >= 0.5 over time")
+
+
+def check_online(args: argparse.Namespace, command: str, trial_level: bool) -> None:
+    """SystemExit naming the flags when --alarm or --plot come without --online, or --online with a
+    model that has no running P(slip) (not ``trial_level``)."""
+    given = [f for f, v in (("--alarm", args.alarm), ("--plot", args.plot)) if v is not None]
+    if given and not args.online:
+        raise SystemExit(f"{command}: {' and '.join(given)} need --online")
+    if args.online and not trial_level:
+        raise SystemExit(f"{command}: --online needs a trial-level model (a window model has no running P(slip))")
 
 
 def _alarm_rule(text: str):
@@ -201,9 +219,7 @@ def _trial_inputs(args: argparse.Namespace, reference_frame: int, params: Contac
 
 def _cv(args: argparse.Namespace) -> int:
     started = time.perf_counter()
-    online_flags = [f for f, v in (("--alarm", args.alarm), ("--plot", args.plot)) if v is not None]
-    if online_flags and not args.online:
-        raise SystemExit(f"fv real cv: {' and '.join(online_flags)} need --online")
+    check_online(args, "fv real cv", args.method == "trial")
     if args.method == "trial":
         from fv_algos.trial_net import cross_validate_trials
         config = _trial_config(args)
@@ -214,8 +230,6 @@ def _cv(args: argparse.Namespace) -> int:
         if args.online:
             report["online"] = _online_report(report["running"], labels, args)
     else:
-        if args.online:
-            raise SystemExit("fv real cv: --online needs --method trial (a window model has no running P(slip))")
         from fv_algos.trial_eval import cross_validate, trial_windows
         from nodes.slip_detector import model_path
         config = _fit_config(args)
@@ -354,13 +368,17 @@ def resolve_trial_model(name: str) -> Path:
 def _eval_trial_net(args: argparse.Namespace, model: TrialModel) -> dict[str, object]:
     """Report of the trial-level ``model`` on ``args.trials`` (video to decision, from the model's
     reference frame of each video on)."""
-    from fv_algos.trial_net import judge_trials, trial_probability
+    from fv_algos.trial_net import judge_trials, running_probability, trial_probability
     trials, fields, field_s, inputs, labels = _trial_inputs(args, model.reference_frame, model.params)
     report = judge_trials(trial_probability(model.net, inputs), labels)
+    online = {}
+    if args.online:
+        running = [[running_probability(model.net, x) for x in cameras] for cameras in inputs]
+        online["online"] = _online_report(running, labels, args)
     return {"trial_accuracy": report["trial_accuracy"], "n_trials": report["n_trials"], "window_accuracy": None,
             "n_windows": 0, "confusion": report["confusion"], "trial_f1": report["trial_f1"], "threshold": 0.5,
             "method": "trial (trial-level: no windows, window_accuracy is null)",
-            **_path_report(trials, fields, field_s, report["probability"], 0.5)}
+            **_path_report(trials, fields, field_s, report["probability"], 0.5), **online}
 
 
 def _path_report(trials: Sequence[Trial], fields: TrialFields, field_s: float, scores: Sequence[float],
@@ -382,7 +400,8 @@ def eval_trials_command(args: argparse.Namespace) -> int:
     """Judge a slip model on a folder of real trials, the whole way from video to decision.
 
     Needs args.model (shipped name or checkpoint), args.trials (folder), args.json; optional
-    args.cache (None: fields are computed, not cached) and args.workers. The window stride, top-k
+    args.cache (None: fields are computed, not cached), args.workers and the :func:`online_flags`
+    (--online for a trial-level model: its running P(slip) over every camera). The window stride, top-k
     and trial threshold come from the model's JSON sidecar (`slip_<name>.json`) when it has them,
     else the TrialRule defaults and threshold 0.5. Prints trial_accuracy, n_trials,
     window_accuracy, confusion ([[TN, FP], [FN, TP]] at trial level), the timing (frames judged
@@ -397,6 +416,7 @@ def eval_trials_command(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     path = resolve_trial_model(args.model)
     trial_model = read_trial_model(path)
+    check_online(args, "fv eval --trials", trial_model is not None)
     out = _eval_windows(args, path) if trial_model is None else _eval_trial_net(args, trial_model)
     wall = time.perf_counter() - started
     out = {"model": str(path), **out, "wall_s": wall, "s_per_trial": wall / out["n_trials"],
@@ -410,6 +430,8 @@ def eval_trials_command(args: argparse.Namespace) -> int:
         for t in out["trials"]:
             if not t["correct"]:
                 print(f"  wrong: {t['trial']} ({t['object']}): {t['label']}, score {t['score']:.2f}")
+        if "online" in out:
+            _print_online(out["online"])
     return 0
 
 

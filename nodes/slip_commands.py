@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 from nodes.arg_types import positive_int
+from nodes.real_commands import online_flags
 
 SPLITS = {"sequence": "sequence", "paper": "random", "object": "object"}
 """CLI split name -> fv_algos.slip.windows split kind ("paper" = the paper's random windows)."""
@@ -49,6 +50,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cache", type=Path, help="with --trials: folder to cache the fields in (default: none)")
     p.add_argument("--workers", type=positive_int, default=2,
                    help="with --trials: processes for the fields (default 2)")
+    online_flags(p)
     p.add_argument("--models", type=Path, default=None,
                    help="checkpoint folder: DIR/<split>_<model>[_variant]/ as fv train writes; missing ones are "
                         "trained there (default OUT/models)")
@@ -290,6 +292,8 @@ class _ModelStore:
 
 
 def _eval(args: argparse.Namespace) -> int:
+    if args.trials is None and (args.online or args.alarm or args.plot):
+        raise ValueError("--online, --alarm and --plot need --trials (a trial-level model judged frame by frame)")
     if args.trials is not None:
         from nodes.real_commands import eval_trials_command
         if not args.model:

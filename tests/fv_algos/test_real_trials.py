@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from fv_algos.grasp_alarm import AlarmRule
 from fv_algos.real_trials import (
     Trial,
     VideoFields,
@@ -155,7 +156,8 @@ def test_eval_trials_command_from_video_to_decision(isd_data: Path, tmp_path: Pa
     torch.manual_seed(0)
     config = ModelConfig(arch="lstm", hidden=8)
     model_path = save_checkpoint(tmp_path / "tiny.pt", Checkpoint(config, build_model(config).state_dict()))
-    args = argparse.Namespace(model=str(model_path), trials=root, cache=None, workers=1, json=True)
+    args = argparse.Namespace(model=str(model_path), trials=root, cache=None, workers=1, json=True, online=False,
+                              alarm=None, plot=None)
     assert eval_trials_command(args) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["n_trials"] == 3 and 0.0 <= report["trial_accuracy"] <= 1.0
@@ -188,7 +190,8 @@ def test_eval_trials_command_with_a_trial_level_model(isd_data: Path, tmp_path: 
             p.zero_()
         net.head.bias.fill_(1.0)
     path = save_trial_model(tmp_path / "trial.pt", net, TrialNetConfig(hidden=4, members=1))
-    args = argparse.Namespace(model=str(path), trials=root, cache=tmp_path / "cache", workers=1, json=True)
+    args = argparse.Namespace(model=str(path), trials=root, cache=tmp_path / "cache", workers=1, json=True,
+                              online=False, alarm=None, plot=None)
     assert eval_trials_command(args) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["n_trials"] == 3 and report["window_accuracy"] is None
@@ -200,6 +203,15 @@ def test_eval_trials_command_with_a_trial_level_model(isd_data: Path, tmp_path: 
     assert eval_trials_command(argparse.Namespace(**{**vars(args), "json": False})) == 0
     wrong = [line for line in capsys.readouterr().out.splitlines() if line.startswith("  wrong: ")]
     assert wrong == [f"  wrong: {still[0]} (blue_mug): no_slip, score 0.73"]
+    online = {**vars(args), "online": True, "fps": 25.0, "alarm": [AlarmRule(0.5, 30, 5)]}
+    assert eval_trials_command(argparse.Namespace(**online)) == 0  # the constant net: every camera above 0.5
+    report = json.loads(capsys.readouterr().out)["online"]
+    assert report["cameras"] == {"held": 2, "slip": 4} and report["camera_end_accuracy"] == pytest.approx(4 / 6)
+    assert report["at"][0] == {"seconds": 0.4, "frame": 10, "held_above": 1.0, "held_recording": 2,
+                               "slip_above": 1.0, "slip_recording": 4}
+    assert report["alarms"] == [{"rule": "P >= 0.5 from frame 30, 5 in a row", "threshold": 0.5, "from_frame": 30,
+                                 "in_row": 5, "held_alarmed": 1.0, "slip_alarmed": 1.0,
+                                 "slip_median_first_s": 34 / 25}]
 
 
 def test_real_train_writes_a_trial_model_that_fv_eval_reads(isd_data: Path, tmp_path: Path, capsys) -> None:
@@ -255,13 +267,15 @@ def test_real_cv_online_reports_how_early_the_held_out_networks_tell_slips(isd_d
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--plot", "x.png"], "--plot need --online"),
-    (["--online", "--method", "windows"], "--online needs --method trial"),
+    (["real", "cv", "--trials", "x", "--plot", "x.png"], "fv real cv: --plot need --online"),
+    (["real", "cv", "--trials", "x", "--online", "--method", "windows"], "--online needs a trial-level model"),
+    (["eval", "--trials", "x", "--model", "sim", "--online"], "--online needs a trial-level model"),
+    (["eval", "--trials", "x", "--model", "gelsight_trial", "--alarm", "0.9"], "--trials: --alarm need --online"),
 ])
-def test_real_cv_online_flags_are_checked(argv: list[str], message: str, capsys) -> None:
+def test_online_flags_are_checked(argv: list[str], message: str) -> None:
     from nodes.cli import main
     with pytest.raises(SystemExit, match=message):
-        main(["real", "cv", "--trials", "x", *argv])
+        main(argv)
 
 
 @pytest.mark.parametrize("rule", ["0.5:x", "1.5", "0.5:1:2:3", "0.5:-1"])
