@@ -326,9 +326,13 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _write_sidecar(path: Path, info: dict, cv_report: Path | None) -> None:
-    """Write `info` (plus the summary of an `fv real cv --out` report) beside the model as JSON."""
+    """Write `info` (plus the summary of an `fv real cv --out` report, and its online part when it
+    was run with --online) beside the model as JSON."""
     if cv_report is not None:
-        info["cross_validation"] = json.loads(cv_report.read_text())["summary"]
+        report = json.loads(cv_report.read_text())
+        info["cross_validation"] = report["summary"]
+        if "online" in report:
+            info["cross_validation_online"] = {k: v for k, v in report["online"].items() if k != "plot"}
     path.with_suffix(".json").write_text(json.dumps(info, indent=1))
 
 

@@ -264,6 +264,11 @@ def test_real_cv_online_reports_how_early_the_held_out_networks_tell_slips(isd_d
     assert main([*argv]) == 0  # the text report names every check time and rule
     text = capsys.readouterr().out
     assert "at 0.4 s: P >= 0.5 for" in text and "alarm P >= 0.5 from frame 25, 5 in a row:" in text
+    model = tmp_path / "mine_trial.pt"  # a model trained beside this report records its online part
+    assert main(["real", "train", "--trials", str(root), "--cache", str(tmp_path / "cache"), "--steps", "5",
+                 "--hidden", "4", "--members", "1", "--out", str(model), "--cv-report", str(out)]) == 0
+    sidecar = json.loads(model.with_suffix(".json").read_text())
+    assert sidecar["cross_validation_online"] == {k: v for k, v in online.items() if k != "plot"}
 
 
 @pytest.mark.parametrize("argv, message", [
