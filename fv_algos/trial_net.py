@@ -243,6 +243,20 @@ def running_probability(net: TrialNet, x: torch.Tensor) -> np.ndarray:
     return np.array([running.push(x[:, t]) for t in range(x.shape[1])])
 
 
+def _running_of(net: TrialNet, inputs: Sequence[TrialInput]) -> list[list[np.ndarray]]:
+    """:func:`running_probability` of every camera of every trial in ``inputs``."""
+    return [[running_probability(net, x) for x in cameras] for cameras in inputs]
+
+
+def running_probabilities(net: TrialNet, inputs: Sequence[TrialInput], workers: int = 1) -> list[list[np.ndarray]]:
+    """Per trial, per camera: :func:`running_probability` (F,), the trials split into ``workers``
+    contiguous parts run in spawned processes of one torch thread each (1: in this process;
+    :func:`fv_algos.trial_eval.map_folds`)."""
+    bounds = np.linspace(0, len(inputs), min(workers, max(len(inputs), 1)) + 1).astype(int)
+    parts = map_folds(partial(_running_of, net), [inputs[a:b] for a, b in zip(bounds[:-1], bounds[1:])], workers)
+    return [cameras for part in parts for cameras in part]
+
+
 def stretch_in_time(x: torch.Tensor, factor: float) -> torch.Tensor:
     """``x`` (C, F) descriptors resampled (linearly) to max(2, round(F * factor)) frames spanning
     the same trial, the ``PER_FRAME`` rates divided by ``factor``: the same motion ``factor`` times
@@ -404,7 +418,7 @@ def _held_out(inputs: Sequence[TrialInput], labels: np.ndarray, config: TrialNet
     and when ``online`` each test trial's per-camera :func:`running_probability` (else None)."""
     net = fit_trial_net([inputs[i] for i in np.flatnonzero(~test)], labels[~test], config)
     tested = [inputs[i] for i in np.flatnonzero(test)]
-    running = [[running_probability(net, x) for x in cameras] for cameras in tested] if online else None
+    running = running_probabilities(net, tested) if online else None
     return trial_probability(net, tested), running
 
 

@@ -372,12 +372,12 @@ def resolve_trial_model(name: str) -> Path:
 def _eval_trial_net(args: argparse.Namespace, model: TrialModel) -> dict[str, object]:
     """Report of the trial-level ``model`` on ``args.trials`` (video to decision, from the model's
     reference frame of each video on)."""
-    from fv_algos.trial_net import judge_trials, running_probability, trial_probability
+    from fv_algos.trial_net import judge_trials, running_probabilities, trial_probability
     trials, fields, field_s, inputs, labels = _trial_inputs(args, model.reference_frame, model.params)
     report = judge_trials(trial_probability(model.net, inputs), labels)
     online = {}
     if args.online:
-        running = [[running_probability(model.net, x) for x in cameras] for cameras in inputs]
+        running = running_probabilities(model.net, inputs, args.workers)
         online["online"] = _online_report(running, labels, args)
     return {"trial_accuracy": report["trial_accuracy"], "n_trials": report["n_trials"], "window_accuracy": None,
             "n_windows": 0, "confusion": report["confusion"], "trial_f1": report["trial_f1"], "threshold": 0.5,

@@ -22,6 +22,7 @@ from fv_algos.trial_net import (
     fit_trial_net,
     load_trial_model,
     read_trial_model,
+    running_probabilities,
     running_probability,
     save_trial_model,
     stretch_in_time,
@@ -169,6 +170,11 @@ def test_running_probability_is_the_network_on_every_prefix() -> None:
     x = torch.randn(len(DESCRIPTORS), 3 * (2 * net.radius + 1))  # three times the running memory
     offline = [trial_probability(net, [[x[:, :t]]])[0] for t in range(1, x.shape[1] + 1)]
     np.testing.assert_allclose(running_probability(net, x), offline, atol=1e-5)
+    inputs = [[x[:, :40], x[:, 5:]], [x[:, :3]], [x]]
+    one = running_probabilities(net, inputs)
+    assert [[len(series) for series in cameras] for cameras in one] == [[40, x.shape[1] - 5], [3], [x.shape[1]]]
+    two = running_probabilities(net, inputs, workers=2)  # the trials split between two spawned processes
+    assert all(np.array_equal(a, b) for p, q in zip(one, two) for a, b in zip(p, q))
 
 
 def test_a_model_file_of_another_kind_is_refused(tmp_path: Path) -> None:
