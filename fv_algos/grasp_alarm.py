@@ -98,8 +98,7 @@ def above_curves(running: RunningSeries, labels: np.ndarray) -> tuple[np.ndarray
         for series in by_label[label]:
             above[:series.size] += series >= 0.5
             recording[:series.size] += 1
-        with np.errstate(invalid="ignore", divide="ignore"):
-            curves.append(np.where(recording > 0, above / recording, np.nan))
+        curves.append(np.divide(above, recording, out=np.full(frames, np.nan), where=recording > 0))
     return curves[0], curves[1]
 
 

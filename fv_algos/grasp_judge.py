@@ -21,9 +21,9 @@ class GraspJudge:
     reference), then ``step`` with every frame and its displacement field."""
 
     def __init__(self, net: TrialNet, params: ContactMotionParams = ContactMotionParams()) -> None:
-        self.net = net.eval()
+        self.running = RunningTrial(net)
+        self.net = self.running.net
         self.motion = ContactMotion(params)
-        self.running = RunningTrial(self.net)
 
     @classmethod
     def from_file(cls, path: str | Path) -> GraspJudge:

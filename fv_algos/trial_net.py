@@ -203,10 +203,10 @@ class RunningTrial:
     features, same pooling), at a cost that does not grow with the grasp's length. A frame's features
     depend on ``net.radius`` frames on each side, so a frame more than ``radius`` frames old is final
     and only enters a running sum and maximum; each :meth:`push` recomputes the features of the
-    newest frames from the last 2 * radius + 1 columns."""
+    newest frames from the last 2 * radius + 1 columns. ``net`` is put in eval mode."""
 
     def __init__(self, net: TrialNet) -> None:
-        self.net = net
+        self.net = net.eval()
         self.reset()
 
     def reset(self) -> None:
@@ -239,7 +239,7 @@ class RunningTrial:
 def running_probability(net: TrialNet, x: torch.Tensor) -> np.ndarray:
     """(F,) float64 P(slip) of one camera's (C, F) descriptors cut at every frame: entry t is what
     the pipeline's slip detector publishes after frame t (frame 0: the reference)."""
-    running = RunningTrial(net.eval())
+    running = RunningTrial(net)
     return np.array([running.push(x[:, t]) for t in range(x.shape[1])])
 
 
@@ -252,9 +252,8 @@ def running_probabilities(net: TrialNet, inputs: Sequence[TrialInput], workers: 
     """Per trial, per camera: :func:`running_probability` (F,), the trials split into ``workers``
     contiguous parts run in spawned processes of one torch thread each (1: in this process;
     :func:`fv_algos.trial_eval.map_folds`)."""
-    bounds = np.linspace(0, len(inputs), min(workers, max(len(inputs), 1)) + 1).astype(int)
-    parts = map_folds(partial(_running_of, net), [inputs[a:b] for a, b in zip(bounds[:-1], bounds[1:])], workers)
-    return [cameras for part in parts for cameras in part]
+    parts = [[inputs[i] for i in part] for part in np.array_split(np.arange(len(inputs)), workers)]
+    return [cameras for part in map_folds(partial(_running_of, net), parts, workers) for cameras in part]
 
 
 def stretch_in_time(x: torch.Tensor, factor: float) -> torch.Tensor:

@@ -261,8 +261,8 @@ def _cv(args: argparse.Namespace) -> int:
 
 
 def _online_report(running: list, labels, args: argparse.Namespace) -> dict[str, object]:
-    """:func:`fv_algos.grasp_alarm.online_summary` of the held-out networks' running P(slip), with
-    ``args.alarm`` rules (None: the defaults); the ``args.plot`` PNG when given."""
+    """:func:`fv_algos.grasp_alarm.online_summary` of ``running`` (per trial, per camera: P(slip) after
+    every frame), with ``args.alarm`` rules (None: the defaults); the ``args.plot`` PNG when given."""
     from fv_algos.grasp_alarm import DEFAULT_RULES, above_curves, online_summary
     summary = online_summary(running, labels, args.fps, rules=args.alarm or DEFAULT_RULES)
     if args.plot is not None:
@@ -270,14 +270,14 @@ def _online_report(running: list, labels, args: argparse.Namespace) -> dict[str,
         held, slips = above_curves(running, labels)
         seconds = [t / args.fps for t in range(held.size)]
         curve_plot({"held grasps' cameras": (seconds, held * 100), "slips' cameras": (seconds, slips * 100)},
-                   args.plot, title="held-out networks, frame by frame: cameras at P(slip) >= 0.5",
+                   args.plot, title="running P(slip), frame by frame: cameras at P(slip) >= 0.5",
                    x_label="time after the reference frame (s)", y_label="% of the cameras still recording")
         summary["plot"] = str(args.plot)
     return summary
 
 
 def _print_online(online: dict) -> None:
-    """The online part of a `fv real cv --online` report as text."""
+    """The online part of an `fv real cv --online` or `fv eval --trials --online` report as text."""
     def pct(share) -> str:
         return "-" if share is None else f"{100 * share:.0f}%"
     cameras = online["cameras"]
