@@ -23,8 +23,9 @@ stale reference does not shift the whole trial.
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from functools import partial
 from pathlib import Path
@@ -32,6 +33,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from fv_algos.frame_rate import pick
 from fv_algos.real_trials import VIDEO_SUFFIX, Trial, VideoKey, map_videos, read_frames, write_atomically
 
 SERIES = ("relative_px", "marker_px", "contact_above_min", "imprint_change", "imprint_step")
@@ -112,24 +114,25 @@ def _flow(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def contact_series(frames: Iterable[np.ndarray], params: ContactMotionParams = ContactMotionParams(),
-                   reference_frame: int = 1) -> np.ndarray:
+                   reference_frame: int = 1, rates: tuple[float, float] | None = None) -> np.ndarray:
     """(F, 5) float32 ``SERIES`` of BGR ``frames`` from ``reference_frame`` on (the frames
-    :func:`fv_algos.real_trials.video_fields` keeps); ValueError when there is no such frame."""
+    :func:`fv_algos.real_trials.video_fields` keeps); with ``rates`` (video fps, model fps), only those
+    of them that :func:`fv_algos.frame_rate.pick` keeps. ValueError when there is no such frame."""
+    grasp = itertools.islice(frames, reference_frame, None)
     core, rows = ContactMotion(params), []
-    for index, frame in enumerate(frames):
-        if index == reference_frame:
-            rows.append(core.reset(frame))
-        elif index > reference_frame:
-            rows.append(core.step(frame))
+    for k, frame in enumerate(grasp if rates is None else pick(grasp, *rates)):
+        rows.append(core.reset(frame) if k == 0 else core.step(frame))
     if not rows:
         raise ValueError(f"no frame at reference_frame={reference_frame}")
     return np.stack(rows)
 
 
-def _series_cache_path(cache_dir: Path, video: Path, reference_frame: int, params: ContactMotionParams) -> Path:
+def _series_cache_path(cache_dir: Path, video: Path, reference_frame: int, params: ContactMotionParams,
+                       rates: tuple[float, float] | None) -> Path:
     stat = video.stat()
-    text = json.dumps([SERIES_CACHE_VERSION, str(video.resolve()), stat.st_size, stat.st_mtime_ns, reference_frame,
-                       asdict(params), hashlib.sha256(Path(__file__).read_bytes()).hexdigest()])
+    key = [SERIES_CACHE_VERSION, str(video.resolve()), stat.st_size, stat.st_mtime_ns, reference_frame,
+           asdict(params), hashlib.sha256(Path(__file__).read_bytes()).hexdigest()]
+    text = json.dumps(key if rates is None else [*key, list(rates)])
     stem = "__".join(video.parts[-3:]).removesuffix(VIDEO_SUFFIX)
     return cache_dir / f"{stem}__contact__{hashlib.sha256(text.encode()).hexdigest()[:16]}.npy"
 
@@ -138,13 +141,15 @@ TrialSeries = dict[VideoKey, np.ndarray]
 
 
 def _cached_series(video: Path, cache_dir: str | Path | None, reference_frame: int,
-                   params: ContactMotionParams) -> np.ndarray:
-    """:func:`contact_series` of one video, read from / written to the cache when there is a cache folder."""
-    cached = None if cache_dir is None else _series_cache_path(Path(cache_dir), video, reference_frame, params)
+                   params: ContactMotionParams, rates: Mapping[Path, tuple[float, float]]) -> np.ndarray:
+    """:func:`contact_series` of one video (picked at ``rates[video]`` when it is there), read from /
+    written to the cache when there is a cache folder."""
+    rate = rates.get(video)
+    cached = None if cache_dir is None else _series_cache_path(Path(cache_dir), video, reference_frame, params, rate)
     if cached is not None and cached.is_file():
         return np.load(cached)
     try:
-        series = contact_series(read_frames(video), params, reference_frame)
+        series = contact_series(read_frames(video), params, reference_frame, rate)
     except ValueError as exc:
         raise ValueError(f"{video}: {exc}") from exc
     if cached is not None:
@@ -154,9 +159,11 @@ def _cached_series(video: Path, cache_dir: str | Path | None, reference_frame: i
 
 def trial_series(trials: Sequence[Trial], cache_dir: str | Path | None = None, reference_frame: int = 1,
                  params: ContactMotionParams = ContactMotionParams(), workers: int = 1,
-                 progress: bool = True) -> TrialSeries:
+                 progress: bool = True, rates: Mapping[Path, tuple[float, float]] | None = None) -> TrialSeries:
     """:func:`contact_series` of every camera of every trial, keyed (trial name, camera), in
     ``workers`` processes with one progress bar; cached as one .npy per video under ``cache_dir``
-    (None: no cache), keyed by the video, the parameters and this module's code."""
+    (None: no cache), keyed by the video, the parameters, the rates and this module's code. ``rates``:
+    (video fps, model fps) of the videos whose frames are picked at the model's rate (the others: all
+    frames)."""
     return map_videos(trials, partial(_cached_series, cache_dir=cache_dir, reference_frame=reference_frame,
-                                      params=params), workers, progress, "contact motion")
+                                      params=params, rates=rates or {}), workers, progress, "contact motion")

@@ -4,7 +4,8 @@ The trial network (:mod:`fv_algos.trial_net`) pools its temporal features over a
 Online, after every frame, the judge measures the frame's contact motion and field descriptors
 and gives P(slip) of the grasp so far: exactly what the network says of the trial cut at this frame
 (same descriptors, same pooling), at a cost that does not grow with the grasp's length
-(:class:`fv_algos.trial_net.RunningTrial`).
+(:class:`fv_algos.trial_net.RunningTrial`). A camera faster than the model's frame rate has its frames
+picked at that rate first (:meth:`GraspJudge.takes`, :mod:`fv_algos.frame_rate`).
 """
 from __future__ import annotations
 
@@ -13,28 +14,47 @@ from pathlib import Path
 import numpy as np
 
 from fv_algos.contact_motion import ContactMotion, ContactMotionParams
+from fv_algos.frame_rate import FramePicker
 from fv_algos.trial_net import RunningTrial, TrialNet, descriptor_matrix, field_rows, load_trial_model
 
 
 class GraspJudge:
     """Running P(slip) of one camera's grasp: ``reset`` when a grasp starts (the next frame is its
-    reference), then ``step`` with every frame and its displacement field."""
+    reference), then for every frame ``takes`` (whether the model judges it: the frames a camera at
+    the model's ``fps`` Hz would have filmed) and, when it does, ``step`` with the frame and its
+    displacement field. Frames further apart than the model takes (``stretch`` model periods: a slow
+    camera or dropped frames) are counted in ``slow_gaps``."""
 
-    def __init__(self, net: TrialNet, params: ContactMotionParams = ContactMotionParams()) -> None:
+    def __init__(self, net: TrialNet, params: ContactMotionParams = ContactMotionParams(), fps: float = 25.0,
+                 stretch: float = 1.0) -> None:
         self.running = RunningTrial(net)
         self.net = self.running.net
         self.motion = ContactMotion(params)
+        self.picker = FramePicker(fps)
+        self.longest_gap_ns = stretch * self.picker.period_ns
+        self.slow_gaps = 0
+        self._last_ns: int | None = None
 
     @classmethod
     def from_file(cls, path: str | Path) -> GraspJudge:
-        """A judge with the network and contact-motion parameters of a trial model file
-        (:func:`fv_algos.trial_net.save_trial_model`); ValueError for any other file."""
+        """A judge with the network, contact-motion parameters, frame rate and training stretch of a
+        trial model file (:func:`fv_algos.trial_net.save_trial_model`); ValueError for any other file."""
         model = load_trial_model(path)
-        return cls(model.net, model.params)
+        return cls(model.net, model.params, model.fps, model.stretch)
 
     def reset(self) -> None:
-        """Forget the grasp: the next ``step`` is the reference frame of a new one."""
+        """Forget the grasp: the next frame is the reference frame of a new one."""
         self.running.reset()
+        self.picker.reset()
+        self._last_ns = None
+
+    def takes(self, stamp_ns: int) -> bool:
+        """Whether the frame of ``stamp_ns`` (ns, after the grasp's frames so far) is one the model judges
+        (:class:`fv_algos.frame_rate.FramePicker`); the grasp's first frame always is."""
+        if self._last_ns is not None and stamp_ns - self._last_ns > self.longest_gap_ns:
+            self.slow_gaps += 1
+        self._last_ns = stamp_ns
+        return self.picker.accept(stamp_ns)
 
     @property
     def frames(self) -> int:
@@ -42,7 +62,7 @@ class GraspJudge:
         return self.running.frames
 
     def step(self, image: np.ndarray, field: np.ndarray, valid_share: float) -> float:
-        """P(slip) of the grasp up to and including this frame: ``image`` (H, W, 3) BGR uint8,
+        """P(slip) of the grasp up to and including this frame (one :meth:`takes` kept): ``image`` (H, W, 3) BGR uint8,
         ``field`` (h, w, 3) px (dx, dy, |d|; rounded to float16 as in the cached fields the model
         was trained on), ``valid_share`` the share of reference markers valid in this frame."""
         series_row = self.motion.reset(image) if self.frames == 0 else self.motion.step(image)

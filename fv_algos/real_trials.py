@@ -133,6 +133,12 @@ class VideoFields:
             "invalid_fields": int(np.count_nonzero(~self.field_valid)),
         }
 
+    def at(self, frames: np.ndarray) -> VideoFields:
+        """These fields at ``frames`` (K,) (indices from the reference on) only; the same markers and
+        seconds."""
+        return VideoFields(self.fields[frames], self.field_valid[frames], self.valid_share[frames], self.swaps[frames],
+                           self.n_markers, self.seconds)
+
 
 def read_frames(path: str | Path) -> Iterator[np.ndarray]:
     """BGR frames (H, W, 3) uint8 of a video file; FileNotFoundError / ValueError name the file."""

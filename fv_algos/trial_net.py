@@ -104,7 +104,8 @@ class TrialNetConfig:
     so the running P(slip) of a grasp in progress (:mod:`fv_algos.grasp_judge`) learns that a short
     still grasp is not a slip (0: never). reference_frame: the frame of every video taken as the
     skin at rest, where the descriptors start (frame 0 of the GelSight Mini videos is often stale);
-    saved with the model, so that `fv eval` judges the same frames."""
+    saved with the model, so that `fv eval` judges the same frames. fps: the frame rate (Hz) the
+    descriptors were taken at (:mod:`fv_algos.frame_rate`: a faster camera's frames are picked at it)."""
 
     hidden: int = 16
     layers: int = 4
@@ -118,17 +119,18 @@ class TrialNetConfig:
     clip: float = 0.0
     held_prefix: float = 0.0
     reference_frame: int = 1
+    fps: float = 25.0
     seed: int = 0
 
     def __post_init__(self) -> None:
         even_batch = self.batch >= 2 and self.batch % 2 == 0
         sizes = (self.hidden, self.layers, self.members, self.steps)
         ranges = (0 < self.gain[0] <= self.gain[1] and self.stretch >= 1 and 0 <= self.clip < 0.5
-                  and 0 <= self.held_prefix <= 1 and self.reference_frame >= 0)
+                  and 0 <= self.held_prefix <= 1 and self.reference_frame >= 0 and 0 < self.fps < float("inf"))
         if min(sizes) < 1 or not even_batch or not ranges:
             raise ValueError("TrialNetConfig needs hidden, layers, members, steps >= 1, an even batch >= 2, "
                              f"0 < gain[0] <= gain[1], stretch >= 1, 0 <= clip < 0.5, 0 <= held_prefix <= 1 and "
-                             f"reference_frame >= 0, got {self}")
+                             f"reference_frame >= 0 and a finite fps > 0, got {self}")
 
 
 class TrialNet(nn.Module):
@@ -368,19 +370,22 @@ def _read(path: str | Path) -> dict | None:
 
 
 class TrialModel(NamedTuple):
-    """A trial-level model file: the network, its contact-motion parameters and the frame of each
-    video it takes as the reference (`TrialNetConfig.reference_frame`)."""
+    """A trial-level model file: the network, its contact-motion parameters, the frame of each
+    video it takes as the reference, the frame rate (Hz) it judges at and the time stretch it was
+    trained with (`TrialNetConfig.reference_frame`, `fps`, `stretch`)."""
 
     net: TrialNet
     params: ContactMotionParams
     reference_frame: int
+    fps: float
+    stretch: float
 
 
 def read_trial_model(path: str | Path) -> TrialModel | None:
     """The :class:`TrialModel` of a file written by :func:`save_trial_model`, or None when ``path``
     holds another kind of file (one read either way); ValueError when it was written for other
-    descriptors. Files written before layers / members / reference_frame: 3 layers, 1 member,
-    frame 1."""
+    descriptors. Files written before layers / members / reference_frame / fps / stretch: 3 layers, 1
+    member, frame 1, 25 fps (the GelSight Mini videos they were trained on), no stretch."""
     data = _read(path)
     if data is None:
         return None
@@ -392,7 +397,8 @@ def read_trial_model(path: str | Path) -> TrialModel | None:
     net.load_state_dict(data["state_dict"])
     params = data["params"]
     return TrialModel(net.eval(), ContactMotionParams(**{**params, "size_px": tuple(params["size_px"])}),
-                      int(config.get("reference_frame", 1)))
+                      int(config.get("reference_frame", 1)), float(config.get("fps", 25.0)),
+                      float(config.get("stretch", 1.0)))
 
 
 def load_trial_model(path: str | Path) -> TrialModel:

@@ -17,11 +17,11 @@ import json
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from nodes.arg_types import positive_float, positive_int
+from nodes.arg_types import positive_int
 
 if TYPE_CHECKING:  # torch is imported only where a model is used
     from fv_algos.contact_motion import ContactMotionParams
@@ -71,18 +71,17 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def online_flags(p: argparse.ArgumentParser) -> None:
-    """--online, --fps, --alarm and --plot: a trial-level model run frame by frame (`fv real cv`,
+    """--online, --alarm and --plot: a trial-level model run frame by frame (`fv real cv`,
     `fv eval --trials`; :func:`check_online` refuses them where they do not apply)."""
     p.add_argument("--online", action="store_true",
                    help="trial-level models: also run the model frame by frame over every grasp, one camera at a "
                         "time (what the pipeline publishes on /slip; in `fv real cv` each fold's held-out network), "
                         "and report how early P(slip) tells slips from held grasps (`fv real cv --out` then also "
                         "holds every camera's running P(slip))")
-    p.add_argument("--fps", type=positive_float, default=25.0,
-                   help="--online: the videos' frame rate, for times in seconds (default 25)")
     p.add_argument("--alarm", type=_alarm_rule, action="append", default=None, metavar="P[:FROM[:ROW]]",
                    help="--online: an alarm rule, raised when P(slip) >= P for ROW frames in a row from frame "
-                        "FROM on (repeat the flag for several; default a set from 0.5:0:1 to 0.99:100:10)")
+                        "FROM on (frames judged, at the model's frame rate; repeat the flag for several; default a "
+                        "set from 0.5:0:1 to 0.99:100:10)")
     p.add_argument("--plot", type=Path, default=None,
                    help="--online: PNG of the share of held and slip cameras at P(slip) >= 0.5 over time")
 
@@ -205,16 +204,27 @@ def _trial_config(args: argparse.Namespace):
                           batch=_given(args.batch_size, default.batch), lr=_given(args.lr, default.lr), seed=args.seed)
 
 
-def _trial_inputs(args: argparse.Namespace, reference_frame: int, params: ContactMotionParams | None = None):
-    """(trials, fields, field seconds, per-trial descriptor inputs, labels (n_trials,)) of ``args.trials``,
-    fields and contact series (``params``, None: the defaults) from ``reference_frame`` of each video on,
-    cached under ``args.cache`` (None: no cache), in ``args.workers`` processes."""
+def _trial_inputs(args: argparse.Namespace, reference_frame: int, params: ContactMotionParams | None = None,
+                  fps: float | None = None, stretch: float = 1.0):
+    """(trials, fields, field seconds, per-trial descriptor inputs, labels (n_trials,), their frame rate) of
+    ``args.trials``, fields and contact series (``params``, None: the defaults) from ``reference_frame`` of each
+    video on, cached under ``args.cache`` (None: no cache), in ``args.workers`` processes. The descriptors are
+    taken at ``fps`` Hz (None: the rate most videos have), the frames of faster videos picked at it; slower
+    videos are refused beyond ``stretch`` (:func:`fv_algos.frame_rate.judged_rates`). The fields returned are
+    all the frames' (for the tracking quality)."""
     import numpy as np
     from fv_algos.contact_motion import ContactMotionParams, trial_series
+    from fv_algos.frame_rate import judged_rates, picked_frames
     from fv_algos.trial_net import trial_inputs
     trials, fields, field_s = _load(args.trials, args.cache, args.workers, reference_frame)
-    series = trial_series(trials, args.cache, reference_frame, params or ContactMotionParams(), workers=args.workers)
-    return trials, fields, field_s, trial_inputs(trials, series, fields), np.array([t.label for t in trials])
+    fps, faster = judged_rates(trials, fps, stretch)
+    paths = {(t.name, camera): path for t in trials for camera, path in t.videos.items()}
+    series = trial_series(trials, args.cache, reference_frame, params or ContactMotionParams(), workers=args.workers,
+                          rates={paths[key]: (rate, fps) for key, rate in faster.items()})
+    picked = {key: value if key not in faster else value.at(picked_frames(len(value.fields), faster[key], fps))
+              for key, value in fields.items()}
+    inputs = trial_inputs(trials, series, picked)
+    return trials, fields, field_s, inputs, np.array([t.label for t in trials]), fps
 
 
 def _cv(args: argparse.Namespace) -> int:
@@ -223,12 +233,13 @@ def _cv(args: argparse.Namespace) -> int:
     if args.method == "trial":
         from fv_algos.trial_net import cross_validate_trials
         config = _trial_config(args)
-        trials, _, _, inputs, labels = _trial_inputs(args, config.reference_frame)
+        trials, _, _, inputs, labels, fps = _trial_inputs(args, config.reference_frame, stretch=config.stretch)
+        config = replace(config, fps=fps)
         report = cross_validate_trials(inputs, labels, [t.object for t in trials], args.folds, args.seed, config,
                                        args.workers, progress=True, online=args.online)
         report["config"] = {"method": "trial", **asdict(config), "folds": args.folds}
         if args.online:
-            report["online"] = _online_report(report["running"], labels, args)
+            report["online"] = _online_report(report["running"], labels, args, fps)
     else:
         from fv_algos.trial_eval import cross_validate, trial_windows
         from nodes.slip_detector import model_path
@@ -260,15 +271,16 @@ def _cv(args: argparse.Namespace) -> int:
     return 0
 
 
-def _online_report(running: list, labels, args: argparse.Namespace) -> dict[str, object]:
+def _online_report(running: list, labels, args: argparse.Namespace, fps: float) -> dict[str, object]:
     """:func:`fv_algos.grasp_alarm.online_summary` of ``running`` (per trial, per camera: P(slip) after
-    every frame), with ``args.alarm`` rules (None: the defaults); the ``args.plot`` PNG when given."""
+    every frame judged, ``fps`` Hz), with ``args.alarm`` rules (None: the defaults); the ``args.plot`` PNG
+    when given."""
     from fv_algos.grasp_alarm import DEFAULT_RULES, above_curves, online_summary
-    summary = online_summary(running, labels, args.fps, rules=args.alarm or DEFAULT_RULES)
+    summary = online_summary(running, labels, fps, rules=args.alarm or DEFAULT_RULES)
     if args.plot is not None:
         from nodes.plots import curve_plot
         held, slips = above_curves(running, labels)
-        seconds = [t / args.fps for t in range(held.size)]
+        seconds = [t / fps for t in range(held.size)]
         curve_plot({"held grasps' cameras": (seconds, held * 100), "slips' cameras": (seconds, slips * 100)},
                    args.plot, title="running P(slip), frame by frame: cameras at P(slip) >= 0.5",
                    x_label="time after the reference frame (s)", y_label="% of the cameras still recording")
@@ -341,7 +353,8 @@ def _train_trial(args: argparse.Namespace) -> int:
     from fv_algos.trial_net import DESCRIPTORS, fit_trial_net, judge_trials, save_trial_model, trial_probability
     started = time.perf_counter()
     config = _trial_config(args)
-    trials, _, _, inputs, labels = _trial_inputs(args, config.reference_frame)
+    trials, _, _, inputs, labels, fps = _trial_inputs(args, config.reference_frame, stretch=config.stretch)
+    config = replace(config, fps=fps)
     net = fit_trial_net(inputs, labels, config)
     path = save_trial_model(args.out, net, config)
     info = {
@@ -373,12 +386,13 @@ def _eval_trial_net(args: argparse.Namespace, model: TrialModel) -> dict[str, ob
     """Report of the trial-level ``model`` on ``args.trials`` (video to decision, from the model's
     reference frame of each video on)."""
     from fv_algos.trial_net import judge_trials, running_probabilities, trial_probability
-    trials, fields, field_s, inputs, labels = _trial_inputs(args, model.reference_frame, model.params)
+    trials, fields, field_s, inputs, labels, _ = _trial_inputs(args, model.reference_frame, model.params, model.fps,
+                                                               model.stretch)
     report = judge_trials(trial_probability(model.net, inputs), labels)
     online = {}
     if args.online:
         running = running_probabilities(model.net, inputs, args.workers)
-        online["online"] = _online_report(running, labels, args)
+        online["online"] = _online_report(running, labels, args, model.fps)
     return {"trial_accuracy": report["trial_accuracy"], "n_trials": report["n_trials"], "window_accuracy": None,
             "n_windows": 0, "confusion": report["confusion"], "trial_f1": report["trial_f1"], "threshold": 0.5,
             "method": "trial (trial-level: no windows, window_accuracy is null)",
@@ -411,7 +425,9 @@ def eval_trials_command(args: argparse.Namespace) -> int:
     window_accuracy, confusion ([[TN, FP], [FN, TP]] at trial level), the timing (frames judged
     included), tracking quality and each trial's score and decision (without --json: the misjudged
     trials).
-    A trial-level model (:func:`resolve_trial_model`) has no windows: its window_accuracy is null."""
+    A trial-level model (:func:`resolve_trial_model`) has no windows: its window_accuracy is null; it
+    judges every video at the model's frame rate (a faster video's frames picked at it, a video too slow
+    for it refused by name: :mod:`fv_algos.frame_rate`)."""
     import cv2
     import torch
     from fv_algos.trial_net import read_trial_model

@@ -9,7 +9,9 @@ A trial model (`gelsight_online`, `gelsight_trial`) judges the whole grasp so fa
 starts at the tracker's reference (`/markers/reference`, latched: a new one after
 `/tracker/reset`), and every field of it, with the camera image of the same stamp (`/camera/image`), updates the
 running P(slip) of the grasp (`fv_algos.grasp_judge`). Its SlipState's window_stamps_ns
-holds the grasp's first and current stamps. That answer is the grasp's outcome so far, to be
+holds the grasp's first stamp and that of its last frame judged: a camera faster than the model's
+frame rate (`fv_algos.frame_rate`) has only the frames a camera at that rate would have filmed judged,
+and the others repeat the grasp's P(slip) so far (counted in rate_skipped). That answer is the grasp's outcome so far, to be
 read at the end of a test motion with `gelsight_trial`, which early in a grasp often says slip;
 `gelsight_online` was also trained on the beginnings of held grasps, so its P(slip) starts low
 (README, real sensors).
@@ -109,7 +111,8 @@ class SlipDetectorNode(Node):
         if p.device != "cpu":
             raise ValueError(f"a trial model runs on the cpu only, not device {p.device!r}")
         torch.set_num_threads(p.threads)
-        self.judge = GraspJudge(model.net, model.params)
+        self.judge = GraspJudge(model.net, model.params, model.fps, model.stretch)
+        self.judged: tuple[float, int] | None = None  # P(slip) of the grasp at its last frame judged, and that stamp
         self.images: collections.OrderedDict[int, Image] = collections.OrderedDict()  # by stamp, oldest first
         self.grasp_start_ns: int | None = None
         self.reference_markers = 0
@@ -117,10 +120,11 @@ class SlipDetectorNode(Node):
         self.subscribe("/markers/reference", MarkerArray, self.on_reference, depth=1)
         self.subscribe("/field", DisplacementField, self.on_grasp_field, depth=IMAGE_BUFFER,
                        stale_after_s=p.input_timeout_s or None)
-        self.counters.update(grasps=0, unmatched_fields=0)
+        self.counters.update(grasps=0, unmatched_fields=0, rate_skipped=0, slow_gaps=0)
         self.log.info("model %s: trial model, judges each grasp from the tracker's reference on (trained with "
-                      "the reference at frame %d of each video: give the tracker reference_frame %d)",
-                      p.model, model.reference_frame, model.reference_frame)
+                      "the reference at frame %d of each video: give the tracker reference_frame %d), at %g fps "
+                      "(a faster camera's frames are picked at that rate)",
+                      p.model, model.reference_frame, model.reference_frame, model.fps)
 
     def decide(self, probability: float) -> None:
         """Update the slip state with threshold and hysteresis (kept between the two bounds)."""
@@ -166,6 +170,7 @@ class SlipDetectorNode(Node):
         self.grasp_start_ns = msg.stamp_ns
         self.reference_markers = len(msg.ref_px)
         self.judge.reset()
+        self.judged = None
         self.slip = False
         self.counters["grasps"] += 1
 
@@ -186,10 +191,19 @@ class SlipDetectorNode(Node):
         if image.encoding == "mono8":
             raise ValueError("the trial model needs colour camera images (bgr8 or rgb8), got mono8: "
                              "set the camera's encoding param")
-        valid_share = msg.n_markers / max(self.reference_markers, 1)
-        probability = self.judge.step(as_bgr(image.data, image.encoding), msg.field, valid_share)
-        self.decide(probability)
-        self.publish_state(msg, probability, np.array([self.grasp_start_ns, msg.stamp_ns], np.int64), True)
+        takes = self.judge.takes(msg.stamp_ns)
+        if self.judge.slow_gaps > self.counters["slow_gaps"]:
+            self.counters["slow_gaps"] = self.judge.slow_gaps
+            self.warn("frames further apart than the trial model was trained on (a camera slower than the model's "
+                      "frame rate, or frames lost): its P(slip) is less sure (slow_gaps)")
+        if takes:
+            valid_share = msg.n_markers / max(self.reference_markers, 1)
+            self.judged = (self.judge.step(as_bgr(image.data, image.encoding), msg.field, valid_share), msg.stamp_ns)
+            self.decide(self.judged[0])
+        else:  # a camera faster than the model: this frame is not judged, the grasp's P(slip) stands
+            self.counters["rate_skipped"] += 1
+        probability, judged_ns = self.judged
+        self.publish_state(msg, probability, np.array([self.grasp_start_ns, judged_ns], np.int64), True)
 
     def publish_state(self, msg: DisplacementField, probability: float, stamps: np.ndarray, valid: bool) -> None:
         self.counters["decisions"] += 1

@@ -54,3 +54,17 @@ def test_from_file_reads_a_trial_model_and_refuses_other_files(tmp_path: Path) -
     (tmp_path / "other.pt").write_bytes(b"not a model")
     with pytest.raises(ValueError, match="not a trial-level slip model"):
         GraspJudge.from_file(tmp_path / "other.pt")
+
+
+def test_a_camera_twice_the_model_rate_is_judged_on_every_other_frame_and_slow_gaps_are_counted() -> None:
+    torch.manual_seed(1)
+    net = TrialNet(4)
+    images, fields, shares = _grasp(20, seed=2)
+    judge = GraspJudge(net, fps=25.0, stretch=1.4)
+    stamps = np.arange(20) * 20_000_000  # 50 fps
+    online = [judge.step(i, f, s) for t, i, f, s in zip(stamps, images, fields, shares) if judge.takes(int(t))]
+    np.testing.assert_allclose(online, _offline(net, images[::2], fields[::2], shares[::2]), atol=1e-5)
+    assert judge.frames == 10 and judge.slow_gaps == 0
+    judge.reset()
+    assert [judge.takes(t * 1_000_000) for t in (0, 40, 80, 140, 180)] == [True] * 5  # 60 ms > 1.4 periods
+    assert judge.slow_gaps == 1

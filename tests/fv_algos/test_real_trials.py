@@ -15,6 +15,7 @@ from fv_algos.real_trials import (
     Trial,
     VideoFields,
     map_videos,
+    read_frames,
     read_trials,
     trial_fields,
     tracking_quality,
@@ -203,7 +204,7 @@ def test_eval_trials_command_with_a_trial_level_model(isd_data: Path, tmp_path: 
     assert eval_trials_command(argparse.Namespace(**{**vars(args), "json": False})) == 0
     wrong = [line for line in capsys.readouterr().out.splitlines() if line.startswith("  wrong: ")]
     assert wrong == [f"  wrong: {still[0]} (blue_mug): no_slip, score 0.73"]
-    online = {**vars(args), "online": True, "fps": 25.0, "alarm": [AlarmRule(0.5, 30, 5)]}
+    online = {**vars(args), "online": True, "alarm": [AlarmRule(0.5, 30, 5)]}
     assert eval_trials_command(argparse.Namespace(**online)) == 0  # the constant net: every camera above 0.5
     report = json.loads(capsys.readouterr().out)["online"]
     assert report["cameras"] == {"held": 2, "slip": 4} and report["camera_end_accuracy"] == pytest.approx(4 / 6)
@@ -313,3 +314,32 @@ def test_window_cross_validation_gives_the_same_folds_in_two_processes(tmp_path:
     assert two == one and sorted(f["objects"] for f in one["folds"]) == [["o0"], ["o1"], ["o2"]]
     with pytest.raises(ValueError, match="workers must be >= 1"):
         cross_validate(data, config, folds=3, progress=False, workers=0)
+
+
+def test_fv_eval_judges_a_faster_camera_on_the_frames_of_the_model_rate(isd_data: Path, tmp_path: Path,
+                                                                         capsys) -> None:
+    """The same grasp filmed at 25 fps, and at 50 fps (every frame after the reference twice): `fv eval`
+    picks the 50 fps video's frames at the model's 25 fps and judges it as the 25 fps one; judged at its
+    own rate (the table says 25 fps) it sees every motion at half the speed. A rate the model cannot take
+    is refused by name."""
+    import cv2
+    from nodes.cli import main
+    frames = list(read_frames(isd_data / "train" / "ball_white_thread" / "exp_num_5" / "camera_0.avi"))  # a slip
+    for name, fps, video in (("at25", 25.0, frames), ("at50", 50.0, [frames[0]] + [f for f in frames[1:] for _ in "ab"])):
+        (tmp_path / name).mkdir()
+        writer = cv2.VideoWriter(str(tmp_path / name / "camera_0.avi"), cv2.VideoWriter_fourcc(*"MJPG"), fps, (320, 240))
+        for frame in video:
+            writer.write(frame)
+        writer.release()
+
+    def scores(table: str) -> list[float]:
+        (tmp_path / "labels.csv").write_text(table)
+        assert main(["eval", "--trials", str(tmp_path), "--model", "gelsight_trial", "--json"]) == 0
+        return [t["score"] for t in json.loads(capsys.readouterr().out)["trials"]]
+    at25, at50 = scores("trial,object,label\nat25,ball,slip\nat50,ball,slip\n")
+    assert at25 > 0.5 and at50 == pytest.approx(at25, abs=0.01)
+    _, unpicked = scores("trial,object,label,fps\nat25,ball,slip,25\nat50,ball,slip,25\n")
+    assert unpicked < 0.5  # this slip, seen at half its speed, is called held
+    (tmp_path / "labels.csv").write_text("trial,object,label,fps\nat25,ball,slip,12\n")
+    assert main(["eval", "--trials", str(tmp_path), "--model", "gelsight_trial", "--json"]) == 2
+    assert "trial at25 camera_0: 12 fps is slower than the model's 25 fps allows" in capsys.readouterr().err

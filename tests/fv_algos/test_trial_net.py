@@ -76,22 +76,24 @@ def _toy_trials(n: int, seed: int = 0) -> tuple[list[list[torch.Tensor]], np.nda
 def test_trial_net_learns_a_burst_whatever_the_length_and_round_trips(tmp_path: Path) -> None:
     torch.set_num_threads(1)
     inputs, labels = _toy_trials(40)
-    config = TrialNetConfig(steps=60, reference_frame=7, seed=1)
+    config = TrialNetConfig(steps=60, reference_frame=7, fps=30.0, seed=1)
     net = fit_trial_net(inputs, labels, config)
     test_inputs, test_labels = _toy_trials(20, seed=5)
     assert ((trial_probability(net, test_inputs) >= 0.5) == test_labels).mean() >= 0.9
     path = save_trial_model(tmp_path / "m.pt", net, config)
     assert read_trial_model(path) is not None
-    again, params, reference_frame = load_trial_model(path)
+    again, params, reference_frame, fps, stretch = load_trial_model(path)
     np.testing.assert_allclose(trial_probability(again, test_inputs), trial_probability(net, test_inputs), rtol=1e-6)
     assert params.size_px == (80, 60)
-    assert reference_frame == 7
+    assert (reference_frame, fps, stretch) == (7, 30.0, config.stretch)
     with pytest.raises(ValueError, match="slip and no-slip trials"):
         fit_trial_net(inputs, np.zeros(40, int), config)
     with pytest.raises(ValueError, match="an even batch"):
         TrialNetConfig(batch=3)
     with pytest.raises(ValueError, match="reference_frame >= 0"):
         TrialNetConfig(reference_frame=-1)
+    with pytest.raises(ValueError, match="finite fps > 0"):
+        TrialNetConfig(fps=0.0)
 
 
 def test_descriptors_are_clamped_to_the_range_of_the_training_frames() -> None:
@@ -190,7 +192,7 @@ def test_a_model_file_of_another_kind_is_refused(tmp_path: Path) -> None:
         load_trial_model(tmp_path / "old.pt")
 
 
-def test_layers_set_the_context_and_older_files_load_with_three_layers_one_member_frame_1(tmp_path: Path) -> None:
+def test_layers_set_the_context_and_older_files_load_with_the_defaults_of_their_time(tmp_path: Path) -> None:
     assert [TrialNet(4, layers).radius for layers in (1, 3, 4)] == [2, 14, 30]
     net = TrialNet(4, 4)
     for conv in net.temporal[::2]:  # positive weights: every input a frame depends on shows in it
@@ -202,10 +204,11 @@ def test_layers_set_the_context_and_older_files_load_with_three_layers_one_membe
     three = TrialNet(4, 3)
     save_trial_model(tmp_path / "m.pt", three, TrialNetConfig(hidden=4, layers=3, members=1))
     data = torch.load(tmp_path / "m.pt", weights_only=False)
-    del data["config"]["layers"], data["config"]["members"], data["config"]["reference_frame"]  # as written
-    torch.save(data, tmp_path / "old.pt")  # before they were settings
-    again, _, reference_frame = load_trial_model(tmp_path / "old.pt")
-    assert again.radius == 14 and reference_frame == 1
+    for key in ("layers", "members", "reference_frame", "fps", "stretch"):
+        del data["config"][key]  # as written before they were settings
+    torch.save(data, tmp_path / "old.pt")
+    again, _, reference_frame, fps, stretch = load_trial_model(tmp_path / "old.pt")
+    assert again.radius == 14 and (reference_frame, fps, stretch) == (1, 25.0, 1.0)
     inputs, _ = _toy_trials(4)
     np.testing.assert_allclose(trial_probability(again, inputs), trial_probability(three, inputs), rtol=1e-6)
     with pytest.raises(ValueError, match="layers"):

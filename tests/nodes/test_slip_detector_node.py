@@ -75,6 +75,29 @@ def test_trial_model_refuses_grey_images_by_name() -> None:
         node.close()
 
 
+def test_a_camera_faster_than_the_trial_model_is_judged_at_the_model_rate() -> None:
+    """Fields at 50 fps for a 25 fps model: every other one is judged; the others repeat the grasp's
+    P(slip) so far, with the stamp of the frame it was judged at."""
+    from msgs import Image, MarkerArray
+    from nodes.slip_detector import SlipDetectorNode
+    node = SlipDetectorNode("slip_detector", {"model": "gelsight_online"})
+    published: list[SlipState] = []
+    try:
+        node.setup()
+        node.slip_pub.publish = published.append
+        node.on_reference(MarkerArray(stamp_ns=0, ref_px=np.zeros((40, 2), np.float32)))
+        rng = np.random.default_rng(0)
+        for k in range(8):
+            stamp = k * 20_000_000
+            node.on_image(Image(stamp_ns=stamp, encoding="bgr8", data=rng.integers(0, 255, (240, 320, 3), np.uint8)))
+            node.on_grasp_field(_field(stamp, 0.5 * k))
+    finally:
+        node.close()
+    assert len(published) == 8 and node.judge.frames == 4 and node.counters["rate_skipped"] == 4
+    assert [int(m.window_stamps_ns[1]) // 10**6 for m in published] == [0, 0, 40, 40, 80, 80, 120, 120]
+    assert all(published[k].probability == published[k - 1].probability for k in (1, 3, 5, 7))
+
+
 def test_video_launch_with_the_trial_model_judges_the_grasp_as_offline(bus_env, spawn, isd_data: Path) -> None:
     """launch/video.yaml replays a real grasp whole: one decision per frame from the model's reference
     frame on (the launch file's default), each the default trial model's (gelsight_online) P(slip)
