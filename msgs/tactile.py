@@ -116,7 +116,8 @@ class SlipState(Message):
 
     probability: P(slip) in [0, 1]. slip: the decision after threshold and hysteresis.
     window_stamps_ns: (T,) int64 capture stamps of the fields the model judged (a trial
-    model judges a whole grasp: its first and current stamps).
+    model judges a whole grasp: its first stamp and that of its last frame judged, the current one
+    unless a camera faster than the model has this frame left out).
     valid: False when the window held invalid fields (then probability is 0 and slip
     keeps its last value).
     """

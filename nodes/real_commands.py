@@ -395,7 +395,8 @@ def _eval_trial_net(args: argparse.Namespace, model: TrialModel) -> dict[str, ob
         online["online"] = _online_report(running, labels, args, model.fps)
     return {"trial_accuracy": report["trial_accuracy"], "n_trials": report["n_trials"], "window_accuracy": None,
             "n_windows": 0, "confusion": report["confusion"], "trial_f1": report["trial_f1"], "threshold": 0.5,
-            "method": "trial (trial-level: no windows, window_accuracy is null)",
+            "method": "trial (trial-level: no windows, window_accuracy is null)", "model_fps": model.fps,
+            "frames_judged": sum(x.shape[1] for cameras in inputs for x in cameras),
             **_path_report(trials, fields, field_s, report["probability"], 0.5), **online}
 
 

@@ -332,13 +332,16 @@ def test_fv_eval_judges_a_faster_camera_on_the_frames_of_the_model_rate(isd_data
             writer.write(frame)
         writer.release()
 
-    def scores(table: str) -> list[float]:
+    def scores(table: str, frames_judged: int) -> list[float]:
         (tmp_path / "labels.csv").write_text(table)
         assert main(["eval", "--trials", str(tmp_path), "--model", "gelsight_trial", "--json"]) == 0
-        return [t["score"] for t in json.loads(capsys.readouterr().out)["trials"]]
-    at25, at50 = scores("trial,object,label\nat25,ball,slip\nat50,ball,slip\n")
+        report = json.loads(capsys.readouterr().out)
+        assert report["model_fps"] == 25.0 and report["frames_judged"] == frames_judged
+        assert report["frames"] == 3 * (len(frames) - 1)  # tracked: every frame from the reference on
+        return [t["score"] for t in report["trials"]]
+    at25, at50 = scores("trial,object,label\nat25,ball,slip\nat50,ball,slip\n", 2 * (len(frames) - 1))
     assert at25 > 0.5 and at50 == pytest.approx(at25, abs=0.01)
-    _, unpicked = scores("trial,object,label,fps\nat25,ball,slip,25\nat50,ball,slip,25\n")
+    _, unpicked = scores("trial,object,label,fps\nat25,ball,slip,25\nat50,ball,slip,25\n", 3 * (len(frames) - 1))
     assert unpicked < 0.5  # this slip, seen at half its speed, is called held
     (tmp_path / "labels.csv").write_text("trial,object,label,fps\nat25,ball,slip,12\n")
     assert main(["eval", "--trials", str(tmp_path), "--model", "gelsight_trial", "--json"]) == 2
