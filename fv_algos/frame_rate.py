@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import collections
 import math
+import statistics
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import TypeVar
@@ -34,15 +35,19 @@ class FramePicker:
     model's period, to ``FASTER``), every frame is kept: jitter, late or bunched frames of a camera
     at the model's rate never drop one. A faster camera has its grasp's first frame kept, then at every
     model period the frame nearest to it (kept when it is later than half the median interval ahead
-    of the period); after a gap of more than a period the periods start again from the frame kept."""
+    of the period); after a gap of more than a period the periods start again from the frame kept.
+    Intervals longer than ``stretch`` model periods (a camera slower than a model trained with that
+    time stretch takes, or frames lost) are counted in ``slow_gaps``, over every grasp."""
 
     INTERVALS = 9
     FASTER = 1.05  # a camera up to 5% faster than the model is taken as it is
 
-    def __init__(self, fps: float) -> None:
+    def __init__(self, fps: float, stretch: float = 1.0) -> None:
         if not (math.isfinite(fps) and fps > 0):
             raise ValueError(f"frame rate {fps} Hz must be finite and > 0")
         self.period_ns = 1e9 / fps
+        self.longest_ns = stretch * self.period_ns
+        self.slow_gaps = 0
         self.reset()
 
     def reset(self) -> None:
@@ -58,7 +63,8 @@ class FramePicker:
             self._due = stamp_ns + self.period_ns
             return True
         self._intervals.append(stamp_ns - last)
-        interval = float(np.median(self._intervals))
+        self.slow_gaps += stamp_ns - last > self.longest_ns
+        interval = statistics.median(self._intervals)
         if interval * self.FASTER >= self.period_ns:  # not faster than the model: every frame counts
             self._due = stamp_ns + self.period_ns
             return True

@@ -30,10 +30,7 @@ class GraspJudge:
         self.running = RunningTrial(net)
         self.net = self.running.net
         self.motion = ContactMotion(params)
-        self.picker = FramePicker(fps)
-        self.longest_gap_ns = stretch * self.picker.period_ns
-        self.slow_gaps = 0
-        self._last_ns: int | None = None
+        self.picker = FramePicker(fps, stretch)
 
     @classmethod
     def from_file(cls, path: str | Path) -> GraspJudge:
@@ -46,15 +43,16 @@ class GraspJudge:
         """Forget the grasp: the next frame is the reference frame of a new one."""
         self.running.reset()
         self.picker.reset()
-        self._last_ns = None
 
     def takes(self, stamp_ns: int) -> bool:
         """Whether the frame of ``stamp_ns`` (ns, after the grasp's frames so far) is one the model judges
         (:class:`fv_algos.frame_rate.FramePicker`); the grasp's first frame always is."""
-        if self._last_ns is not None and stamp_ns - self._last_ns > self.longest_gap_ns:
-            self.slow_gaps += 1
-        self._last_ns = stamp_ns
         return self.picker.accept(stamp_ns)
+
+    @property
+    def slow_gaps(self) -> int:
+        """Frames so far, over every grasp, further apart than ``stretch`` model periods."""
+        return self.picker.slow_gaps
 
     @property
     def frames(self) -> int:
