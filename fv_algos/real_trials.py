@@ -22,6 +22,7 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
+import logging
 import os
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -42,13 +43,14 @@ from fv_algos.perception import Perception, PerceptionParams
 from fv_algos.tracking import neighbour_consistency
 
 T = TypeVar("T")
+log = logging.getLogger(__name__)
 
 LABELS_FILE = "labels.csv"
 CAMERAS = ("camera_0", "camera_2")
 VIDEO_SUFFIX = ".avi"
 LABEL_VALUES = {"no_slip": 0, "slip": 1, "0": 0, "1": 1}
 REQUIRED_COLUMNS = ("trial", "object", "label")
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -112,6 +114,9 @@ class VideoFields:
     valid_share: (F,) float32, share of the reference markers valid in each frame.
     swaps: (F,) int32, valid markers flagged by neighbour_consistency in each frame.
     n_markers: markers found in the reference frame. seconds: wall time of decode + perception.
+    missing_frames: frames the video's container lists after the last one decoded (a truncated or
+    damaged file, whose grasp is judged on the frames decoded; 0 when none are, or the container
+    lists no count).
     """
 
     fields: np.ndarray
@@ -120,9 +125,11 @@ class VideoFields:
     swaps: np.ndarray
     n_markers: int
     seconds: float
+    missing_frames: int = 0
 
     def quality(self) -> dict[str, float]:
-        """Tracking quality summary: markers, frames, mean / min share valid, frames with a swap, swaps."""
+        """Tracking quality summary: markers, frames, mean / min share valid, frames with a swap, swaps,
+        invalid fields and frames listed but not decoded."""
         return {
             "markers": self.n_markers,
             "frames": int(self.fields.shape[0]),
@@ -131,13 +138,14 @@ class VideoFields:
             "frames_with_swaps": int(np.count_nonzero(self.swaps)),
             "swaps": int(self.swaps.sum()),
             "invalid_fields": int(np.count_nonzero(~self.field_valid)),
+            "missing_frames": self.missing_frames,
         }
 
     def at(self, frames: np.ndarray) -> VideoFields:
-        """These fields at ``frames`` (K,) (indices from the reference on) only; the same markers and
-        seconds."""
+        """These fields at ``frames`` (K,) (indices from the reference on) only; the same markers,
+        seconds and missing frames."""
         return VideoFields(self.fields[frames], self.field_valid[frames], self.valid_share[frames], self.swaps[frames],
-                           self.n_markers, self.seconds)
+                           self.n_markers, self.seconds, self.missing_frames)
 
 
 def read_frames(path: str | Path) -> Iterator[np.ndarray]:
@@ -171,11 +179,14 @@ def video_fields(
     path: str | Path, params: PerceptionParams | None = None, reference_frame: int = 1
 ) -> VideoFields:
     """Run the perception core over one video (see the module docstring); ValueError naming the
-    file when it has no frame at ``reference_frame`` or its reference shows too few markers."""
+    file when it has no frame at ``reference_frame`` or its reference shows too few markers. Frames the
+    container lists after the last one decoded are counted in ``missing_frames``."""
     started = time.perf_counter()
     core = Perception(params or PerceptionParams.preset("default"))
     fields, field_valid, shares, swaps = [], [], [], []
+    decoded = 0
     for index, frame in enumerate(read_frames(path)):
+        decoded = index + 1
         if index < reference_frame:
             continue
         if index == reference_frame:
@@ -197,6 +208,7 @@ def video_fields(
         np.array(swaps, dtype=np.int32),
         int(state.valid.size),
         time.perf_counter() - started,
+        max(frame_count(path) - decoded, 0),
     )
 
 
@@ -240,14 +252,14 @@ def save_video_fields(path: Path, value: VideoFields) -> None:
     """Write ``value`` to ``path`` (.npz, atomically)."""
     write_atomically(path, lambda tmp: np.savez_compressed(
         tmp, fields=value.fields, field_valid=value.field_valid, valid_share=value.valid_share,
-        swaps=value.swaps, n_markers=value.n_markers, seconds=value.seconds))
+        swaps=value.swaps, n_markers=value.n_markers, seconds=value.seconds, missing_frames=value.missing_frames))
 
 
 def load_video_fields(path: Path) -> VideoFields:
     """Read a file written by :func:`save_video_fields`."""
     with np.load(path) as data:
         return VideoFields(data["fields"], data["field_valid"], data["valid_share"], data["swaps"],
-                           int(data["n_markers"]), float(data["seconds"]))
+                           int(data["n_markers"]), float(data["seconds"]), int(data["missing_frames"]))
 
 
 def _cached_fields(video: Path, cache_dir: str | Path | None, reference_frame: int) -> VideoFields:
@@ -297,16 +309,24 @@ def trial_fields(
     """Fields of every camera of every trial, keyed (trial name, camera).
 
     cache_dir: folder for one .npz per video (None: no cache). workers: processes (1 = this one).
-    One progress bar (in frames) covers the whole set.
+    One progress bar (in frames) covers the whole set. A video whose decoding stops before the frames its
+    container lists is logged as a warning, naming it (see ``VideoFields.missing_frames``).
     """
-    return map_videos(trials, partial(_cached_fields, cache_dir=cache_dir, reference_frame=reference_frame),
-                      workers, progress, "fields")
+    fields = map_videos(trials, partial(_cached_fields, cache_dir=cache_dir, reference_frame=reference_frame),
+                        workers, progress, "fields")
+    for (name, camera), value in fields.items():
+        if value.missing_frames:
+            log.warning("trial %s %s: the last %d frames its video lists could not be decoded (a truncated or "
+                        "damaged file?): it is judged on the %d frames from the reference on", name, camera,
+                        value.missing_frames, value.fields.shape[0])
+    return fields
 
 
-def tracking_quality(fields: TrialFields) -> dict[str, float]:
+def tracking_quality(fields: TrialFields) -> dict[str, object]:
     """Whole-set tracking quality: videos, frames, markers per video (mean), share of markers
     valid per frame (mean, 1st percentile, min), frames with >= 1 swap flagged and swaps per
-    1000 frames, invalid fields, and perception time per frame (ms)."""
+    1000 frames, invalid fields, perception time per frame (ms), and ``short_videos``: "trial
+    camera" -> frames its container lists but that could not be decoded, for every such video."""
     shares = np.concatenate([v.valid_share for v in fields.values()])
     swaps = np.concatenate([v.swaps for v in fields.values()])
     frames = int(shares.size)
@@ -321,4 +341,6 @@ def tracking_quality(fields: TrialFields) -> dict[str, float]:
         "swaps_per_1000_frames": float(1e3 * swaps.sum() / frames),
         "invalid_fields": int(sum(np.count_nonzero(~v.field_valid) for v in fields.values())),
         "ms_per_frame": float(1e3 * sum(v.seconds for v in fields.values()) / frames),
+        "short_videos": {f"{name} {camera}": v.missing_frames for (name, camera), v in fields.items()
+                         if v.missing_frames},
     }

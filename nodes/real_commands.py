@@ -174,6 +174,8 @@ def _fields(args: argparse.Namespace) -> int:
         print(f"{len(trials)} trials, {quality['videos']} videos, {quality['frames']} frames in {seconds:.1f} s; "
               f"markers valid per frame: mean {quality['valid_share_mean']:.3f}, min {quality['valid_share_min']:.3f}; "
               f"frames with a swap flagged: {quality['frames_with_swaps']}; cache {args.cache}")
+        for video, missing in quality["short_videos"].items():
+            print(f"  {video}: the last {missing} frames listed could not be decoded")
     return 0
 
 

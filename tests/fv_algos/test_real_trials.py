@@ -105,6 +105,25 @@ def test_field_cache_round_trip(isd_data: Path, tmp_path: Path) -> None:
     assert quality["videos"] == 2 and quality["frames"] == 96
 
 
+def test_a_truncated_video_is_named_with_the_frames_it_lost(isd_data: Path, tmp_path: Path,
+                                                             caplog: pytest.LogCaptureFixture) -> None:
+    whole = isd_data / "train/nylon_thread/exp_num_1/camera_0.avi"  # 49 frames
+    data = whole.read_bytes()
+    (tmp_path / "t" / "cut").mkdir(parents=True)
+    (tmp_path / "t" / "cut" / "camera_0.avi").write_bytes(data[:len(data) // 3])  # a copy broken off
+    (tmp_path / "t" / "labels.csv").write_text("trial,object,label\ncut,o,slip\n")
+    assert video_fields(whole).missing_frames == 0
+    with caplog.at_level("WARNING", logger="fv_algos.real_trials"):
+        fields = trial_fields(read_trials(tmp_path / "t"), tmp_path / "cache", progress=False)
+    cut = fields[("cut", "camera_0")]
+    assert 0 < cut.fields.shape[0] < 48 and cut.fields.shape[0] + 1 + cut.missing_frames == 49
+    assert f"trial cut camera_0: the last {cut.missing_frames} frames its video lists could not be decoded" in caplog.text
+    assert tracking_quality(fields)["short_videos"] == {"cut camera_0": cut.missing_frames}
+    again = trial_fields(read_trials(tmp_path / "t"), tmp_path / "cache", progress=False)  # from the cache
+    assert again[("cut", "camera_0")].missing_frames == cut.missing_frames
+    assert cut.at(np.array([0])).missing_frames == cut.missing_frames
+
+
 def test_cache_files_are_written_whole_or_not_at_all(tmp_path: Path) -> None:
     target = tmp_path / "cache" / "a.npy"
     write_atomically(target, lambda tmp: np.save(tmp, np.arange(3)))
