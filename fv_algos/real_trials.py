@@ -71,35 +71,42 @@ class Trial:
 
 
 def read_trials(root: str | Path) -> list[Trial]:
-    """Trials listed in ``root/labels.csv``, in file order.
+    """Trials listed in ``root/labels.csv`` (UTF-8, with or without the byte-order mark spreadsheets
+    write), in file order.
 
     Raises FileNotFoundError naming the missing ``labels.csv`` or ``camera_0.avi``, ValueError
-    naming the file and line for a missing column, an unknown label or a duplicate trial.
+    naming the file and line for a missing column, a row short of fields, an empty object, an
+    unknown label or a duplicate trial.
     """
     root = Path(root)
     table = root / LABELS_FILE
     if not table.is_file():
         raise FileNotFoundError(f"trial table not found: {table} (needs columns {', '.join(REQUIRED_COLUMNS)})")
-    with table.open(newline="") as handle:
+    trials, seen = [], set()
+    with table.open(newline="", encoding="utf-8-sig") as handle:
         reader = csv.DictReader(handle)
         missing = [c for c in REQUIRED_COLUMNS if c not in (reader.fieldnames or [])]
         if missing:
             raise ValueError(f"{table}: missing columns {missing} (has {reader.fieldnames})")
-        rows = list(reader)
-    trials, seen = [], set()
-    for line, row in enumerate(rows, start=2):
-        name, label = row["trial"].strip(), row["label"].strip().lower()
-        if label not in LABEL_VALUES:
-            raise ValueError(f"{table} line {line}: label {row['label']!r} is not slip / no_slip (or 1 / 0)")
-        if not name or name in seen:
-            raise ValueError(f"{table} line {line}: trial {name!r} is empty or listed twice")
-        seen.add(name)
-        folder = root / name
-        videos = {c: folder / f"{c}{VIDEO_SUFFIX}" for c in CAMERAS if (folder / f"{c}{VIDEO_SUFFIX}").is_file()}
-        if CAMERAS[0] not in videos:
-            raise FileNotFoundError(f"{table} line {line}: video not found: {folder / (CAMERAS[0] + VIDEO_SUFFIX)}")
-        extra = {k: v for k, v in row.items() if k not in REQUIRED_COLUMNS and k is not None}
-        trials.append(Trial(name, row["object"].strip(), LABEL_VALUES[label], folder, videos, extra))
+        for row in reader:
+            where = f"{table} line {reader.line_num}"
+            if None in row.values():
+                raise ValueError(f"{where}: {sum(v is not None for v in row.values())} fields, the header has "
+                                 f"{len(reader.fieldnames)}")
+            name, label, obj = row["trial"].strip(), row["label"].strip().lower(), row["object"].strip()
+            if label not in LABEL_VALUES:
+                raise ValueError(f"{where}: label {row['label']!r} is not slip / no_slip (or 1 / 0)")
+            if not name or name in seen:
+                raise ValueError(f"{where}: trial {name!r} is empty or listed twice")
+            if not obj:
+                raise ValueError(f"{where}: trial {name!r} has no object (object-held-out folds need one)")
+            seen.add(name)
+            folder = root / name
+            videos = {c: folder / f"{c}{VIDEO_SUFFIX}" for c in CAMERAS if (folder / f"{c}{VIDEO_SUFFIX}").is_file()}
+            if CAMERAS[0] not in videos:
+                raise FileNotFoundError(f"{where}: video not found: {folder / (CAMERAS[0] + VIDEO_SUFFIX)}")
+            extra = {k: v for k, v in row.items() if k not in REQUIRED_COLUMNS and k is not None}
+            trials.append(Trial(name, obj, LABEL_VALUES[label], folder, videos, extra))
     if not trials:
         raise ValueError(f"{table} lists no trials")
     return trials

@@ -76,6 +76,23 @@ def test_bad_tables_name_the_file(tmp_path: Path) -> None:
     (tmp_path / "labels.csv").write_text("trial,label\nt1,slip\n")
     with pytest.raises(ValueError, match=r"missing columns \['object'\]"):
         read_trials(tmp_path)
+    (tmp_path / "labels.csv").write_text("trial,object,label\nt1,cup\n")
+    with pytest.raises(ValueError, match=r"labels.csv line 2: 2 fields, the header has 3"):
+        read_trials(tmp_path)
+    (tmp_path / "labels.csv").write_text("trial,object,label\nt1, ,slip\n")
+    with pytest.raises(ValueError, match=r"labels.csv line 2: trial 't1' has no object"):
+        read_trials(tmp_path)
+    (tmp_path / "labels.csv").write_text("trial,object,label\n\nt1,cup,maybe\n")  # a blank line before it
+    with pytest.raises(ValueError, match=r"labels.csv line 3: label 'maybe'"):
+        read_trials(tmp_path)
+
+
+def test_a_spreadsheet_table_with_byte_order_mark_and_crlf_reads(tmp_path: Path) -> None:
+    (tmp_path / "t1").mkdir()
+    (tmp_path / "t1" / "camera_0.avi").write_bytes(b"")
+    (tmp_path / "labels.csv").write_bytes("\ufefftrial,object,label\r\nt1,cup,slip\r\n".encode())
+    [trial] = read_trials(tmp_path)
+    assert (trial.name, trial.object, trial.label) == ("t1", "cup", 1)
 
 
 def test_video_fields_track_every_frame_without_swaps(isd_data: Path) -> None:
