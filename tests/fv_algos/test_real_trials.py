@@ -64,26 +64,22 @@ def test_dataset_table_lists_150_trials_with_both_cameras(isd_data: Path) -> Non
     assert "camera_0_frames" in trials[0].extra
 
 
-def test_bad_tables_name_the_file(tmp_path: Path) -> None:
+def test_a_missing_table_is_named(tmp_path: Path) -> None:
     with pytest.raises(FileNotFoundError, match="labels.csv"):
         read_trials(tmp_path)
-    (tmp_path / "labels.csv").write_text("trial,object,label\nt1,cup,maybe\n")
-    with pytest.raises(ValueError, match=r"labels.csv line 2: label 'maybe'"):
-        read_trials(tmp_path)
-    (tmp_path / "labels.csv").write_text("trial,object,label\nt1,cup,slip\n")
-    with pytest.raises(FileNotFoundError, match=r"t1/camera_0.avi"):
-        read_trials(tmp_path)
-    (tmp_path / "labels.csv").write_text("trial,label\nt1,slip\n")
-    with pytest.raises(ValueError, match=r"missing columns \['object'\]"):
-        read_trials(tmp_path)
-    (tmp_path / "labels.csv").write_text("trial,object,label\nt1,cup\n")
-    with pytest.raises(ValueError, match=r"labels.csv line 2: 2 fields, the header has 3"):
-        read_trials(tmp_path)
-    (tmp_path / "labels.csv").write_text("trial,object,label\nt1, ,slip\n")
-    with pytest.raises(ValueError, match=r"labels.csv line 2: trial 't1' has no object"):
-        read_trials(tmp_path)
-    (tmp_path / "labels.csv").write_text("trial,object,label\n\nt1,cup,maybe\n")  # a blank line before it
-    with pytest.raises(ValueError, match=r"labels.csv line 3: label 'maybe'"):
+
+
+@pytest.mark.parametrize("table, error, message", [
+    ("trial,object,label\nt1,cup,maybe\n", ValueError, r"labels.csv line 2: label 'maybe'"),
+    ("trial,object,label\nt1,cup,slip\n", FileNotFoundError, r"t1/camera_0.avi"),
+    ("trial,label\nt1,slip\n", ValueError, r"missing columns \['object'\]"),
+    ("trial,object,label\nt1,cup\n", ValueError, r"labels.csv line 2: 2 fields, the header has 3"),
+    ("trial,object,label\nt1, ,slip\n", ValueError, r"labels.csv line 2: trial 't1' has no object"),
+    ("trial,object,label\n\nt1,cup,maybe\n", ValueError, r"labels.csv line 3: label 'maybe'"),  # after a blank line
+])
+def test_bad_tables_name_the_file_and_line(tmp_path: Path, table: str, error: type, message: str) -> None:
+    (tmp_path / "labels.csv").write_text(table)
+    with pytest.raises(error, match=message):
         read_trials(tmp_path)
 
 
