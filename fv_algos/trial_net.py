@@ -48,6 +48,7 @@ MIRROR_X = np.array([1, 1, 1, 1, -1, 1, 1, 1, -1, 1, 1], np.float32)
 MIRROR_Y = np.array([1, 1, 1, 1, 1, -1, 1, 1, -1, 1, 1], np.float32)
 KIND = "trial_net"
 HELD_PREFIX_MIN_FRAMES = 10  # shortest beginning of a held grasp trained on (0.4 s at 25 fps)
+START_FRAMES = 14  # a camera's start-up frames, which start_swap trades (the GelSight Mini burst ends by frame 13)
 FIELD_ROWS = ("field_px", "shear_x_px", "shear_y_px", "invalid_share", "divergence", "curl")
 
 
@@ -102,7 +103,11 @@ class TrialNetConfig:
     held_prefix: probability that a no-slip training trial is cut to its first k frames (both
     cameras, k uniform in [min(HELD_PREFIX_MIN_FRAMES, F), F]): a held grasp is held from its start,
     so the running P(slip) of a grasp in progress (:mod:`fv_algos.grasp_judge`) learns that a short
-    still grasp is not a slip (0: never). reference_frame: the frame of every video taken as the
+    still grasp is not a slip (0: never). start_swap: probability that a training camera's first
+    ``START_FRAMES`` frames are replaced by those of a random training camera of the other label:
+    camera start-up bursts (a pressed imprint for a few frames, then gone) are common in some set-ups
+    that hold mostly slips, and the trade teaches that a start says nothing of the label (0: never).
+    reference_frame: the frame of every video taken as the
     skin at rest, where the descriptors start (frame 0 of the GelSight Mini videos is often stale);
     saved with the model, so that `fv eval` judges the same frames. fps: the frame rate (Hz) the
     descriptors were taken at (:mod:`fv_algos.frame_rate`: a faster camera's frames are picked at it)."""
@@ -118,6 +123,7 @@ class TrialNetConfig:
     stretch: float = 1.4
     clip: float = 0.0
     held_prefix: float = 0.0
+    start_swap: float = 0.0
     reference_frame: int = 1
     fps: float = 25.0
     seed: int = 0
@@ -126,11 +132,12 @@ class TrialNetConfig:
         even_batch = self.batch >= 2 and self.batch % 2 == 0
         sizes = (self.hidden, self.layers, self.members, self.steps)
         ranges = (0 < self.gain[0] <= self.gain[1] and self.stretch >= 1 and 0 <= self.clip < 0.5
-                  and 0 <= self.held_prefix <= 1 and self.reference_frame >= 0 and 0 < self.fps < float("inf"))
+                  and 0 <= self.held_prefix <= 1 and 0 <= self.start_swap <= 1 and self.reference_frame >= 0
+                  and 0 < self.fps < float("inf"))
         if min(sizes) < 1 or not even_batch or not ranges:
             raise ValueError("TrialNetConfig needs hidden, layers, members, steps >= 1, an even batch >= 2, "
-                             f"0 < gain[0] <= gain[1], stretch >= 1, 0 <= clip < 0.5, 0 <= held_prefix <= 1 and "
-                             f"reference_frame >= 0 and a finite fps > 0, got {self}")
+                             "0 < gain[0] <= gain[1], stretch >= 1, 0 <= clip < 0.5, 0 <= held_prefix <= 1, "
+                             f"0 <= start_swap <= 1, reference_frame >= 0 and a finite fps > 0, got {self}")
 
 
 class TrialNet(nn.Module):
@@ -296,6 +303,21 @@ def _held_prefix(cameras: TrialInput, rng: np.random.Generator, probability: flo
     return [x[:, :keep] for x in cameras]
 
 
+def _start_swap(x: torch.Tensor, donors: Sequence[TrialInput], rng: np.random.Generator,
+                probability: float) -> torch.Tensor:
+    """With ``probability``, the camera's (C, F) descriptors with their first ``START_FRAMES`` frames
+    replaced by those of a random camera of a random trial of ``donors``; otherwise ``x`` as it is (and
+    no random draw when ``probability`` is 0). A camera of at most ``START_FRAMES`` frames, or a donor of
+    as few, is kept as it is."""
+    if probability == 0 or rng.random() >= probability:
+        return x
+    cameras = donors[int(rng.integers(len(donors)))]
+    donor = cameras[int(rng.integers(len(cameras)))]
+    if min(x.shape[1], donor.shape[1]) <= START_FRAMES:
+        return x
+    return torch.cat([donor[:, :START_FRAMES], x[:, START_FRAMES:]], dim=1)
+
+
 @contextmanager
 def _without_onednn() -> Iterator[None]:
     """PyTorch's own convolutions inside: oneDNN builds a kernel for every new input length, and a
@@ -325,12 +347,15 @@ def fit_trial_net(inputs: Sequence[TrialInput], labels: np.ndarray,
     net.set_range(low, high)
     optimizer = torch.optim.AdamW(net.parameters(), config.lr, weight_decay=config.weight_decay)
     loss_fn = nn.BCEWithLogitsLoss()
+    donors = [[inputs[i] for i in still], [inputs[i] for i in slip]]  # by label: the other label's starts
     with _without_onednn():
         for _ in range(config.steps):
             picks = np.concatenate([rng.choice(slip, config.batch // 2), rng.choice(still, config.batch // 2)])
             cut = [_held_prefix(inputs[i], rng, config.held_prefix) if labels[i] == 0 else inputs[i] for i in picks]
+            swapped = [[_start_swap(x, donors[1 - labels[i]], rng, config.start_swap) for x in cameras]
+                       for i, cameras in zip(picks, cut)]
             logits = torch.stack([net.member_logits(net.pooled([_augment(x, rng, config) for x in cameras]))
-                                  for cameras in cut])  # (batch, members)
+                                  for cameras in swapped])  # (batch, members)
             target = torch.as_tensor(labels[picks], dtype=torch.float32)[:, None].expand_as(logits)
             loss = loss_fn(logits, target)
             optimizer.zero_grad()

@@ -133,6 +133,10 @@ def _fit_args(p: argparse.ArgumentParser, window_steps: int) -> None:
                    help="trial: probability that a no-slip training trial is cut to its first 10 or more frames, "
                         "so the running P(slip) of a grasp in progress starts low (0: never; default "
                         "TrialNetConfig's)")
+    p.add_argument("--start-swap", type=float, default=None,
+                   help="trial: probability that a training camera's first 14 frames are traded for those of a "
+                        "camera of the other label, so camera start-up bursts say nothing of the label (0: never; "
+                        "default TrialNetConfig's)")
     p.add_argument("--reference-frame", type=int, default=None,
                    help="trial: the frame of each video taken as the skin at rest, where the descriptors start "
                         "(default TrialNetConfig's: the cameras' stale start-up frames come before it)")
@@ -201,6 +205,7 @@ def _trial_config(args: argparse.Namespace):
                           members=_given(args.members, default.members),
                           stretch=_given(args.stretch, default.stretch), clip=_given(args.clip, default.clip),
                           held_prefix=_given(args.held_prefix, default.held_prefix),
+                          start_swap=_given(args.start_swap, default.start_swap),
                           reference_frame=_given(args.reference_frame, default.reference_frame),
                           steps=_given(args.steps, default.steps),
                           batch=_given(args.batch_size, default.batch), lr=_given(args.lr, default.lr), seed=args.seed)

@@ -14,9 +14,11 @@ from fv_algos.trial_net import (
     MIRROR_X,
     PER_FRAME,
     SCALE,
+    START_FRAMES,
     TrialNet,
     TrialNetConfig,
     _held_prefix,
+    _start_swap,
     camera_descriptors,
     cross_validate_trials,
     fit_trial_net,
@@ -146,6 +148,27 @@ def test_a_held_prefix_cuts_both_cameras_to_one_beginning_of_ten_frames_or_more(
     assert 0.25 < cut_share < 0.35
     with pytest.raises(ValueError, match="0 <= held_prefix <= 1"):
         TrialNetConfig(held_prefix=1.5)
+
+
+def test_a_start_swap_trades_the_first_frames_for_a_donor_camera_of_the_other_label() -> None:
+    x = torch.arange(11 * 40, dtype=torch.float32).view(11, 40)
+    donors = [[torch.full((11, 30), 1.0), torch.full((11, 30), 2.0)], [torch.full((11, 50), 3.0)]]
+    rng = np.random.default_rng(0)
+    state = rng.bit_generator.state
+    assert _start_swap(x, donors, rng, 0.0) is x and rng.bit_generator.state == state  # no draw at 0
+    starts = set()
+    for _ in range(200):
+        swapped = _start_swap(x, donors, rng, 1.0)
+        assert swapped.shape == x.shape
+        torch.testing.assert_close(swapped[:, START_FRAMES:], x[:, START_FRAMES:])  # the rest is the camera's own
+        assert len(set(swapped[:, :START_FRAMES].flatten().tolist())) == 1  # the start is one donor's
+        starts.add(swapped[0, 0].item())
+    assert starts == {1.0, 2.0, 3.0}  # every camera of every donor trial
+    assert _start_swap(x[:, :START_FRAMES], donors, rng, 1.0).shape == (11, START_FRAMES)  # too short: kept
+    swap_share = np.mean([_start_swap(x, donors, rng, 0.3) is not x for _ in range(2000)])
+    assert 0.25 < swap_share < 0.35
+    with pytest.raises(ValueError, match="0 <= start_swap <= 1"):
+        TrialNetConfig(start_swap=-0.1)
 
 
 def test_object_held_out_cross_validation_keeps_objects_apart() -> None:
