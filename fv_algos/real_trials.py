@@ -191,9 +191,7 @@ def video_fields(
     started = time.perf_counter()
     core = Perception(params or PerceptionParams.preset("default"))
     fields, field_valid, shares, swaps = [], [], [], []
-    decoded = 0
     for index, frame in enumerate(read_frames(path)):
-        decoded = index + 1
         if index < reference_frame:
             continue
         if index == reference_frame:
@@ -215,7 +213,7 @@ def video_fields(
         np.array(swaps, dtype=np.int32),
         int(state.valid.size),
         time.perf_counter() - started,
-        max(frame_count(path) - decoded, 0),
+        max(frame_count(path) - reference_frame - len(fields), 0),  # every frame from the reference on has a field
     )
 
 
