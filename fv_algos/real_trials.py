@@ -282,6 +282,17 @@ VideoKey = tuple[str, str]  # (trial name, camera)
 TrialFields = dict[VideoKey, VideoFields]
 
 
+def require_frames(fields: TrialFields, minimum: int) -> None:
+    """ValueError naming every video of ``fields`` with fewer than ``minimum`` frames from the reference on
+    (the reference included): a grasp that short is outside anything a model was trained on, and judging
+    it would report a decision that no frame supports."""
+    short = [f"{trial} {camera} ({value.fields.shape[0]})" for (trial, camera), value in fields.items()
+             if value.fields.shape[0] < minimum]
+    if short:
+        raise ValueError(f"{len(short)} video(s) too short to judge, fewer than {minimum} frames judged from the "
+                         f"reference on (frames in brackets): {', '.join(short)}")
+
+
 def map_videos(trials: Sequence[Trial], compute: Callable[[Path], T], workers: int = 1, progress: bool = True,
                desc: str = "videos") -> dict[VideoKey, T]:
     """``compute(video)`` of every camera of every trial, keyed (trial name, camera), in ``workers``

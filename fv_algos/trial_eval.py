@@ -35,7 +35,7 @@ from torch import nn
 from tqdm import tqdm
 
 from fv_algos.allocator import steady_malloc
-from fv_algos.real_trials import CAMERAS, Trial, TrialFields
+from fv_algos.real_trials import CAMERAS, Trial, TrialFields, require_frames
 from fv_algos.slip.classifier import load_checkpoint, predict_proba
 from fv_algos.slip.evaluate import classification_metrics, predict_rows
 from fv_algos.slip.models import ModelConfig
@@ -99,8 +99,9 @@ def window_activity(fields: np.ndarray, window: int, starts: np.ndarray) -> np.n
 def trial_windows(
     trials: Sequence[Trial], fields: TrialFields, window: int, rule: TrialRule, cameras: Sequence[str] = CAMERAS
 ) -> TrialWindows:
-    """Cut the windows of every available camera of every trial (videos shorter than ``window``
-    give none; ValueError when no trial gives any)."""
+    """Cut the windows of every available camera of every trial; ValueError naming the videos shorter
+    than ``window`` (they would give none, and their trial no score)."""
+    require_frames({(t.name, c): fields[(t.name, c)] for t in trials for c in cameras if (t.name, c) in fields}, window)
     videos = [(i, fields[(t.name, c)].fields) for i, t in enumerate(trials) for c in cameras if (t.name, c) in fields]
     longest = max(v.shape[0] for _, v in videos)
     grid = videos[0][1].shape[1]
@@ -116,8 +117,6 @@ def trial_windows(
         start.append(starts)
         trial.append(np.full(starts.size, i))
         activity.append(window_activity(video, window, starts))
-    if not sum(a.size for a in start):
-        raise ValueError(f"no video has {window} frames after the reference")
     sequences = SequenceSet(padded, labels, object_ids, {"source": "real trials", "stride": rule.stride})
     windows = WindowSet(sequences, window, np.concatenate(seq).astype(np.int64), np.concatenate(start).astype(np.int64))
     act = np.concatenate(activity)

@@ -27,7 +27,7 @@ import torch
 from torch import nn
 
 from fv_algos.contact_motion import ContactMotionParams, TrialSeries
-from fv_algos.real_trials import CAMERAS, Trial, TrialFields, VideoFields
+from fv_algos.real_trials import CAMERAS, Trial, TrialFields, VideoFields, require_frames
 from fv_algos.slip.classifier import LOAD_ERRORS
 from fv_algos.slip.evaluate import classification_metrics
 from fv_algos.trial_eval import fold_summary, map_folds, object_folds
@@ -47,7 +47,7 @@ PER_FRAME = np.array([n in ("relative_px", "marker_px", "imprint_step") for n in
 MIRROR_X = np.array([1, 1, 1, 1, -1, 1, 1, 1, -1, 1, 1], np.float32)
 MIRROR_Y = np.array([1, 1, 1, 1, 1, -1, 1, 1, -1, 1, 1], np.float32)
 KIND = "trial_net"
-HELD_PREFIX_MIN_FRAMES = 10  # shortest beginning of a held grasp trained on (0.4 s at 25 fps)
+MIN_FRAMES = 10  # shortest camera judged, and shortest beginning of a held grasp trained on (0.4 s at 25 fps)
 START_FRAMES = 14  # a camera's start-up frames, which start_swap trades (the GelSight Mini burst ends by frame 13)
 FIELD_ROWS = ("field_px", "shear_x_px", "shear_y_px", "invalid_share", "divergence", "curl")
 
@@ -85,7 +85,9 @@ TrialInput = list[torch.Tensor]  # one (C, F) descriptor tensor per camera of a 
 
 def trial_inputs(trials: Sequence[Trial], series: TrialSeries, fields: TrialFields,
                  cameras: Sequence[str] = CAMERAS) -> list[TrialInput]:
-    """:func:`camera_descriptors` of every camera of every trial (the cameras it has)."""
+    """:func:`camera_descriptors` of every camera of every trial (the cameras it has); ValueError naming
+    the cameras with fewer than ``MIN_FRAMES`` frames."""
+    require_frames({key: value for key, value in fields.items() if key in series}, MIN_FRAMES)
     return [[camera_descriptors(series[(t.name, c)], fields[(t.name, c)]) for c in cameras if (t.name, c) in series]
             for t in trials]
 
@@ -101,7 +103,7 @@ class TrialNetConfig:
     [1 / stretch, stretch] (the same motion, slower or faster; 1: never). clip: each descriptor is
     clamped to its [clip, 1 - clip] quantiles over the training trials' frames (0: their min and max).
     held_prefix: probability that a no-slip training trial is cut to its first k frames (both
-    cameras, k uniform in [min(HELD_PREFIX_MIN_FRAMES, F), F]): a held grasp is held from its start,
+    cameras, k uniform in [min(MIN_FRAMES, F), F]): a held grasp is held from its start,
     so the running P(slip) of a grasp in progress (:mod:`fv_algos.grasp_judge`) learns that a short
     still grasp is not a slip (0: never). start_swap: probability that a training camera's first
     ``START_FRAMES`` frames are replaced by those of a random training camera of the other label:
@@ -294,12 +296,12 @@ def _augment(x: torch.Tensor, rng: np.random.Generator, config: TrialNetConfig) 
 
 def _held_prefix(cameras: TrialInput, rng: np.random.Generator, probability: float) -> TrialInput:
     """With ``probability``, the cameras' (C, F) descriptors cut to their first k frames, k uniform in
-    [min(HELD_PREFIX_MIN_FRAMES, F), F] (F: the shortest camera's frames); otherwise ``cameras`` as they are (and no
+    [min(MIN_FRAMES, F), F] (F: the shortest camera's frames); otherwise ``cameras`` as they are (and no
     random draw when ``probability`` is 0)."""
     if probability == 0 or rng.random() >= probability:
         return cameras
     frames = min(x.shape[1] for x in cameras)
-    keep = int(rng.integers(min(HELD_PREFIX_MIN_FRAMES, frames), frames + 1))
+    keep = int(rng.integers(min(MIN_FRAMES, frames), frames + 1))
     return [x[:, :keep] for x in cameras]
 
 

@@ -378,3 +378,26 @@ def test_fv_eval_judges_a_faster_camera_on_the_frames_of_the_model_rate(isd_data
     (tmp_path / "labels.csv").write_text("trial,object,label,fps\nat25,ball,slip,12\n")
     assert main(["eval", "--trials", str(tmp_path), "--model", "gelsight_trial", "--json"]) == 2
     assert "trial at25 camera_0: 12 fps is slower than the model's 25 fps allows" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("model", ["gelsight_trial", "sim_fast"])
+def test_fv_eval_refuses_a_video_too_short_to_judge_by_name(isd_data: Path, tmp_path: Path, model: str,
+                                                            capsys) -> None:
+    """A grasp of fewer than 10 frames from the reference on is refused, trial and camera named, by a trial
+    model and a window model alike (it was judged from a frame or two, or scored NaN and called held)."""
+    import cv2
+    from nodes.cli import main
+    frames = list(read_frames(isd_data / "train" / "nylon_thread" / "exp_num_1" / "camera_0.avi"))
+    (tmp_path / "short").mkdir()
+    writer = cv2.VideoWriter(str(tmp_path / "short" / "camera_0.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (320, 240))
+    for frame in frames[:6]:  # the stale frame 0, the reference and 4 more
+        writer.write(frame)
+    writer.release()
+    _subset(isd_data, tmp_path, {"train/blue_mug/exp_num_5": ("blue_mug", "no_slip")})
+    with (tmp_path / "labels.csv").open("a") as table:
+        table.write("short,nylon_thread,slip\n")
+    assert main(["eval", "--trials", str(tmp_path), "--model", model, "--json"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert ("1 video(s) too short to judge, fewer than 10 frames judged from the reference on (frames in brackets): "
+            "short camera_0 (5)") in captured.err
