@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 
 from fv_algos.frame_rate import pick
-from fv_algos.real_trials import VIDEO_SUFFIX, Trial, VideoKey, map_videos, read_frames, write_atomically
+from fv_algos.real_trials import Trial, VideoKey, cache_stem, map_videos, read_frames, write_atomically
 
 SERIES = ("relative_px", "marker_px", "contact_above_min", "imprint_change", "imprint_step")
 SERIES_CACHE_VERSION = 4
@@ -133,8 +133,7 @@ def _series_cache_path(cache_dir: Path, video: Path, reference_frame: int, param
     key = [SERIES_CACHE_VERSION, str(video.resolve()), stat.st_size, stat.st_mtime_ns, reference_frame,
            asdict(params), hashlib.sha256(Path(__file__).read_bytes()).hexdigest()]
     text = json.dumps(key if rates is None else [*key, list(rates)])
-    stem = "__".join(video.parts[-3:]).removesuffix(VIDEO_SUFFIX)
-    return cache_dir / f"{stem}__contact__{hashlib.sha256(text.encode()).hexdigest()[:16]}.npy"
+    return cache_dir / f"{cache_stem(video)}__contact__{hashlib.sha256(text.encode()).hexdigest()[:16]}.npy"
 
 
 TrialSeries = dict[VideoKey, np.ndarray]

@@ -1,6 +1,7 @@
 """Real grasp trials (e.g. GelSight Mini recordings) -> displacement fields and tracking quality.
 
-A trial folder holds one video per finger camera (``camera_0.avi``, optionally ``camera_2.avi``)
+A trial folder holds one video per finger camera (``camera_0.avi``, optionally ``camera_2.avi``; or
+``.mp4``, ``.mkv``, ``.mov``, ``.m4v``)
 and one label for the whole trial. A trial table is ``labels.csv`` in the dataset root with at
 least the columns ``trial`` (folder relative to the root), ``object`` and ``label`` (``slip`` /
 ``no_slip``, or 1 / 0); any other columns are kept as ``Trial.extra``.
@@ -47,7 +48,7 @@ log = logging.getLogger(__name__)
 
 LABELS_FILE = "labels.csv"
 CAMERAS = ("camera_0", "camera_2")
-VIDEO_SUFFIX = ".avi"
+VIDEO_SUFFIXES = (".avi", ".mp4", ".mkv", ".mov", ".m4v")  # a camera's video: camera_0.avi, ...
 LABEL_VALUES = {"no_slip": 0, "slip": 1, "0": 0, "1": 1}
 REQUIRED_COLUMNS = ("trial", "object", "label")
 CACHE_VERSION = 2
@@ -74,9 +75,9 @@ def read_trials(root: str | Path) -> list[Trial]:
     """Trials listed in ``root/labels.csv`` (UTF-8, with or without the byte-order mark spreadsheets
     write), in file order.
 
-    Raises FileNotFoundError naming the missing ``labels.csv`` or ``camera_0.avi``, ValueError
+    Raises FileNotFoundError naming the missing ``labels.csv`` or ``camera_0`` video, ValueError
     naming the file and line for a missing column, a row short of fields, an empty object, an
-    unknown label or a duplicate trial.
+    unknown label, a duplicate trial or a camera with two videos (``camera_0.avi`` and ``camera_0.mp4``).
     """
     root = Path(root)
     table = root / LABELS_FILE
@@ -102,14 +103,26 @@ def read_trials(root: str | Path) -> list[Trial]:
                 raise ValueError(f"{where}: trial {name!r} has no object (object-held-out folds need one)")
             seen.add(name)
             folder = root / name
-            videos = {c: folder / f"{c}{VIDEO_SUFFIX}" for c in CAMERAS if (folder / f"{c}{VIDEO_SUFFIX}").is_file()}
-            if CAMERAS[0] not in videos:
-                raise FileNotFoundError(f"{where}: video not found: {folder / (CAMERAS[0] + VIDEO_SUFFIX)}")
             extra = {k: v for k, v in row.items() if k not in REQUIRED_COLUMNS and k is not None}
-            trials.append(Trial(name, obj, LABEL_VALUES[label], folder, videos, extra))
+            trials.append(Trial(name, obj, LABEL_VALUES[label], folder, _camera_videos(folder, where), extra))
     if not trials:
         raise ValueError(f"{table} lists no trials")
     return trials
+
+
+def _camera_videos(folder: Path, where: str) -> dict[str, Path]:
+    """Camera name -> video of a trial ``folder`` (``camera_0`` always): one file per camera, of any of
+    ``VIDEO_SUFFIXES``. FileNotFoundError without a ``camera_0`` video, ValueError for a camera with two;
+    both start with ``where`` (the table's line)."""
+    videos = {}
+    for camera in CAMERAS:
+        found = [folder / f"{camera}{suffix}" for suffix in VIDEO_SUFFIXES if (folder / f"{camera}{suffix}").is_file()]
+        if len(found) > 1:
+            raise ValueError(f"{where}: {len(found)} videos for {camera}, keep one: {', '.join(map(str, found))}")
+        videos.update({camera: path for path in found})
+    if CAMERAS[0] not in videos:
+        raise FileNotFoundError(f"{where}: video not found: {folder / CAMERAS[0]}{{{','.join(VIDEO_SUFFIXES)}}}")
+    return videos
 
 
 @dataclass
@@ -236,8 +249,13 @@ def _cache_key(video: Path, reference_frame: int) -> str:
 def cache_path(cache_dir: str | Path, video: Path, reference_frame: int = 1) -> Path:
     """Where the fields of ``video`` are cached: one .npz per video, named after a key of the video
     (path, size, mtime), the reference frame and the perception code, so a stale entry is never read."""
-    stem = "__".join(video.parts[-3:]).removesuffix(VIDEO_SUFFIX)
-    return Path(cache_dir) / f"{stem}__{_cache_key(video, reference_frame)}.npz"
+    return Path(cache_dir) / f"{cache_stem(video)}__{_cache_key(video, reference_frame)}.npz"
+
+
+def cache_stem(video: Path) -> str:
+    """The readable start of a video's cache file names: its two parent folders and its name without the
+    suffix, joined by "__" ("blue_mug__exp_num_4__camera_0")."""
+    return "__".join((*video.parts[-3:-1], video.stem))
 
 
 def write_atomically(path: Path, write: Callable[[Path], None]) -> None:

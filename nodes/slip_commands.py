@@ -45,7 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--data", type=Path, help="sequence dataset .npz (fv dataset sim)")
     p.add_argument("--out", type=Path, help="report folder: table1.json, variants.json, pareto.png")
     p.add_argument("--trials", type=Path, help="folder with labels.csv (trial,object,label) and "
-                   "<trial>/camera_0.avi [camera_2.avi]: judge --model on it, from video to decision")
+                   "<trial>/camera_0.avi [camera_2.avi] (or .mp4, .mkv, .mov, .m4v): judge --model on it, from video to decision")
     p.add_argument("--model", help="with --trials: shipped model name (sim, gelsight) or checkpoint path")
     p.add_argument("--cache", type=Path, help="with --trials: folder to cache the fields in (default: none)")
     p.add_argument("--workers", type=positive_int, default=2,

@@ -71,7 +71,7 @@ def test_a_missing_table_is_named(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("table, error, message", [
     ("trial,object,label\nt1,cup,maybe\n", ValueError, r"labels.csv line 2: label 'maybe'"),
-    ("trial,object,label\nt1,cup,slip\n", FileNotFoundError, r"t1/camera_0.avi"),
+    ("trial,object,label\nt1,cup,slip\n", FileNotFoundError, r"t1/camera_0\{\.avi,\.mp4,\.mkv,\.mov,\.m4v\}"),
     ("trial,label\nt1,slip\n", ValueError, r"missing columns \['object'\]"),
     ("trial,object,label\nt1,cup\n", ValueError, r"labels.csv line 2: 2 fields, the header has 3"),
     ("trial,object,label\nt1, ,slip\n", ValueError, r"labels.csv line 2: trial 't1' has no object"),
@@ -89,6 +89,19 @@ def test_a_spreadsheet_table_with_byte_order_mark_and_crlf_reads(tmp_path: Path)
     (tmp_path / "labels.csv").write_bytes("\ufefftrial,object,label\r\nt1,cup,slip\r\n".encode())
     [trial] = read_trials(tmp_path)
     assert (trial.name, trial.object, trial.label) == ("t1", "cup", 1)
+
+
+def test_a_camera_video_may_be_any_common_container_but_only_one(tmp_path: Path) -> None:
+    for name in ("t1/camera_0.mp4", "t1/camera_2.avi", "t2/camera_0.mkv"):
+        (tmp_path / name).parent.mkdir(exist_ok=True)
+        (tmp_path / name).write_bytes(b"")
+    (tmp_path / "labels.csv").write_text("trial,object,label\nt1,cup,slip\nt2,mug,no_slip\n")
+    assert [t.videos for t in read_trials(tmp_path)] == [
+        {"camera_0": tmp_path / "t1/camera_0.mp4", "camera_2": tmp_path / "t1/camera_2.avi"},
+        {"camera_0": tmp_path / "t2/camera_0.mkv"}]
+    (tmp_path / "t2/camera_0.avi").write_bytes(b"")
+    with pytest.raises(ValueError, match=r"labels.csv line 3: 2 videos for camera_0, keep one: .*t2/camera_0.avi, "):
+        read_trials(tmp_path)
 
 
 def test_video_fields_track_every_frame_without_swaps(isd_data: Path) -> None:
