@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 
 from fv_algos.frame_rate import pick
-from fv_algos.real_trials import Trial, VideoKey, cache_stem, map_videos, read_frames, write_atomically
+from fv_algos.real_trials import Trial, VideoKey, cache_folder, cache_stem, map_videos, read_frames, write_atomically
 
 SERIES = ("relative_px", "marker_px", "contact_above_min", "imprint_change", "imprint_step")
 SERIES_CACHE_VERSION = 4
@@ -161,8 +161,9 @@ def trial_series(trials: Sequence[Trial], cache_dir: str | Path | None = None, r
                  progress: bool = True, rates: Mapping[Path, tuple[float, float]] | None = None) -> TrialSeries:
     """:func:`contact_series` of every camera of every trial, keyed (trial name, camera), in
     ``workers`` processes with one progress bar; cached as one .npy per video under ``cache_dir``
-    (None: no cache), keyed by the video, the parameters, the rates and this module's code. ``rates``:
-    (video fps, model fps) of the videos whose frames are picked at the model's rate (the others: all
-    frames)."""
-    return map_videos(trials, partial(_cached_series, cache_dir=cache_dir, reference_frame=reference_frame,
-                                      params=params, rates=rates or {}), workers, progress, "contact motion")
+    (None: no cache; ValueError naming a folder that cannot be written), keyed by the video, the
+    parameters, the rates and this module's code. ``rates``: (video fps, model fps) of the videos whose
+    frames are picked at the model's rate (the others: all frames)."""
+    compute = partial(_cached_series, cache_dir=cache_folder(cache_dir), reference_frame=reference_frame,
+                      params=params, rates=rates or {})
+    return map_videos(trials, compute, workers, progress, "contact motion")

@@ -258,6 +258,23 @@ def cache_stem(video: Path) -> str:
     return "__".join((*video.parts[-3:-1], video.stem))
 
 
+def cache_folder(cache_dir: str | Path | None) -> Path | None:
+    """``cache_dir`` as a writable folder, created when missing (None: no cache); ValueError naming it when
+    it is a file or cannot be created or written, before any video is decoded."""
+    if cache_dir is None:
+        return None
+    path = Path(cache_dir)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"cache folder {path} is a file")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"cache folder {path} cannot be created: {exc.strerror or exc}") from exc
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise ValueError(f"cache folder {path} is not writable")
+    return path
+
+
 def write_atomically(path: Path, write: Callable[[Path], None]) -> None:
     """Create ``path`` through ``write(tmp)`` on a temporary file beside it (named after this process,
     so processes sharing a cache never write the same file), then rename it into place: a reader sees
@@ -342,12 +359,13 @@ def trial_fields(
 ) -> TrialFields:
     """Fields of every camera of every trial, keyed (trial name, camera).
 
-    cache_dir: folder for one .npz per video (None: no cache). workers: processes (1 = this one).
+    cache_dir: folder for one .npz per video (None: no cache; ValueError naming it when it cannot be
+    written, see :func:`cache_folder`). workers: processes (1 = this one).
     One progress bar (in frames) covers the whole set. A video whose decoding stops before the frames its
     container lists is logged as a warning, naming it (see ``VideoFields.missing_frames``).
     """
-    fields = map_videos(trials, partial(_cached_fields, cache_dir=cache_dir, reference_frame=reference_frame),
-                        workers, progress, "fields")
+    compute = partial(_cached_fields, cache_dir=cache_folder(cache_dir), reference_frame=reference_frame)
+    fields = map_videos(trials, compute, workers, progress, "fields")
     for (name, camera), value in fields.items():
         if value.missing_frames:
             log.warning("trial %s %s: the last %d frames its video lists could not be decoded (a truncated or "

@@ -150,6 +150,19 @@ def test_a_truncated_video_is_named_with_the_frames_it_lost(isd_data: Path, tmp_
     assert cut.at(np.array([0])).missing_frames == cut.missing_frames
 
 
+def test_a_cache_folder_that_cannot_be_one_is_named_before_any_video_is_decoded(tmp_path: Path) -> None:
+    from fv_algos.contact_motion import trial_series
+    (tmp_path / "t1").mkdir()
+    (tmp_path / "t1" / "camera_0.avi").write_bytes(b"")  # never decoded: the cache is checked first
+    (tmp_path / "labels.csv").write_text("trial,object,label\nt1,cup,slip\n")
+    (tmp_path / "a_file").write_text("")
+    for compute in (trial_fields, trial_series):
+        with pytest.raises(ValueError, match=f"cache folder {tmp_path / 'a_file'} is a file"):
+            compute(read_trials(tmp_path), tmp_path / "a_file", progress=False)
+        with pytest.raises(ValueError, match=f"cache folder {tmp_path / 'a_file' / 'c'} cannot be created: "):
+            compute(read_trials(tmp_path), tmp_path / "a_file" / "c", progress=False)
+
+
 def test_cache_files_are_written_whole_or_not_at_all(tmp_path: Path) -> None:
     target = tmp_path / "cache" / "a.npy"
     write_atomically(target, lambda tmp: np.save(tmp, np.arange(3)))
