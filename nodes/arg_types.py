@@ -3,6 +3,8 @@ value when one of these refuses it."""
 from __future__ import annotations
 
 import argparse
+import os
+from pathlib import Path
 
 
 def positive_float(text: str) -> float:
@@ -22,3 +24,31 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"{text} is not >= 1")
     return value
+
+
+def _writable(folder: Path) -> None:
+    """ArgumentTypeError when ``folder``, or the nearest of its parents that exists, is a file or cannot be
+    written into: checked before a long job, so that it does not end unable to save its result."""
+    existing = folder.absolute()
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir():
+        raise argparse.ArgumentTypeError(f"{existing} is a file, not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise argparse.ArgumentTypeError(f"{existing} is not writable")
+
+
+def output_file(text: str) -> Path:
+    """A file to write: not an existing folder, and its folder can be created and written."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a folder, not a file")
+    _writable(path.parent)
+    return path
+
+
+def output_folder(text: str) -> Path:
+    """A folder to write into: not an existing file, and it can be created and written."""
+    path = Path(text)
+    _writable(path)
+    return path

@@ -27,6 +27,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from nodes.arg_types import output_folder
+
 GOAL_SPEEDUP = 5.0
 GOAL_TOTAL_MS = 2.0
 GOAL_CLEAN_RMS_PX = 0.1
@@ -316,7 +318,7 @@ def add_parser(kinds: argparse._SubParsersAction, name: str) -> None:
     p.add_argument("--quick", action="store_true", help="4 frames per scene, 1 repeat (a smoke test)")
     p.add_argument("--config", action="append", metavar="NAME",
                    help="run only these configurations (repeatable; paper and default are always needed)")
-    p.add_argument("--out", type=Path, help="folder for the Markdown table, Pareto plots and JSON")
+    p.add_argument("--out", type=output_folder, help="folder for the Markdown table, Pareto plots and JSON")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.set_defaults(func=_bench_perception)
 

@@ -41,8 +41,9 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130
-    except (ValueError, KeyError, FileNotFoundError, RuntimeError) as exc:
+    except (ValueError, KeyError, OSError, RuntimeError) as exc:  # OSError: a disk full, a folder gone mid-run, ...
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        logging.getLogger("fv").debug("the error's traceback", exc_info=True)
         print(f"fv {args.command}: error: {msg}", file=sys.stderr)
         return 2
 

@@ -21,7 +21,7 @@ from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from nodes.arg_types import positive_int
+from nodes.arg_types import output_file, positive_int
 
 if TYPE_CHECKING:  # torch is imported only where a model is used
     from fv_algos.contact_motion import ContactMotionParams
@@ -48,14 +48,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--init", default=None, help="fine-tune every fold from this checkpoint or shipped model name (e.g. sim); "
                    "its architecture is used and --steps counts the extra steps")
     online_flags(p)
-    p.add_argument("--out", type=Path, default=None, help="also write the full report (JSON) here")
+    p.add_argument("--out", type=output_file, default=None, help="also write the full report (JSON) here")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=_cv)
 
     p = verbs.add_parser("train", help="train on all trials and write a shipped-model checkpoint + JSON")
     _data_args(p)
     _fit_args(p, window_steps=600)
-    p.add_argument("--out", type=Path, required=True, help="checkpoint path, e.g. fv_algos/weights/slip_gelsight.pt")
+    p.add_argument("--out", type=output_file, required=True, help="checkpoint path, e.g. fv_algos/weights/slip_gelsight.pt")
     p.add_argument("--cv-report", type=Path, default=None, help="`fv real cv --out` report to record beside it")
     p.set_defaults(func=_train)
 
@@ -82,7 +82,7 @@ def online_flags(p: argparse.ArgumentParser) -> None:
                    help="--online: an alarm rule, raised when P(slip) >= P for ROW frames in a row from frame "
                         "FROM on (frames judged, at the model's frame rate; repeat the flag for several; default a "
                         "set from 0.5:0:1 to 0.99:100:10)")
-    p.add_argument("--plot", type=Path, default=None,
+    p.add_argument("--plot", type=output_file, default=None,
                    help="--online: PNG of the share of held and slip cameras at P(slip) >= 0.5 over time")
 
 

@@ -6,13 +6,15 @@ import argparse
 import json
 from pathlib import Path
 
+from nodes.arg_types import output_file, output_folder
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("sim", help="render a simulated sequence with ground truth, or a preview picture")
     p.add_argument("--scene", default="", help="scene file (YAML/JSON); default: random scenarios")
-    p.add_argument("--out", type=Path, help="folder for PNG frames, previews and truth.npz/json")
+    p.add_argument("--out", type=output_folder, help="folder for PNG frames, previews and truth.npz/json")
     p.add_argument("--frames", type=int, default=60, help="frames to write (default 60)")
-    p.add_argument("--preview", type=Path, help="write one preview PNG (frame, true markers, true field)")
+    p.add_argument("--preview", type=output_file, help="write one preview PNG (frame, true markers, true field)")
     p.add_argument("--frame", type=int, default=-1, help="which frame to preview (default: the last of --frames)")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_sim)
@@ -24,7 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--every", type=int, default=10, help="video: use every k-th frame (default 10)")
     p.add_argument("--board", default="7x5", help="inner corners COLSxROWS (default 7x5)")
     p.add_argument("--square-mm", type=float, default=2.5, help="square side in mm (default 2.5)")
-    p.add_argument("--out", type=Path, required=True, help="calibration JSON the camera node loads")
+    p.add_argument("--out", type=output_file, required=True, help="calibration JSON the camera node loads")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=_calibrate)
 

@@ -8,7 +8,7 @@ import shlex
 import time
 from pathlib import Path
 
-from nodes.arg_types import positive_int
+from nodes.arg_types import output_file, output_folder, positive_int
 from nodes.real_commands import online_flags
 
 SPLITS = {"sequence": "sequence", "paper": "random", "object": "object"}
@@ -19,7 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("dataset", help="generate slip datasets")
     kinds = p.add_subparsers(dest="dataset_kind", required=True, metavar="KIND")
     q = kinds.add_parser("sim", help="simulated sequences through the real perception pipeline (paper protocol)")
-    q.add_argument("--out", type=Path, required=True, help="output .npz (float16 fields)")
+    q.add_argument("--out", type=output_file, required=True, help="output .npz (float16 fields)")
     q.add_argument("--sequences", type=int, default=1600, help="raw sequences, half slip (default 1600)")
     q.add_argument("--frames", type=int, default=15, help="frames per sequence (default 15)")
     q.add_argument("--fps", type=float, default=15.0, help="frame rate, Hz (default 15)")
@@ -31,7 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("train", help="train a slip classifier (works under torchrun: DDP)")
     p.add_argument("--data", type=Path, required=True, help="sequence dataset .npz (fv dataset sim)")
-    p.add_argument("--out", type=Path, required=True, help="run folder: checkpoint.pt, metrics.json, run.json, curve.png")
+    p.add_argument("--out", type=output_folder, required=True, help="run folder: checkpoint.pt, metrics.json, run.json, curve.png")
     _model_flags(p)
     p.add_argument("--steps", type=int, default=None, help="optimizer steps (default: TrainConfig's)")
     p.add_argument("--resume", type=Path, default=None, help="checkpoint to continue from")
@@ -43,7 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("eval", help="Table 1 (every split and model) and the speed/accuracy variants; or, with "
                        "--trials, one model on a folder of labelled real recordings")
     p.add_argument("--data", type=Path, help="sequence dataset .npz (fv dataset sim)")
-    p.add_argument("--out", type=Path, help="report folder: table1.json, variants.json, pareto.png")
+    p.add_argument("--out", type=output_folder, help="report folder: table1.json, variants.json, pareto.png")
     p.add_argument("--trials", type=Path, help="folder with labels.csv (trial,object,label) and "
                    "<trial>/camera_0.avi [camera_2.avi] (or .mp4, .mkv, .mov, .m4v): judge --model on it, from video to decision")
     p.add_argument("--model", help="with --trials: shipped model name (sim, gelsight) or checkpoint path")

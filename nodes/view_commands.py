@@ -17,6 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator
 
+from nodes.arg_types import output_file
+
 if TYPE_CHECKING:
     import numpy as np
 
@@ -61,7 +63,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("view", help="a bag as a video or a still: frame with marker arrows | field colour map, "
                                     "slip probability below")
     p.add_argument("--bag", required=True, help="bag folder or .mcap file")
-    p.add_argument("--out", "-o", type=Path, required=True,
+    p.add_argument("--out", "-o", type=output_file, required=True,
                    help="output: x.mp4 (mp4v) or x.avi (MJPG) video, or x.png / x.jpg still")
     p.add_argument("--fps", type=float, default=0.0, help="video frame rate (default: the camera's capture rate)")
     p.add_argument("--start", type=float, default=None, metavar="S", help="video: skip the first S seconds of the bag")

@@ -6,6 +6,8 @@ import json
 import re
 from pathlib import Path
 
+from nodes.arg_types import output_file
+
 SIZE_UNITS = {"": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30}
 
 
@@ -68,7 +70,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = verbs.add_parser("recover", help="make a bag cut off by a crash valid and indexed again")
     p.add_argument("file", type=Path, help="the damaged .mcap file")
-    p.add_argument("-o", "--output", type=Path,
+    p.add_argument("-o", "--output", type=output_file,
                    help="where to write (default: in place, the original kept as FILE.broken)")
     p.add_argument("--json", action="store_true", help="JSON report")
     p.set_defaults(func=_recover)
