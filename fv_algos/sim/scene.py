@@ -31,7 +31,7 @@ tangential contact is not modelled: loading is treated as monotonic).
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -381,6 +381,29 @@ def random_scenario(
         effects = {"normal", "shear"}
     desc = {"object": {"shape": shape_name(obj), **{k: getattr(obj, k) for k in obj.RANGES}}, "fps": fps, "effects": sorted(effects | set(render_effects)), "steps": steps, "start_mm": list(start), "start_angle_deg": angle, "initial": initial}
     return scene_from_dict(desc)
+
+
+def grasp_scene(scene: Scene, approach_s: float = 0.5, release_s: float = 0.4, rest_s: float = 0.2) -> Scene:
+    """``scene`` as one whole grasp of a skin at rest, as a gripper makes it: the loads it starts with
+    (``scene.initial``) are reached from zero by a press over ``approach_s`` s (then a shear and a twist,
+    ``approach_s`` / 2 s each, for the tangential load and torque it starts with), its steps follow, a
+    release takes every load back to zero over ``release_s`` s, and the skin rests for ``rest_s`` s.
+
+    A random scenario (:func:`random_scenario`, the paper's data protocol) starts loaded, its fields
+    measured from the rest skin. Played one after another, such scenarios jump from one loaded contact
+    to the next and the skin is never at rest, so a tracker's reference (the first frame) is a loaded
+    skin and every field after it is off; grasps begin and end at rest.
+    """
+    if min(approach_s, release_s, rest_s) <= 0:
+        raise ValueError(f"approach_s, release_s and rest_s must be > 0, got {approach_s}, {release_s}, {rest_s}")
+    start = scene.initial
+    steps = [Step("press", approach_s, normal_N=start.normal_N)]
+    if any(start.force_N):
+        steps.append(Step("shear", approach_s / 2, force_N=start.force_N))
+    if start.torque_Nmm:
+        steps.append(Step("twist", approach_s / 2, torque_Nmm=start.torque_Nmm))
+    steps += [*scene.steps, Step("release", release_s), Step("hold", rest_s)]
+    return replace(scene, steps=tuple(steps), initial=Loads())
 
 
 def noisy_labels(labels: np.ndarray, rng: np.random.Generator, flip_probability: float = 0.0, max_onset_shift_frames: int = 0) -> np.ndarray:

@@ -21,7 +21,8 @@ from fv_algos.sim.contact import ContactModel, ContactParams, ContactState
 from fv_algos.sim.halfspace import SurfaceGrid
 from fv_algos.sim.render import RenderParams, SkinRenderer
 from fv_algos.sim.render import EFFECTS as RENDER_EFFECTS
-from fv_algos.sim.scene import DEFAULT_RENDER_EFFECTS, SCENARIO_KINDS, Command, Scene, random_scenario, scene_commands
+from fv_algos.sim.scene import (DEFAULT_RENDER_EFFECTS, SCENARIO_KINDS, Command, Scene, grasp_scene, random_scenario,
+                                scene_commands)
 from fv_algos.sim.skin import SkinParams, marker_grid_mm
 
 
@@ -204,7 +205,9 @@ class SimSensor:
     """Simulated FingerVision camera, deterministic from its seed.
 
     With a scene it plays that scene once; with `scene=None` it loops over random
-    scenarios of all kinds (`random_loop_frames` frames each) forever.
+    scenarios of all kinds (`random_loop_frames` frames each) forever, each played as a whole
+    grasp from the skin at rest (:func:`fv_algos.sim.scene.grasp_scene`: pressed to its first loads
+    over 0.5 s, released over 0.4 s after it, then 0.2 s at rest).
     """
 
     def __init__(
@@ -224,7 +227,8 @@ class SimSensor:
             camera: camera model (default FisheyeCamera.default()).
             seed: seed of the renderer and of the random scenarios.
             loop_fps: frame rate of the random scenarios, Hz (random mode only).
-            random_loop_frames: frames per random scenario (random mode only).
+            random_loop_frames: frames of each random scenario, not counting the grasp's press and
+                release around it (random mode only).
             render_effects: render effects of the random mode (a scene brings its own).
         """
         self.params = params if params is not None else SensorParams()
@@ -248,7 +252,7 @@ class SimSensor:
             return
         while True:
             kind = SCENARIO_KINDS[int(self._rng.integers(len(SCENARIO_KINDS)))]
-            yield random_scenario(self._rng, kind, self._loop_frames, self._loop_fps, self.renderer.effects)
+            yield grasp_scene(random_scenario(self._rng, kind, self._loop_frames, self._loop_fps, self.renderer.effects))
 
     def __iter__(self) -> Iterator[SimFrame]:
         """Yields SimFrame; finite for a scene, endless in random mode."""

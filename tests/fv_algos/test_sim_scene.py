@@ -8,7 +8,8 @@ import pytest
 import yaml
 
 from fv_algos.sim.contact import ContactParams
-from fv_algos.sim.scene import NON_SLIP_KINDS, SLIP_KINDS, load_scene, noisy_labels, random_scenario, scene_from_dict
+from fv_algos.sim.scene import (NON_SLIP_KINDS, SLIP_KINDS, Loads, grasp_scene, load_scene, noisy_labels, random_scenario,
+                                scene_commands, scene_from_dict)
 from fv_algos.sim.sensor import SceneRunner
 from fv_algos.sim.skin import SkinParams
 
@@ -105,6 +106,32 @@ def test_random_scenarios_have_the_labels_they_claim(kind: str) -> None:
                 assert all(f.state.slip_state == "incipient" for f in frames)
         else:
             assert not labels.any(), (kind, scene.obj, [f.state.slip_share for f in frames])
+
+
+def _numbers(loads: Loads) -> list[float]:
+    return [loads.normal_N, *loads.force_N, loads.torque_Nmm]
+
+
+@pytest.mark.parametrize("kind", ["translational", "incipient", "rotational", "pressing"])
+def test_a_grasp_starts_and_ends_at_rest_and_plays_its_scenario_between(kind: str) -> None:
+    scene = random_scenario(np.random.default_rng(5), kind, n_frames=15, fps=30.0)
+    grasp = grasp_scene(scene, approach_s=0.4, release_s=0.4, rest_s=0.2)
+    commands = scene_commands(grasp)
+    assert grasp.initial == Loads() and commands[0].loads == Loads()
+    approach = 12 + 6 * (any(scene.initial.force_N))  # frames of the press (0.4 s) and the shear (0.2 s)
+    body = scene_commands(scene)
+    assert {c.action for c in commands[approach:approach + 15]} == {c.action for c in body}  # (a frame on a
+    # step's boundary may fall on either side of it: the times are sums of floats)
+    np.testing.assert_allclose([_numbers(c.loads) for c in commands[approach:approach + 15]],
+                               [_numbers(c.loads) for c in body], atol=1e-9)
+    assert [c.action for c in commands[approach + 15:]] == ["release"] * 12 + ["hold"] * 6
+    assert commands[-1].loads == Loads()
+    frames = list(SceneRunner(grasp, SkinParams(), ContactParams()))
+    for rest in (frames[0], frames[-1]):  # no load, no contact, the skin undeformed
+        assert not rest.state.contact.any() and not rest.state.is_slip
+        assert np.abs(rest.state.displacement_mm).max() < 1e-9
+    with pytest.raises(ValueError, match="approach_s, release_s and rest_s must be > 0"):
+        grasp_scene(scene, approach_s=0.0)
 
 
 def test_noisy_labels() -> None:

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from fv_algos.sim.scene import scene_from_dict
+from fv_algos.sim.scene import Loads, scene_from_dict
 from fv_algos.sim.sensor import SimSensor, preview_image, write_sequence
 
 SCENE = {
@@ -75,10 +75,17 @@ def test_write_sequence_and_preview(tmp_path) -> None:
     assert preview_image(frame).shape == frame.image.shape + (3,)
 
 
-def test_random_loop_mode_and_frame_time() -> None:
-    sensor = SimSensor(None, seed=2, random_loop_frames=5)
-    frames = [f for _, f in zip(range(12), sensor)]
+def test_random_loop_mode_plays_grasps_from_rest_and_frame_time() -> None:
+    sensor = SimSensor(None, seed=2, random_loop_frames=5, loop_fps=20.0)
+    frames = [f for _, f in zip(range(80), sensor)]
     stamps = np.array([f.stamp_s for f in frames])
     assert np.all(np.diff(stamps) > 0)
-    assert [f.truth.mechanics.index for f in frames] == [0, 1, 2, 3, 4] * 2 + [0, 1]
+    index = np.array([f.truth.mechanics.index for f in frames])
+    starts = np.flatnonzero(index == 0)
+    assert starts[0] == 0 and starts.size >= 2  # a new scene, one grasp, from each start on
+    assert all(np.array_equal(index[a:b], np.arange(b - a)) for a, b in zip(starts[:-1], starts[1:]))
+    for first, last in zip(starts[1:], starts[1:] - 1):  # every grasp starts and ends with the skin at rest
+        assert frames[first].truth.mechanics.command.loads == Loads()
+        assert frames[last].truth.mechanics.command.loads == Loads()
+        assert np.abs(frames[last].truth.marker_displacement_mm).max() < 1e-9
     assert sensor.last_frame_s > 0
