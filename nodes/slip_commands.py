@@ -8,7 +8,7 @@ import shlex
 import time
 from pathlib import Path
 
-from nodes.arg_types import output_file, output_folder, positive_int
+from nodes.arg_types import output_file, output_folder, positive_float, positive_int
 from nodes.real_commands import online_flags
 
 SPLITS = {"sequence": "sequence", "paper": "random", "object": "object"}
@@ -46,7 +46,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=output_folder, help="report folder: table1.json, variants.json, pareto.png")
     p.add_argument("--trials", type=Path, help="folder with labels.csv (trial,object,label) and "
                    "<trial>/camera_0.avi [camera_2.avi] (or .mp4, .mkv, .mov, .m4v): judge --model on it, from video to decision")
-    p.add_argument("--model", help="with --trials: shipped model name (sim, gelsight) or checkpoint path")
+    p.add_argument("--model", help="with --trials or --stream: shipped model name (sim, gelsight) or checkpoint path")
+    p.add_argument("--stream", type=positive_float, metavar="SECONDS",
+                   help="judge a window --model frame by frame on SECONDS of the simulated camera's random grasps "
+                        "(the main job's stream) against the simulator's truth; --fps, --seed set the camera")
+    p.add_argument("--fps", type=positive_float, default=30.0, help="with --stream: camera rate, Hz (default 30, "
+                   "the pipeline's)")
     p.add_argument("--cache", type=Path, help="with --trials: folder to cache the fields in (default: none)")
     p.add_argument("--workers", type=positive_int, default=2,
                    help="with --trials: processes for the fields (default 2)")
@@ -64,6 +69,32 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--repeats", type=int, default=50, help="timed calls per ms/window figure (default 50)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=_eval)
+
+
+def _eval_stream(args: argparse.Namespace) -> int:
+    """`fv eval --stream S --model M [--fps F] [--seed N] [--json]`: :func:`fv_algos.slip.stream.judge_stream`."""
+    import torch
+    from fv_algos.slip.classifier import SlipClassifier
+    from fv_algos.slip.stream import judge_stream
+    from nodes.slip_detector import model_path
+    if not args.model:
+        raise ValueError("--stream needs --model (a shipped window model such as sim_cnn_lstm, or a checkpoint)")
+    torch.set_num_threads(1)
+    started = time.perf_counter()
+    scores = judge_stream(SlipClassifier(model_path(args.model)), args.stream, args.fps, args.seed)
+    report = {"model": args.model, "fps": args.fps, "seconds": args.stream, "seed": args.seed, **scores,
+              "wall_s": time.perf_counter() - started}
+    if args.json:
+        print(json.dumps(report, indent=2))
+        return 0
+    def share(value: float | None) -> str:
+        return "-" if value is None else f"{value:.3f}"
+    print(f"{args.model} at {args.fps:g} fps, {report['frames_judged']} frames (seed {args.seed}): accuracy "
+          f"{report['accuracy']:.3f}, held frames called slip {share(report['held_called_slip'])}, slipping frames "
+          f"called slip {share(report['slip_called_slip'])} ({report['wall_s']:.0f} s)")
+    for action, row in report["phases"].items():
+        print(f"  {action:8s} {row['frames']:5d} frames, slip {row['slip_share']:.2f}, accuracy {row['accuracy']:.3f}")
+    return 0
 
 
 def _model_flags(p: argparse.ArgumentParser, single_run: bool = True) -> None:
@@ -294,6 +325,8 @@ class _ModelStore:
 def _eval(args: argparse.Namespace) -> int:
     if args.trials is None and (args.online or args.alarm or args.plot):
         raise ValueError("--online, --alarm and --plot need --trials (a trial-level model judged frame by frame)")
+    if args.stream is not None:
+        return _eval_stream(args)
     if args.trials is not None:
         from nodes.real_commands import eval_trials_command
         if not args.model:

@@ -1,0 +1,60 @@
+"""A window slip model judged frame by frame on the simulated camera's endless random grasps (the
+stream the main job runs on) against the simulator's truth.
+
+The camera (:class:`fv_algos.sim.sensor.SimSensor` without a scene) plays random scenarios, each as a
+whole grasp from the skin at rest; perception takes its first frame as the reference, as the tracker
+node does; after each frame the model reads the window of the last ``window`` fields, as the slip
+detector node does. Every frame from the first full window on is scored against its truth (incipient
+and gross slip are slip), in all and per scripted action (press, hold, shear, slide, twist, release),
+so that the frames a model gets wrong can be told apart: a window still holding the last motion, a
+release read as slip, a shear near the friction limit.
+"""
+from __future__ import annotations
+
+from collections import defaultdict, deque
+from itertools import islice
+
+import numpy as np
+
+from fv_algos.perception import Perception, PerceptionParams
+from fv_algos.sim.sensor import SimSensor
+from fv_algos.slip.classifier import SlipClassifier
+
+
+def judge_stream(classifier: SlipClassifier, seconds: float, fps: float, seed: int = 0, threshold: float = 0.5,
+                 preset: str = "default") -> dict[str, object]:
+    """Score ``classifier`` on ``seconds`` s of the random grasps at ``fps`` Hz (simulator seed ``seed``,
+    tracker ``preset``), slip when P(slip) >= ``threshold``.
+
+    Returns frames_judged, accuracy, slip_share (of the frames judged, by truth), held_called_slip and
+    slip_called_slip (shares of the held / slipping frames called slip; None without such frames), and
+    ``phases``: action -> {frames, slip_share, accuracy}. ValueError when the stream is shorter than
+    one window.
+    """
+    window = classifier.config.window
+    frames = int(round(seconds * fps))
+    if frames < window:
+        raise ValueError(f"{seconds} s at {fps} fps is {frames} frames, fewer than the model's window of {window}")
+    perception = Perception(PerceptionParams.preset(preset))  # type: ignore[arg-type]
+    fields: deque[np.ndarray] = deque(maxlen=window)
+    called, truth, actions = [], [], []
+    for frame in islice(SimSensor(None, seed=seed, loop_fps=fps), frames):
+        fields.append(perception.step(frame.image)[1].field)
+        if len(fields) == window:
+            called.append(classifier.predict(np.stack(fields)) >= threshold)
+            truth.append(frame.truth.is_slip)
+            actions.append(frame.truth.mechanics.command.action)
+    called_a, truth_a = np.array(called), np.array(truth)
+    right = called_a == truth_a
+    by_action: dict[str, list[int]] = defaultdict(list)
+    for i, action in enumerate(actions):
+        by_action[action].append(i)
+    return {
+        "frames_judged": int(right.size),
+        "accuracy": float(right.mean()),
+        "slip_share": float(truth_a.mean()),
+        "held_called_slip": float(called_a[~truth_a].mean()) if (~truth_a).any() else None,
+        "slip_called_slip": float(called_a[truth_a].mean()) if truth_a.any() else None,
+        "phases": {action: {"frames": len(rows), "slip_share": float(truth_a[rows].mean()),
+                            "accuracy": float(right[rows].mean())} for action, rows in sorted(by_action.items())},
+    }
