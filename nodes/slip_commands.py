@@ -87,11 +87,10 @@ def _eval_stream(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(report, indent=2))
         return 0
-    def share(value: float | None) -> str:
-        return "-" if value is None else f"{value:.3f}"
+    held, slipping = (("-" if v is None else f"{v:.3f}") for v in (report["held_called_slip"], report["slip_called_slip"]))
     print(f"{args.model} at {args.fps:g} fps, {report['frames_judged']} frames (seed {args.seed}): accuracy "
-          f"{report['accuracy']:.3f}, held frames called slip {share(report['held_called_slip'])}, slipping frames "
-          f"called slip {share(report['slip_called_slip'])} ({report['wall_s']:.0f} s)")
+          f"{report['accuracy']:.3f}, held frames called slip {held}, slipping frames called slip {slipping} "
+          f"({report['wall_s']:.0f} s)")
     for action, row in report["phases"].items():
         print(f"  {action:8s} {row['frames']:5d} frames, slip {row['slip_share']:.2f}, accuracy {row['accuracy']:.3f}")
     return 0

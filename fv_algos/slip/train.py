@@ -348,6 +348,8 @@ def main(argv: list[str] | None = None) -> int:
              "windows_per_cpu_s": result.windows_per_cpu_s, "autocast": result.autocast,
              "final": result.history[-1] if result.history else None},
         )
+        if launched:  # the other ranks wait for rank 0's last evaluation: no rank tears its process group
+            dist.barrier()  # down while another still holds its connections (a rank once aborted there)
     finally:
         if launched:
             dist.destroy_process_group()
