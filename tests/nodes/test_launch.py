@@ -83,6 +83,15 @@ def test_demo_launch_file_is_valid() -> None:
     assert names == ["talker", "listener"]
 
 
+@pytest.mark.parametrize("name", ["pipeline.yaml", "view.yaml", "video.yaml"])
+def test_the_cameras_of_the_shipped_pipelines_wait_for_the_nodes_that_take_a_reference(name: str) -> None:
+    """The tracker takes its reference from the first frame it gets: a camera that starts before it hands
+    it a deformed skin (on the simulated main job, every held frame was then called slip)."""
+    args = {"video": "clip.avi"} if name == "video.yaml" else {}
+    specs = {s.name: s for s in load_launch(REPO / "launch" / name, args)}
+    assert set(specs["camera"].params["start_after"]) == {"tracker", "interpolator", "slip_detector"}
+
+
 def test_bad_file_from_the_command_line_starts_nothing(bus_env: Bus, tmp_path: Path) -> None:
     path = _write(tmp_path, "bad.yaml", "nodes:\n  - kind: talker\n    params: {rate_hz: fast}\n")
     result = run_fv("launch", str(path))
