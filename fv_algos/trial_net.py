@@ -294,11 +294,17 @@ def _augment(x: torch.Tensor, rng: np.random.Generator, config: TrialNetConfig) 
     return stretch_in_time(x, float(np.exp(rng.uniform(-log_stretch, log_stretch))))
 
 
+def _drawn(rng: np.random.Generator, probability: float) -> bool:
+    """True with ``probability``; no random draw when it is 0, so an option left off does not move the
+    training's random stream."""
+    return probability != 0 and rng.random() < probability
+
+
 def _held_prefix(cameras: TrialInput, rng: np.random.Generator, probability: float) -> TrialInput:
-    """With ``probability``, the cameras' (C, F) descriptors cut to their first k frames, k uniform in
-    [min(MIN_FRAMES, F), F] (F: the shortest camera's frames); otherwise ``cameras`` as they are (and no
-    random draw when ``probability`` is 0)."""
-    if probability == 0 or rng.random() >= probability:
+    """With ``probability`` (:func:`_drawn`), the cameras' (C, F) descriptors cut to their first k frames,
+    k uniform in [min(MIN_FRAMES, F), F] (F: the shortest camera's frames); otherwise ``cameras`` as they
+    are."""
+    if not _drawn(rng, probability):
         return cameras
     frames = min(x.shape[1] for x in cameras)
     keep = int(rng.integers(min(MIN_FRAMES, frames), frames + 1))
@@ -307,11 +313,10 @@ def _held_prefix(cameras: TrialInput, rng: np.random.Generator, probability: flo
 
 def _start_swap(x: torch.Tensor, donors: Sequence[TrialInput], rng: np.random.Generator,
                 probability: float) -> torch.Tensor:
-    """With ``probability``, the camera's (C, F) descriptors with their first ``START_FRAMES`` frames
-    replaced by those of a random camera of a random trial of ``donors``; otherwise ``x`` as it is (and
-    no random draw when ``probability`` is 0). A camera of at most ``START_FRAMES`` frames, or a donor of
-    as few, is kept as it is."""
-    if probability == 0 or rng.random() >= probability:
+    """With ``probability`` (:func:`_drawn`), the camera's (C, F) descriptors with their first
+    ``START_FRAMES`` frames replaced by those of a random camera of a random trial of ``donors``; otherwise
+    ``x`` as it is. A camera of at most ``START_FRAMES`` frames, or a donor of as few, is kept as it is."""
+    if not _drawn(rng, probability):
         return x
     cameras = donors[int(rng.integers(len(donors)))]
     donor = cameras[int(rng.integers(len(cameras)))]

@@ -219,7 +219,8 @@ def add_parser(kinds: argparse._SubParsersAction, name: str) -> None:
     p.add_argument("--warmup", type=float, default=3.0, help="seconds after the first /slip before measuring")
     p.add_argument("--threads", type=int, default=1, help="torch threads of the slip detector (default 1)")
     p.add_argument("--log", type=Path, default=None, help="write the nodes' output here (default: discarded)")
-    p.add_argument("--out", type=output_folder, default=None, help="also write report.json, table.md and pipeline.png here")
+    p.add_argument("--out", type=output_folder, default=None,
+                   help="also write report.json, table.md and pipeline.png here")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=_bench_pipeline)
 

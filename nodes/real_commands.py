@@ -8,8 +8,8 @@ variants, :mod:`fv_algos.trial_eval`), shipped as `fv_algos/weights/slip_gelsigh
 `fv eval --trials DIR --model NAME` uses the shipped trial-level model `slip_NAME_trial.pt` when there is one, else the window model `slip_NAME.pt`.
 
 A trials folder holds `labels.csv` (columns trial, object, label = slip / no_slip) and per trial
-`<trial>/camera_0.avi` (+ `camera_2.avi`; or .mp4, .mkv, .mov, .m4v). Fields are cached per video under `--cache`
-(default ~/.cache/fingervision/real_fields), never inside the repository."""
+`<trial>/camera_0.avi` (+ `camera_2.avi`; or .mp4, .mkv, .mov, .m4v). Fields are cached per video under
+`--cache` (default ~/.cache/fingervision/real_fields), never inside the repository."""
 from __future__ import annotations
 
 import argparse
@@ -55,13 +55,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = verbs.add_parser("train", help="train on all trials and write a shipped-model checkpoint + JSON")
     _data_args(p)
     _fit_args(p, window_steps=600)
-    p.add_argument("--out", type=output_file, required=True, help="checkpoint path, e.g. fv_algos/weights/slip_gelsight.pt")
+    p.add_argument("--out", type=output_file, required=True,
+                   help="checkpoint path, e.g. fv_algos/weights/slip_gelsight.pt")
     p.add_argument("--cv-report", type=Path, default=None, help="`fv real cv --out` report to record beside it")
     p.set_defaults(func=_train)
 
     p = sub.add_parser("eval-trials", help="judge a slip model on a folder of real trials (video to decision)")
     p.add_argument("--model", required=True, help="shipped model name (gelsight, sim) or checkpoint path")
-    p.add_argument("--trials", type=Path, required=True, help="folder with labels.csv and <trial>/camera_0.avi (or .mp4, .mkv, .mov, .m4v)")
+    p.add_argument("--trials", type=Path, required=True,
+                   help="folder with labels.csv and <trial>/camera_0.avi (or .mp4, .mkv, .mov, .m4v)")
     p.add_argument("--cache", type=Path, default=None, help="reuse / write cached fields here (default: none)")
     p.add_argument("--workers", type=positive_int, default=1,
                    help="processes for the fields and contact motion (default 1)")

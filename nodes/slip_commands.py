@@ -31,7 +31,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("train", help="train a slip classifier (works under torchrun: DDP)")
     p.add_argument("--data", type=Path, required=True, help="sequence dataset .npz (fv dataset sim)")
-    p.add_argument("--out", type=output_folder, required=True, help="run folder: checkpoint.pt, metrics.json, run.json, curve.png")
+    p.add_argument("--out", type=output_folder, required=True,
+                   help="run folder: checkpoint.pt, metrics.json, run.json, curve.png")
     _model_flags(p)
     p.add_argument("--steps", type=int, default=None, help="optimizer steps (default: TrainConfig's)")
     p.add_argument("--resume", type=Path, default=None, help="checkpoint to continue from")
@@ -44,8 +45,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "--trials, one model on a folder of labelled real recordings")
     p.add_argument("--data", type=Path, help="sequence dataset .npz (fv dataset sim)")
     p.add_argument("--out", type=output_folder, help="report folder: table1.json, variants.json, pareto.png")
-    p.add_argument("--trials", type=Path, help="folder with labels.csv (trial,object,label) and "
-                   "<trial>/camera_0.avi [camera_2.avi] (or .mp4, .mkv, .mov, .m4v): judge --model on it, from video to decision")
+    p.add_argument("--trials", type=Path, help="folder with labels.csv (trial,object,label) and <trial>/camera_0.avi "
+                   "[camera_2.avi] (or .mp4, .mkv, .mov, .m4v): judge --model on it, from video to decision")
     p.add_argument("--model", help="with --trials or --stream: shipped model name (sim, gelsight) or checkpoint path")
     p.add_argument("--stream", type=positive_float, metavar="SECONDS",
                    help="judge a window --model frame by frame on SECONDS of the simulated camera's random grasps "
@@ -73,21 +74,20 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _eval_stream(args: argparse.Namespace) -> int:
     """`fv eval --stream S --model M [--fps F] [--seed N] [--json]`: :func:`fv_algos.slip.stream.judge_stream`."""
-    import torch
     from fv_algos.slip.classifier import SlipClassifier
     from fv_algos.slip.stream import judge_stream
     from nodes.slip_detector import model_path
     if not args.model:
         raise ValueError("--stream needs --model (a shipped window model such as sim_cnn_lstm, or a checkpoint)")
-    torch.set_num_threads(1)
     started = time.perf_counter()
-    scores = judge_stream(SlipClassifier(model_path(args.model)), args.stream, args.fps, args.seed)
+    scores = judge_stream(SlipClassifier(model_path(args.model), threads=1), args.stream, args.fps, args.seed)
     report = {"model": args.model, "fps": args.fps, "seconds": args.stream, "seed": args.seed, **scores,
               "wall_s": time.perf_counter() - started}
     if args.json:
         print(json.dumps(report, indent=2))
         return 0
-    held, slipping = (("-" if v is None else f"{v:.3f}") for v in (report["held_called_slip"], report["slip_called_slip"]))
+    held, slipping = ("-" if scores[key] is None else f"{scores[key]:.3f}"
+                      for key in ("held_called_slip", "slip_called_slip"))
     print(f"{args.model} at {args.fps:g} fps, {report['frames_judged']} frames (seed {args.seed}): accuracy "
           f"{report['accuracy']:.3f}, held frames called slip {held}, slipping frames called slip {slipping} "
           f"({report['wall_s']:.0f} s)")

@@ -252,7 +252,8 @@ class SimSensor:
             return
         while True:
             kind = SCENARIO_KINDS[int(self._rng.integers(len(SCENARIO_KINDS)))]
-            yield grasp_scene(random_scenario(self._rng, kind, self._loop_frames, self._loop_fps, self.renderer.effects))
+            scenario = random_scenario(self._rng, kind, self._loop_frames, self._loop_fps, self.renderer.effects)
+            yield grasp_scene(scenario)
 
     def __iter__(self) -> Iterator[SimFrame]:
         """Yields SimFrame; finite for a scene, endless in random mode."""
