@@ -61,10 +61,11 @@ class GraspJudge:
 
     def step(self, image: np.ndarray, field: np.ndarray, valid_share: float) -> float:
         """P(slip) of the grasp up to and including this frame (one :meth:`takes` kept): ``image`` (H, W, 3) BGR uint8,
-        ``field`` (h, w, 3) px (dx, dy, |d|; rounded to float16 as in the cached fields the model
+        ``field`` (h, w, 3) px of ``image`` (dx, dy, |d|; rounded to float16 as in the cached fields the model
         was trained on), ``valid_share`` the share of reference markers valid in this frame."""
         series_row = self.motion.reset(image) if self.frames == 0 else self.motion.step(image)
-        return self.push(series_row, field_rows(np.asarray(field, np.float16)[None], np.array([valid_share]))[0])
+        rows = field_rows(np.asarray(field, np.float16)[None], np.array([valid_share]), image.shape[1])
+        return self.push(series_row, rows[0])
 
     def push(self, row: np.ndarray, field_row: np.ndarray) -> float:
         """:meth:`step` from a frame's contact-motion row (5,) (``fv_algos.contact_motion.SERIES``)

@@ -51,7 +51,7 @@ CAMERAS = ("camera_0", "camera_2")
 VIDEO_SUFFIXES = (".avi", ".mp4", ".mkv", ".mov", ".m4v")  # a camera's video: camera_0.avi, ...
 LABEL_VALUES = {"no_slip": 0, "slip": 1, "0": 0, "1": 1}
 REQUIRED_COLUMNS = ("trial", "object", "label")
-CACHE_VERSION = 2
+CACHE_VERSION = 3
 
 
 @dataclass(frozen=True)
@@ -134,6 +134,7 @@ class VideoFields:
     valid_share: (F,) float32, share of the reference markers valid in each frame.
     swaps: (F,) int32, valid markers flagged by neighbour_consistency in each frame.
     n_markers: markers found in the reference frame. seconds: wall time of decode + perception.
+    width_px: width of the video's frames, px (the scale the fields are measured at).
     missing_frames: frames the video's container lists after the last one decoded (a truncated or
     damaged file, whose grasp is judged on the frames decoded; 0 when none are, or the container
     lists no count).
@@ -145,6 +146,7 @@ class VideoFields:
     swaps: np.ndarray
     n_markers: int
     seconds: float
+    width_px: int
     missing_frames: int = 0
 
     def quality(self) -> dict[str, float]:
@@ -163,9 +165,9 @@ class VideoFields:
 
     def at(self, frames: np.ndarray) -> VideoFields:
         """These fields at ``frames`` (K,) (indices from the reference on) only; the same markers,
-        seconds and missing frames."""
+        seconds, width and missing frames."""
         return VideoFields(self.fields[frames], self.field_valid[frames], self.valid_share[frames], self.swaps[frames],
-                           self.n_markers, self.seconds, self.missing_frames)
+                           self.n_markers, self.seconds, self.width_px, self.missing_frames)
 
 
 def read_frames(path: str | Path) -> Iterator[np.ndarray]:
@@ -226,6 +228,7 @@ def video_fields(
         np.array(swaps, dtype=np.int32),
         int(state.valid.size),
         time.perf_counter() - started,
+        int(frame.shape[1]),
         max(frame_count(path) - reference_frame - len(fields), 0),  # every frame from the reference on has a field
     )
 
@@ -292,14 +295,16 @@ def save_video_fields(path: Path, value: VideoFields) -> None:
     """Write ``value`` to ``path`` (.npz, atomically)."""
     write_atomically(path, lambda tmp: np.savez_compressed(
         tmp, fields=value.fields, field_valid=value.field_valid, valid_share=value.valid_share,
-        swaps=value.swaps, n_markers=value.n_markers, seconds=value.seconds, missing_frames=value.missing_frames))
+        swaps=value.swaps, n_markers=value.n_markers, seconds=value.seconds, width_px=value.width_px,
+        missing_frames=value.missing_frames))
 
 
 def load_video_fields(path: Path) -> VideoFields:
     """Read a file written by :func:`save_video_fields`."""
     with np.load(path) as data:
         return VideoFields(data["fields"], data["field_valid"], data["valid_share"], data["swaps"],
-                           int(data["n_markers"]), float(data["seconds"]), int(data["missing_frames"]))
+                           int(data["n_markers"]), float(data["seconds"]), int(data["width_px"]),
+                           int(data["missing_frames"]))
 
 
 def _cached_fields(video: Path, cache_dir: str | Path | None, reference_frame: int) -> VideoFields:

@@ -35,9 +35,9 @@ from fv_algos.trial_eval import fold_summary, map_folds, object_folds
 DESCRIPTORS = (
     "relative_px", "marker_px",  # from SERIES, px/frame at size_px scale
     "contact_above_min",  # from SERIES, grey levels
-    "field_px", "shear_x_px", "shear_y_px",  # grid means of |d|, dx, dy, px
+    "field_px", "shear_x_px", "shear_y_px",  # grid means of |d|, dx, dy, px at FIELD_WIDTH_PX
     "invalid_share",  # share of reference markers not valid this frame
-    "divergence", "curl",  # grid means of div d and curl d (d in px, per grid cell)
+    "divergence", "curl",  # grid means of div d and curl d (d in px at FIELD_WIDTH_PX, per grid cell)
     "imprint_change", "imprint_step",  # from SERIES, grey levels
 )
 SCALE = np.array([1.0, 1.0, 1.0, 5.0, 5.0, 5.0, 0.1, 1 / 3, 1 / 3, 10.0, 1.0], np.float32)
@@ -50,12 +50,16 @@ KIND = "trial_net"
 MIN_FRAMES = 10  # shortest camera judged, and shortest beginning of a held grasp trained on (0.4 s at 25 fps)
 START_FRAMES = 14  # a camera's start-up frames, which start_swap trades (the GelSight Mini burst ends by frame 13)
 FIELD_ROWS = ("field_px", "shear_x_px", "shear_y_px", "invalid_share", "divergence", "curl")
+# the frame width (px) the field descriptors are measured at, whatever the camera's: the GelSight Mini's 320x240
+FIELD_WIDTH_PX = 320
 
 
-def field_rows(fields: np.ndarray, valid_share: np.ndarray) -> np.ndarray:
-    """(F, 6) float32 ``FIELD_ROWS`` of ``fields`` (F, H, W, 3) px (dx, dy, |d|) and the share of
-    reference markers valid in each frame ``valid_share`` (F,); frames are independent."""
-    grid = fields.astype(np.float32)
+def field_rows(fields: np.ndarray, valid_share: np.ndarray, width_px: int) -> np.ndarray:
+    """(F, 6) float32 ``FIELD_ROWS`` of ``fields`` (F, H, W, 3) px (dx, dy, |d|) of frames ``width_px``
+    wide and the share of reference markers valid in each frame ``valid_share`` (F,); frames are
+    independent. Displacements are rescaled to px of the frame resized to ``FIELD_WIDTH_PX`` wide, so
+    one grasp filmed at another resolution gives the same rows."""
+    grid = fields.astype(np.float32) * np.float32(FIELD_WIDTH_PX / width_px)
     ddx_dy, ddx_dx = np.gradient(grid[..., 0], axis=(1, 2))
     ddy_dy, ddy_dx = np.gradient(grid[..., 1], axis=(1, 2))
     return np.stack([grid[..., 2].mean(axis=(1, 2)), grid[..., 0].mean(axis=(1, 2)), grid[..., 1].mean(axis=(1, 2)),
@@ -77,7 +81,7 @@ def camera_descriptors(series: np.ndarray, fields: VideoFields) -> torch.Tensor:
     """(C, F) float32 ``DESCRIPTORS`` / ``SCALE`` of one camera: ``series`` (F, 5) from
     :func:`fv_algos.contact_motion.contact_series` and ``fields`` of the same F frames; ValueError
     when the counts differ."""
-    return descriptor_matrix(series, field_rows(fields.fields, fields.valid_share))
+    return descriptor_matrix(series, field_rows(fields.fields, fields.valid_share, fields.width_px))
 
 
 TrialInput = list[torch.Tensor]  # one (C, F) descriptor tensor per camera of a trial

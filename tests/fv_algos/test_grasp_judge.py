@@ -16,7 +16,7 @@ from fv_algos.trial_net import TrialNet, TrialNetConfig, descriptor_matrix, fiel
 def _grasp(frames: int, seed: int) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
     """Textured BGR frames drifting right, random fields (F, 30, 30, 3) px and valid shares (F,)."""
     rng = np.random.default_rng(seed)
-    texture = np.clip(rng.normal(128, 50, (240, 400, 3)), 0, 255).astype(np.uint8)
+    texture = np.clip(rng.normal(128, 50, (240, 320 + 2 * frames, 3)), 0, 255).astype(np.uint8)
     images = [np.ascontiguousarray(texture[:, 2 * i:2 * i + 320]) for i in range(frames)]
     return images, rng.normal(0, 2, (frames, 30, 30, 3)).astype(np.float32), rng.uniform(0.8, 1.0, frames)
 
@@ -24,7 +24,7 @@ def _grasp(frames: int, seed: int) -> tuple[list[np.ndarray], np.ndarray, np.nda
 def _offline(net: TrialNet, images: list[np.ndarray], fields: np.ndarray, shares: np.ndarray) -> np.ndarray:
     """(F,) the network on every prefix of the trial, computed whole each time."""
     series = contact_series(images, reference_frame=0)
-    rows = field_rows(fields.astype(np.float16), shares)
+    rows = field_rows(fields.astype(np.float16), shares, images[0].shape[1])
     return np.array([trial_probability(net, [[descriptor_matrix(series[:k], rows[:k])]])[0]
                      for k in range(1, len(images) + 1)])
 

@@ -35,6 +35,7 @@ from fv_algos.trial_eval import (
     trial_windows,
     window_activity,
 )
+from fv_algos.trial_net import FIELD_ROWS, FIELD_WIDTH_PX, field_rows
 
 SHORT_TRIALS = {  # trial -> (object, label): the shortest slip trials and the shortest no-slip trial
     "train/nylon_thread/exp_num_1": ("nylon_thread", "slip"),
@@ -112,6 +113,25 @@ def test_video_fields_track_every_frame_without_swaps(isd_data: Path) -> None:
     assert result.n_markers >= 30
     quality = result.quality()
     assert quality["valid_share_mean"] > 0.95 and quality["swaps"] == 0
+
+
+def test_a_grasp_filmed_at_twice_the_resolution_gives_the_same_field_descriptors(isd_data: Path,
+                                                                                   tmp_path: Path) -> None:
+    """The field descriptors are px of the frame at FIELD_WIDTH_PX wide: a 640x480 copy of a real slip
+    gives the rows of its 320x240 original within a tenth of their size (raw px would be twice them)."""
+    import cv2
+    video = isd_data / "train/marker_pen/exp_num_2/camera_0.avi"  # a slip, 53 frames
+    large = tmp_path / "camera_0.avi"
+    writer = cv2.VideoWriter(str(large), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (640, 480))
+    for frame in read_frames(video):
+        writer.write(cv2.resize(frame, (640, 480), interpolation=cv2.INTER_CUBIC))
+    writer.release()
+    original, copy = video_fields(video), video_fields(large)
+    assert (original.width_px, copy.width_px) == (320, 640) == (FIELD_WIDTH_PX, 2 * FIELD_WIDTH_PX)
+    rows = [field_rows(v.fields, v.valid_share, v.width_px) for v in (original, copy)]
+    for column in (FIELD_ROWS.index(n) for n in ("field_px", "shear_x_px", "shear_y_px")):
+        size = np.abs(rows[0][:, column]).mean()
+        assert size > 1.0 and np.abs(rows[1][:, column] - rows[0][:, column]).mean() < 0.1 * size
 
 
 def test_map_videos_refuses_fewer_than_one_worker(tmp_path: Path) -> None:
@@ -359,7 +379,7 @@ def test_window_cross_validation_gives_the_same_folds_in_two_processes(tmp_path:
         motion = np.linspace(0.0, 12.0 * trial.label, 20)[:, None, None, None] * np.ones((20, 30, 30, 3))
         video = (motion + rng.normal(0.0, 0.05, motion.shape)).astype(np.float16)
         fields[(trial.name, "camera_0")] = VideoFields(video, np.ones(20, bool), np.ones(20, np.float32),
-                                                       np.zeros(20, np.int32), 40, 0.1)
+                                                       np.zeros(20, np.int32), 40, 0.1, 320)
         trials.append(trial)
     data = trial_windows(trials, fields, 10, TrialRule(stride=5))
     config = fit_config("lstm", 8, steps=3, batch_size=8)

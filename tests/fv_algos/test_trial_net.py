@@ -32,11 +32,12 @@ from fv_algos.trial_net import (
 )
 
 
-def _fields(frames: int, dx_px: float) -> VideoFields:
+def _fields(frames: int, dx_px: float, width_px: int = 320) -> VideoFields:
     grid = np.zeros((frames, 30, 30, 3), np.float16)
     grid[..., 0] = dx_px
     grid[..., 2] = abs(dx_px)
-    return VideoFields(grid, np.ones(frames, bool), np.full(frames, 0.9, np.float32), np.zeros(frames, np.int32), 40, 0.0)
+    return VideoFields(grid, np.ones(frames, bool), np.full(frames, 0.9, np.float32), np.zeros(frames, np.int32),
+                       40, 0.0, width_px)
 
 
 def test_descriptors_closed_form_and_mirroring() -> None:
@@ -54,6 +55,9 @@ def test_descriptors_closed_form_and_mirroring() -> None:
     assert mirrored["shear_x_px"] == -1 and mirrored["curl"] == -1 and sum(MIRROR_X) == len(DESCRIPTORS) - 4
     with pytest.raises(ValueError, match="12 contact-series frames but 11 fields"):
         camera_descriptors(series, _fields(11, 1.0))
+    # a camera of twice the resolution sees the same shear as twice the px: the same descriptors
+    np.testing.assert_array_equal(camera_descriptors(series, _fields(12, 5.0, width_px=640)),
+                                  camera_descriptors(series, _fields(12, 2.5)))
 
 
 def _toy_trials(n: int, seed: int = 0) -> tuple[list[list[torch.Tensor]], np.ndarray]:

@@ -117,7 +117,7 @@ def test_video_launch_with_the_trial_model_judges_the_grasp_as_offline(bus_env, 
     fields = video_fields(video, reference_frame=start)
     series = contact_series(read_frames(video), reference_frame=start)
     judge = GraspJudge.from_file(model_path(name))
-    expected = [judge.push(s, r) for s, r in zip(series, field_rows(fields.fields, fields.valid_share))]
+    expected = [judge.push(s, r) for s, r in zip(series, field_rows(fields.fields, fields.valid_share, fields.width_px))]
     with TopicReader(["/slip"]) as reader:
         spawn("launch", str(REPO / "launch" / "video.yaml"), f"video:={video}")
         states = [reader.recv(60.0 if k == 0 else 10.0) for k in range(len(expected))]
