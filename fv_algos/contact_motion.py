@@ -14,7 +14,12 @@ that move: the dark markers (the skin) and the shading of the object's imprint. 
 - ``imprint_change``: mean |marker-free colour image - that of the emptiest frame so far| (summed
   over B, G, R), grey levels: how far the imprint is from the bare skin (an object that slips
   away or out of the grasp brings it back);
-- ``imprint_step``: the same against the previous frame, grey levels per frame.
+- ``imprint_step_rms``: root-mean-square change of the marker-free colour image against the previous
+  frame (summed over B, G, R) above the camera's noise floor, grey levels per frame: sqrt(max(m - m0,
+  0)) of the mean squared change m, where m0 is the least m of the grasp so far (this frame
+  included). Independent pixel noise adds its power to every m alike, so it cancels: the mean
+  absolute change used before doubled for noise of 2 grey levels per pixel, and every slip read as a
+  held grasp.
 
 The emptiest frame is the one of least shading from the reference on (this frame included): a
 camera's start-up frames, brighter or more textured than its bare skin, never become it, so a
@@ -36,8 +41,8 @@ import numpy as np
 from fv_algos.frame_rate import pick
 from fv_algos.real_trials import Trial, VideoKey, cache_folder, cache_stem, map_videos, read_frames, write_atomically
 
-SERIES = ("relative_px", "marker_px", "contact_above_min", "imprint_change", "imprint_step")
-SERIES_CACHE_VERSION = 4
+SERIES = ("relative_px", "marker_px", "contact_above_min", "imprint_change", "imprint_step_rms")
+SERIES_CACHE_VERSION = 5
 
 
 @dataclass(frozen=True)
@@ -68,13 +73,14 @@ class _Prepared:
 
 class ContactMotion:
     """Per-frame ``SERIES`` of one camera, online: ``reset`` with the reference image, then ``step``
-    every frame; it keeps the previous frame and the emptiest one so far."""
+    every frame; it keeps the previous frame, the emptiest one so far and the noise floor."""
 
     def __init__(self, params: ContactMotionParams = ContactMotionParams()) -> None:
         self.params = params
         self._kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (params.close_px, params.close_px))
         self._emptiest: _Prepared | None = None
         self._previous: _Prepared | None = None
+        self._floor = np.inf  # least mean squared step of the grasp so far, grey levels² per frame²
 
     def _prepare(self, image: np.ndarray) -> _Prepared:
         small = cv2.resize(image, self.params.size_px, interpolation=cv2.INTER_AREA)
@@ -88,6 +94,7 @@ class ContactMotion:
         """Start from ``image`` (H, W, 3) BGR uint8, the first emptiest frame; returns its row, zeros (5,)
         float32."""
         self._emptiest = self._previous = self._prepare(image)
+        self._floor = np.inf
         return np.zeros(len(SERIES), np.float32)
 
     def step(self, image: np.ndarray) -> np.ndarray:
@@ -102,10 +109,12 @@ class ContactMotion:
         imprint_flow = _flow(old.closed_grey, now.closed_grey)
         weight = np.clip(np.maximum(now.texture, old.texture) - self.params.texture_floor, 0.0, None)
         relative = float((np.linalg.norm(imprint_flow - raw_flow, axis=-1) * weight).sum() / (weight.sum() + 1e-6))
+        squared_step = float(np.square(now.closed - old.closed).sum(axis=-1).mean())
+        self._floor = min(self._floor, squared_step)
         self._previous = now
         return np.array([relative, np.linalg.norm(raw_flow, axis=-1).mean(), now.shading - self._emptiest.shading,
                          np.abs(now.closed - self._emptiest.closed).sum(axis=-1).mean(),
-                         np.abs(now.closed - old.closed).sum(axis=-1).mean()], np.float32)
+                         np.sqrt(squared_step - self._floor)], np.float32)
 
 
 def _flow(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -38,11 +38,11 @@ DESCRIPTORS = (
     "field_px", "shear_x_px", "shear_y_px",  # grid means of |d|, dx, dy, px at FIELD_WIDTH_PX
     "invalid_share",  # share of reference markers not valid this frame
     "divergence", "curl",  # grid means of div d and curl d (d in px at FIELD_WIDTH_PX, per grid cell)
-    "imprint_change", "imprint_step",  # from SERIES, grey levels
+    "imprint_change", "imprint_step_rms",  # from SERIES, grey levels
 )
 SCALE = np.array([1.0, 1.0, 1.0, 5.0, 5.0, 5.0, 0.1, 1 / 3, 1 / 3, 10.0, 1.0], np.float32)
 # descriptors that are per-frame rates (divided by the factor a trial is stretched in time by)
-PER_FRAME = np.array([n in ("relative_px", "marker_px", "imprint_step") for n in DESCRIPTORS])
+PER_FRAME = np.array([n in ("relative_px", "marker_px", "imprint_step_rms") for n in DESCRIPTORS])
 # descriptor signs of the image mirrored left-right, and upside down
 MIRROR_X = np.array([1, 1, 1, 1, -1, 1, 1, 1, -1, 1, 1], np.float32)
 MIRROR_Y = np.array([1, 1, 1, 1, 1, -1, 1, 1, -1, 1, 1], np.float32)

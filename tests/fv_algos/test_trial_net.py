@@ -126,7 +126,7 @@ def test_stretching_in_time_resamples_levels_and_slows_rates() -> None:
     levels, rates = slow[~PER_FRAME], slow[PER_FRAME]
     np.testing.assert_allclose(levels, np.tile(np.linspace(0.0, 4.0, 82), (len(levels), 1)), atol=1e-5)
     np.testing.assert_allclose(rates, levels[:len(rates)] / 2.0, atol=1e-5)  # twice as slow: half per frame
-    assert {DESCRIPTORS[i] for i in np.flatnonzero(PER_FRAME)} == {"relative_px", "marker_px", "imprint_step"}
+    assert {DESCRIPTORS[i] for i in np.flatnonzero(PER_FRAME)} == {"relative_px", "marker_px", "imprint_step_rms"}
     assert stretch_in_time(torch.from_numpy(ramp), 0.5).shape == (len(DESCRIPTORS), 20)
     assert stretch_in_time(torch.from_numpy(ramp[:, :1]), 0.5).shape == (len(DESCRIPTORS), 2)
     np.testing.assert_array_equal(stretch_in_time(torch.from_numpy(ramp), 1.0).numpy(), ramp)
