@@ -427,7 +427,7 @@ def read_trial_model(path: str | Path) -> TrialModel | None:
         return None
     if data["descriptors"] != list(DESCRIPTORS) or data["scale"] != SCALE.tolist():
         raise ValueError(f"{path}: descriptors {data['descriptors']} (scale {data['scale']}) differ from this "
-                         f"code's {list(DESCRIPTORS)} ({SCALE.tolist()})")
+                         f"code's {list(DESCRIPTORS)} ({SCALE.tolist()}): retrain the model with `fv real train`")
     config = data["config"]
     net = TrialNet(int(config["hidden"]), int(config.get("layers", 3)), int(config.get("members", 1)))
     net.load_state_dict(data["state_dict"])

@@ -215,7 +215,7 @@ def test_a_model_file_of_another_kind_is_refused(tmp_path: Path) -> None:
     data = torch.load(tmp_path / "m.pt", weights_only=False)
     data["descriptors"] = data["descriptors"][:-1]
     torch.save(data, tmp_path / "old.pt")
-    with pytest.raises(ValueError, match="differ from this code"):
+    with pytest.raises(ValueError, match="differ from this code.*retrain the model with `fv real train`"):
         load_trial_model(tmp_path / "old.pt")
 
 
