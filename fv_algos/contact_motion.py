@@ -18,8 +18,8 @@ that move: the dark markers (the skin) and the shading of the object's imprint. 
   frame (summed over B, G, R) above the camera's noise floor, grey levels per frame: sqrt(max(m - m0,
   0)) of the mean squared change m, where m0 is the least m of the grasp so far (this frame
   included). Independent pixel noise adds its power to every m alike, so it cancels: the mean
-  absolute change used before doubled for noise of 2 grey levels per pixel, and every slip read as a
-  held grasp.
+  absolute change used before doubled for noise of 2 grey levels per pixel, and most slips read as
+  held grasps.
 
 The emptiest frame is the one of least shading from the reference on (this frame included): a
 camera's start-up frames, brighter or more textured than its bare skin, never become it, so a
