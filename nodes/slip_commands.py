@@ -43,12 +43,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("eval", help="Table 1 (every split and model) and the speed/accuracy variants; or, with "
                        "--trials, one model on a folder of labelled real recordings")
-    p.add_argument("--data", type=Path, help="sequence dataset .npz (fv dataset sim)")
+    mode = p.add_mutually_exclusive_group()  # three evaluations: Table 1, real recordings, the main job's stream
+    mode.add_argument("--data", type=Path, help="sequence dataset .npz (fv dataset sim)")
     p.add_argument("--out", type=output_folder, help="report folder: table1.json, variants.json, pareto.png")
-    p.add_argument("--trials", type=Path, help="folder with labels.csv (trial,object,label) and <trial>/camera_0.avi "
+    mode.add_argument("--trials", type=Path, help="folder with labels.csv (trial,object,label) and <trial>/camera_0.avi "
                    "[camera_2.avi] (or .mp4, .mkv, .mov, .m4v): judge --model on it, from video to decision")
     p.add_argument("--model", help="with --trials or --stream: shipped model name (sim, gelsight) or checkpoint path")
-    p.add_argument("--stream", type=positive_float, metavar="SECONDS",
+    mode.add_argument("--stream", type=positive_float, metavar="SECONDS",
                    help="judge a window --model frame by frame on SECONDS of the simulated camera's random grasps "
                         "(the main job's stream) against the simulator's truth; --fps, --seed set the camera")
     p.add_argument("--fps", type=positive_float, default=30.0, help="with --stream: camera rate, Hz (default 30, "

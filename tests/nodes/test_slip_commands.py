@@ -128,6 +128,16 @@ def test_the_main_jobs_endless_random_grasps_are_judged_as_their_truth(capsys) -
     assert "0.2 s at 30.0 fps is 6 frames, fewer than the model's window of 10" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("other", [["--trials", "recordings"], ["--data", "sim.npz"]])
+def test_fv_eval_takes_one_evaluation_at_a_time(other: list[str], capsys) -> None:
+    """--stream, --trials and --data are three evaluations: given two, fv eval refuses before running
+    either (it used to run the stream and ignore --trials)."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(["eval", "--stream", "5", *other, "--model", "sim_fast"])
+    assert exit_info.value.code == 2
+    assert f"argument {other[0]}: not allowed with argument --stream" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("argv", [["real", "cv", "--trials", "x", "--workers", "0"],
                                   ["eval", "--trials", "x", "--workers", "-1"],
                                   ["dataset", "sim", "--out", "x.npz", "--workers", "two"]])
