@@ -67,7 +67,7 @@ def test_the_imprint_step_is_measured_above_the_noise_floor_of_the_camera() -> N
     moving = np.diff(shifts) > 0
     assert steps[0][~moving].max() < 0.05 and steps[0][moving].min() > 1.0
     assert steps[1][~moving].max() < 0.05
-    np.testing.assert_allclose(steps[1][moving], steps[0][moving], rtol=0.25)  # 19% at 1 px, 5 to 7% at 3 px
+    np.testing.assert_allclose(steps[1][moving], steps[0][moving], rtol=0.25)  # 19% at 1 px, 7% at 2 px, 5 to 6% at 3 px
     small = [cv2.resize(f, (80, 60), interpolation=cv2.INTER_AREA).astype(np.float32) for f in noisy]
     mean_abs = np.array([np.abs(b - a).sum(axis=-1).mean() for a, b in zip(small, small[1:])])
     assert mean_abs[~moving].min() > 2.0 and mean_abs[moving].min() < 4.0

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Iterable
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -53,6 +55,17 @@ def _subset(isd: Path, root: Path, trials: dict[str, tuple[str, str]] = SHORT_TR
         lines.append(f"{name},{obj},{label}")
     (root / "labels.csv").write_text("\n".join(lines) + "\n")
     return root
+
+
+def _write_mjpeg(path: Path, frames: Iterable[np.ndarray], fps: float = 25.0) -> None:
+    """``frames`` (H, W, 3) BGR uint8, all of one size, as an MJPEG .avi at ``fps`` Hz (how the
+    GelSight Mini trials are stored)."""
+    frames = iter(frames)
+    first = next(frames)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (first.shape[1], first.shape[0]))
+    for frame in (first, *frames):
+        writer.write(frame)
+    writer.release()
 
 
 def test_dataset_table_lists_150_trials_with_both_cameras(isd_data: Path) -> None:
@@ -119,13 +132,9 @@ def test_a_grasp_filmed_at_twice_the_resolution_gives_the_same_field_descriptors
                                                                                    tmp_path: Path) -> None:
     """The field descriptors are px of the frame at FIELD_WIDTH_PX wide: a 640x480 copy of a real slip
     gives the rows of its 320x240 original within a tenth of their size (raw px would be twice them)."""
-    import cv2
     video = isd_data / "train/marker_pen/exp_num_2/camera_0.avi"  # a slip, 53 frames
     large = tmp_path / "camera_0.avi"
-    writer = cv2.VideoWriter(str(large), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (640, 480))
-    for frame in read_frames(video):
-        writer.write(cv2.resize(frame, (640, 480), interpolation=cv2.INTER_CUBIC))
-    writer.release()
+    _write_mjpeg(large, (cv2.resize(f, (640, 480), interpolation=cv2.INTER_CUBIC) for f in read_frames(video)))
     original, copy = video_fields(video), video_fields(large)
     assert (original.width_px, copy.width_px) == (320, 640) == (FIELD_WIDTH_PX, 2 * FIELD_WIDTH_PX)
     rows = [field_rows(v.fields, v.valid_share, v.width_px) for v in (original, copy)]
@@ -400,15 +409,11 @@ def test_fv_eval_judges_a_faster_camera_on_the_frames_of_the_model_rate(isd_data
     picks the 50 fps video's frames at the model's 25 fps and judges it as the 25 fps one; judged at its
     own rate (the table says 25 fps) it sees every motion at half the speed. A rate the model cannot take
     is refused by name."""
-    import cv2
     from nodes.cli import main
     frames = list(read_frames(isd_data / "train" / "ball_white_thread" / "exp_num_5" / "camera_0.avi"))  # a slip
     for name, fps, video in (("at25", 25.0, frames), ("at50", 50.0, [frames[0]] + [f for f in frames[1:] for _ in "ab"])):
         (tmp_path / name).mkdir()
-        writer = cv2.VideoWriter(str(tmp_path / name / "camera_0.avi"), cv2.VideoWriter_fourcc(*"MJPG"), fps, (320, 240))
-        for frame in video:
-            writer.write(frame)
-        writer.release()
+        _write_mjpeg(tmp_path / name / "camera_0.avi", video, fps)
 
     def scores(table: str, frames_judged: int) -> list[float]:
         (tmp_path / "labels.csv").write_text(table)
@@ -431,14 +436,10 @@ def test_fv_eval_refuses_a_video_too_short_to_judge_by_name(isd_data: Path, tmp_
                                                             capsys) -> None:
     """A grasp of fewer than 10 frames from the reference on is refused, trial and camera named, by a trial
     model and a window model alike (it was judged from a frame or two, or scored NaN and called held)."""
-    import cv2
     from nodes.cli import main
     frames = list(read_frames(isd_data / "train" / "nylon_thread" / "exp_num_1" / "camera_0.avi"))
     (tmp_path / "short").mkdir()
-    writer = cv2.VideoWriter(str(tmp_path / "short" / "camera_0.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (320, 240))
-    for frame in frames[:6]:  # the stale frame 0, the reference and 4 more
-        writer.write(frame)
-    writer.release()
+    _write_mjpeg(tmp_path / "short" / "camera_0.avi", frames[:6])  # the stale frame 0, the reference and 4 more
     _subset(isd_data, tmp_path, {"train/blue_mug/exp_num_5": ("blue_mug", "no_slip")})
     with (tmp_path / "labels.csv").open("a") as table:
         table.write("short,nylon_thread,slip\n")
