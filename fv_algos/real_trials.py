@@ -52,6 +52,8 @@ VIDEO_SUFFIXES = (".avi", ".mp4", ".mkv", ".mov", ".m4v")  # a camera's video: c
 LABEL_VALUES = {"no_slip": 0, "slip": 1, "0": 0, "1": 1}
 REQUIRED_COLUMNS = ("trial", "object", "label")
 CACHE_VERSION = 3
+# the frame width (px) real-trial fields are read at by the models, whatever the camera's: the GelSight Mini's 320x240
+FIELD_WIDTH_PX = 320
 
 
 @dataclass(frozen=True)
@@ -123,6 +125,13 @@ def _camera_videos(folder: Path, where: str) -> dict[str, Path]:
     if CAMERAS[0] not in videos:
         raise FileNotFoundError(f"{where}: video not found: {folder / CAMERAS[0]}{{{','.join(VIDEO_SUFFIXES)}}}")
     return videos
+
+
+def at_reference_width(fields: np.ndarray, width_px: int) -> np.ndarray:
+    """float32 copy of ``fields`` (..., 3) px (dx, dy, |d|) of frames ``width_px`` wide, in px of the
+    frame resized to ``FIELD_WIDTH_PX`` wide: the scale the models trained on real trials read, so
+    that one grasp filmed at another resolution gives them the same input."""
+    return np.asarray(fields, np.float32) * np.float32(FIELD_WIDTH_PX / width_px)
 
 
 @dataclass

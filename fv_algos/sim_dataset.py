@@ -70,8 +70,9 @@ class SimDatasetConfig:
 @dataclass(frozen=True)
 class SimSequence:
     """One generated sequence: fields (F, H, W, 3) float32 px, its kind, label (1 = slip),
-    object id (index into OBJECT_NAMES), per-frame true slip flags (F,) bool, and the number
-    of frames whose field perception flagged invalid (stored as zeros)."""
+    object id (index into OBJECT_NAMES), per-frame true slip flags (F,) bool, the number
+    of frames whose field perception flagged invalid (stored as zeros) and the camera's frame
+    width (px, the scale of the fields)."""
 
     fields: np.ndarray
     kind: str
@@ -79,6 +80,7 @@ class SimSequence:
     object_id: int
     frame_slip: np.ndarray
     invalid_frames: int
+    width_px: int
 
 
 def kind_plan(n_sequences: int, seed: int) -> list[str]:
@@ -114,6 +116,7 @@ def simulate_sequence(config: SimDatasetConfig, index: int, kind: str) -> SimSeq
         object_id=OBJECT_NAMES.index(shape_name(scene.obj)),
         frame_slip=np.array(frame_slip, dtype=bool),
         invalid_frames=invalid,
+        width_px=sensor.camera.width,
     )
 
 
@@ -156,7 +159,7 @@ def iter_sequences(config: SimDatasetConfig, workers: int = 1) -> Iterator[SimSe
 def generate(config: SimDatasetConfig, workers: int = 1, progress: bool = True) -> SequenceSet:
     """The whole dataset as a :class:`SequenceSet` (fields (S, F, 30, 30, 3) float16 px).
 
-    metadata holds: source "sim", the config, object_names, per-sequence ``kinds`` and
+    metadata holds: source "sim", ``frame_width_px`` (the camera's), the config, object_names, per-sequence ``kinds`` and
     ``frame_slip`` (true per-frame slip flags as 0/1 lists), ``invalid_frames`` (total fields
     perception flagged invalid), ``generation_s`` (wall time) and ``workers``.
     """
@@ -172,8 +175,12 @@ def to_sequence_set(sequences: Sequence[SimSequence], config: SimDatasetConfig,
     """Stack generated sequences into a :class:`SequenceSet` with the metadata of :func:`generate`."""
     if not sequences:
         raise ValueError("no sequences to stack")
+    widths = sorted({s.width_px for s in sequences})
+    if len(widths) > 1:
+        raise ValueError(f"sequences of cameras {widths} px wide: one set holds the fields of one frame width")
     metadata: dict[str, object] = {
         "source": "sim",
+        "frame_width_px": widths[0],
         "config": {**config.__dict__, "render_effects": list(config.render_effects)},
         "object_names": list(OBJECT_NAMES),
         "kinds": [s.kind for s in sequences],

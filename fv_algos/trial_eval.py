@@ -35,7 +35,7 @@ from torch import nn
 from tqdm import tqdm
 
 from fv_algos.allocator import steady_malloc
-from fv_algos.real_trials import CAMERAS, Trial, TrialFields, require_frames
+from fv_algos.real_trials import CAMERAS, FIELD_WIDTH_PX, Trial, TrialFields, at_reference_width, require_frames
 from fv_algos.slip.classifier import load_checkpoint, predict_proba
 from fv_algos.slip.evaluate import classification_metrics, predict_rows
 from fv_algos.slip.models import ModelConfig
@@ -99,10 +99,12 @@ def window_activity(fields: np.ndarray, window: int, starts: np.ndarray) -> np.n
 def trial_windows(
     trials: Sequence[Trial], fields: TrialFields, window: int, rule: TrialRule, cameras: Sequence[str] = CAMERAS
 ) -> TrialWindows:
-    """Cut the windows of every available camera of every trial; ValueError naming the videos shorter
-    than ``window`` (they would give none, and their trial no score)."""
+    """Cut the windows of every available camera of every trial, fields in px of the frame at
+    ``FIELD_WIDTH_PX`` wide; ValueError naming the videos shorter than ``window`` (they would give
+    none, and their trial no score)."""
     require_frames({(t.name, c): fields[(t.name, c)] for t in trials for c in cameras if (t.name, c) in fields}, window)
-    videos = [(i, fields[(t.name, c)].fields) for i, t in enumerate(trials) for c in cameras if (t.name, c) in fields]
+    videos = [(i, at_reference_width(fields[(t.name, c)].fields, fields[(t.name, c)].width_px))
+              for i, t in enumerate(trials) for c in cameras if (t.name, c) in fields]
     longest = max(v.shape[0] for _, v in videos)
     grid = videos[0][1].shape[1]
     padded = np.zeros((len(videos), longest, grid, grid, 3), np.float16)
@@ -117,7 +119,8 @@ def trial_windows(
         start.append(starts)
         trial.append(np.full(starts.size, i))
         activity.append(window_activity(video, window, starts))
-    sequences = SequenceSet(padded, labels, object_ids, {"source": "real trials", "stride": rule.stride})
+    sequences = SequenceSet(padded, labels, object_ids,
+                            {"source": "real trials", "stride": rule.stride, "frame_width_px": FIELD_WIDTH_PX})
     windows = WindowSet(sequences, window, np.concatenate(seq).astype(np.int64), np.concatenate(start).astype(np.int64))
     act = np.concatenate(activity)
     return TrialWindows(
@@ -203,7 +206,8 @@ def fit(data: TrialWindows, train_trials: np.ndarray, config: FitConfig, monitor
         start = load_checkpoint(init)
         train_config = replace(train_config, model=start.model_config, steps=start.step + train_config.steps)
     result = train(train_config, Split(data.windows, train_rows, monitor, "object"), resume=init)
-    probability = predict_rows(partial(predict_proba, result.model), data.windows, np.flatnonzero(in_train))
+    probability = predict_rows(partial(predict_proba, result.model, width_px=FIELD_WIDTH_PX), data.windows,
+                               np.flatnonzero(in_train))
     scores = trial_scores(probability, data.trial[in_train], len(data.objects), config.rule.top_k)
     threshold = choose_threshold(scores[train_trials], data.trial_labels[train_trials])
     record = {"train_windows": int(rows.size), "steps": result.step, "windows_per_s": result.windows_per_s,
@@ -216,7 +220,7 @@ def judge(model: nn.Module, data: TrialWindows, trials: np.ndarray, threshold: f
     (labelled windows, p >= 0.5), trial_accuracy, confusion (trial level, [[TN, FP], [FN, TP]]),
     n_trials, n_windows, and per-trial scores."""
     rows = np.flatnonzero(np.isin(data.trial, trials))
-    probability = predict_rows(partial(predict_proba, model), data.windows, rows)
+    probability = predict_rows(partial(predict_proba, model, width_px=FIELD_WIDTH_PX), data.windows, rows)
     labelled = data.labelled[rows]
     window = classification_metrics(data.labels[rows][labelled], (probability[labelled] >= 0.5).astype(np.int64))
     scores = trial_scores(probability, data.trial[rows], len(data.objects), top_k)[trials]
@@ -310,6 +314,6 @@ def cross_validate(data: TrialWindows, config: FitConfig, folds: int, seed: int 
 def fit_config(arch: str = "convlstm", hidden: int = 16, steps: int = 300, batch_size: int = 32, lr: float = 1e-3,
                seed: int = 0, rule: TrialRule = TrialRule(), progress: bool = False) -> FitConfig:
     """A :class:`FitConfig` for the node's window (10) and grid (30) on one CPU thread."""
-    model = ModelConfig(arch=arch, hidden=hidden)
+    model = ModelConfig(arch=arch, hidden=hidden, field_width_px=FIELD_WIDTH_PX)
     return FitConfig(TrainConfig(model=model, steps=steps, batch_size=batch_size, lr=lr, seed=seed,
                                  eval_every=steps, threads=1, progress=progress), rule)

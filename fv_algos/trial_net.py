@@ -27,7 +27,7 @@ import torch
 from torch import nn
 
 from fv_algos.contact_motion import ContactMotionParams, TrialSeries
-from fv_algos.real_trials import CAMERAS, Trial, TrialFields, VideoFields, require_frames
+from fv_algos.real_trials import CAMERAS, Trial, TrialFields, VideoFields, at_reference_width, require_frames
 from fv_algos.slip.classifier import LOAD_ERRORS
 from fv_algos.slip.evaluate import classification_metrics
 from fv_algos.trial_eval import fold_summary, map_folds, object_folds
@@ -50,16 +50,15 @@ KIND = "trial_net"
 MIN_FRAMES = 10  # shortest camera judged, and shortest beginning of a held grasp trained on (0.4 s at 25 fps)
 START_FRAMES = 14  # a camera's start-up frames, which start_swap trades (the GelSight Mini burst ends by frame 13)
 FIELD_ROWS = ("field_px", "shear_x_px", "shear_y_px", "invalid_share", "divergence", "curl")
-# the frame width (px) the field descriptors are measured at, whatever the camera's: the GelSight Mini's 320x240
-FIELD_WIDTH_PX = 320
 
 
 def field_rows(fields: np.ndarray, valid_share: np.ndarray, width_px: int) -> np.ndarray:
     """(F, 6) float32 ``FIELD_ROWS`` of ``fields`` (F, H, W, 3) px (dx, dy, |d|) of frames ``width_px``
     wide and the share of reference markers valid in each frame ``valid_share`` (F,); frames are
-    independent. Displacements are rescaled to px of the frame resized to ``FIELD_WIDTH_PX`` wide, so
-    one grasp filmed at another resolution gives the same rows."""
-    grid = fields.astype(np.float32) * np.float32(FIELD_WIDTH_PX / width_px)
+    independent. Displacements are rescaled to px of the frame resized to ``FIELD_WIDTH_PX`` wide
+    (:func:`fv_algos.real_trials.at_reference_width`), so one grasp filmed at another resolution gives
+    the same rows."""
+    grid = at_reference_width(fields, width_px)
     ddx_dy, ddx_dx = np.gradient(grid[..., 0], axis=(1, 2))
     ddy_dy, ddy_dx = np.gradient(grid[..., 1], axis=(1, 2))
     return np.stack([grid[..., 2].mean(axis=(1, 2)), grid[..., 0].mean(axis=(1, 2)), grid[..., 1].mean(axis=(1, 2)),

@@ -345,7 +345,8 @@ def _eval(args: argparse.Namespace) -> int:
         raise ValueError(f"--splits: unknown {unknown} (known: {list(SPLITS)})")
     sequences = load_sequences(args.data)
     store = _ModelStore(args.models or args.out / "models", args.data, sequences, args)
-    base = {"hidden": args.hidden, "kernel": args.kernel, "window": args.window, "grid": sequences.grid}
+    base = {"hidden": args.hidden, "kernel": args.kernel, "window": args.window, "grid": sequences.grid,
+            "field_width_px": sequences.frame_width_px}
     table, splits_done = [], {}
     for split_name in splits:
         split = _split(sequences, split_name, args.window, args.test_fraction, args.seed)

@@ -1,7 +1,10 @@
 """The `slip_detector` node: DisplacementField -> SlipState on `/slip` at the field rate.
 
 A window model keeps the last `window` fields (the model's window length), asks the
-ConvLSTM for P(slip), and decides with a threshold and optional hysteresis. Every field
+ConvLSTM for P(slip), and decides with a threshold and optional hysteresis. Its fields are
+rescaled from the camera's frame width (the tracker's `/markers/reference`, latched) to that of the
+frames it was trained on (`ModelConfig.field_width_px`); until that width is known no window is
+judged (counted in no_width). Every field
 enters the window, but when the model falls behind (newer fields already queued) only the
 newest window is judged: the skipped decisions are counted, and latency stays one model call.
 
@@ -99,9 +102,14 @@ class SlipDetectorNode(Node):
         self.classifier = SlipClassifier(path, device=p.device, threads=p.threads)
         cfg = self.classifier.config
         self.window: collections.deque = collections.deque(maxlen=cfg.window)
+        self.frame_width: int | None = None  # px, of the tracker's reference frame
+        self.counters.update(no_width=0)
+        if cfg.field_width_px:
+            self.subscribe("/markers/reference", MarkerArray, self.on_window_reference, depth=1)
         self.field_sub = self.subscribe("/field", DisplacementField, self.on_field, depth=cfg.window,
                                         stale_after_s=p.input_timeout_s or None)
-        self.log.info("model %s: window %d, grid %d", p.model, cfg.window, cfg.grid)
+        self.log.info("model %s: window %d, grid %d, fields read at %s px wide frames", p.model, cfg.window,
+                      cfg.grid, cfg.field_width_px or "any")
 
     def setup_grasp(self, model: TrialModel) -> None:
         import torch
@@ -134,10 +142,14 @@ class SlipDetectorNode(Node):
         elif probability < p.threshold - p.hysteresis:
             self.slip = False
 
+    def on_window_reference(self, msg: MarkerArray) -> None:
+        """The camera's frame width, which the window model's fields are rescaled from."""
+        self.frame_width = msg.width or None
+
     def on_field(self, msg: DisplacementField) -> None:
-        grid = self.classifier.config.grid
-        if msg.field.shape[:2] != (grid, grid):
-            raise ValueError(f"field grid {msg.field.shape[:2]} does not match the model's {grid}x{grid}: "
+        cfg = self.classifier.config
+        if msg.field.shape[:2] != (cfg.grid, cfg.grid):
+            raise ValueError(f"field grid {msg.field.shape[:2]} does not match the model's {cfg.grid}x{cfg.grid}: "
                              "set the interpolator's grid param")
         self.window.append((msg.stamp_ns, msg.field, msg.valid))
         if len(self.window) < self.window.maxlen:
@@ -145,12 +157,17 @@ class SlipDetectorNode(Node):
         if self.field_sub.queue:  # newer fields wait: judge only the newest window (latency stays one call)
             self.counters["skipped"] += 1
             return
+        if cfg.field_width_px and self.frame_width is None:
+            self.counters["no_width"] += 1
+            self.warn("no frame width from the tracker's /markers/reference yet: the model reads fields in px of "
+                      f"{cfg.field_width_px} px wide frames, so windows wait for it (no_width)")
+            return
         stamps = np.array([s for s, _, _ in self.window], np.int64)
         valid = all(v for _, _, v in self.window)
         probability = 0.0
         if valid:
             try:
-                probability = self.classifier.predict(np.stack([f for _, f, _ in self.window]))
+                probability = self.classifier.predict(np.stack([f for _, f, _ in self.window]), self.frame_width)
             except ValueError as exc:  # non-finite field values: flag the window, keep running
                 self.warn(f"window rejected: {exc}")
                 valid = False

@@ -24,6 +24,7 @@ from fv_algos.slip.models import (
     build_model,
     fast_layout,
     to_model_input,
+    width_gain,
 )
 
 CHECKPOINT_FORMAT = "fv-slip-checkpoint"
@@ -154,14 +155,16 @@ def predict_proba(
     windows: np.ndarray,
     autocast: torch.dtype | None = None,
     device: str | torch.device = "cpu",
+    width_px: int | None = None,
 ) -> np.ndarray:
-    """Slip probabilities (B,) float64 in [0, 1] for windows (B, T, H, W, 3) px.
+    """Slip probabilities (B,) float64 in [0, 1] for windows (B, T, H, W, 3) px of frames
+    ``width_px`` wide (rescaled by :func:`fv_algos.slip.models.width_gain`; None: taken as they come).
 
     ``model`` must carry a ``config`` (:class:`ModelConfig`); ``autocast`` runs the forward pass
     under ``torch.autocast`` with that dtype (e.g. torch.bfloat16). The softmax is taken in
     float32. Raises ValueError for invalid input and if the model yields non-finite logits.
     """
-    x = to_model_input(validate_windows(windows, model.config)).to(device)
+    x = to_model_input(validate_windows(windows, model.config), width_gain(model.config, width_px)).to(device)
     with torch.inference_mode():
         with autocast_context(device, autocast):
             logits = model(x).float()
@@ -208,9 +211,10 @@ class SlipClassifier:
         """The model's configuration (window length, grid, input scale...)."""
         return self.model.config
 
-    def predict(self, window: np.ndarray) -> float:
-        """Slip probability in [0, 1] for one window (T, H, W, 3) float px (ValueError on NaN/inf)."""
+    def predict(self, window: np.ndarray, width_px: int | None = None) -> float:
+        """Slip probability in [0, 1] for one window (T, H, W, 3) float px of frames ``width_px``
+        wide (None: taken as they come; see :func:`fv_algos.slip.models.width_gain`); ValueError on NaN/inf."""
         arr = np.asarray(window)
         if arr.ndim != 4:
             raise ValueError(f"window must have shape (T, H, W, 3), got {arr.shape}")
-        return float(predict_proba(self.model, arr[None], autocast=self.autocast, device=self.device)[0])
+        return float(predict_proba(self.model, arr[None], self.autocast, self.device, width_px)[0])

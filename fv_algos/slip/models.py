@@ -38,6 +38,11 @@ class ModelConfig:
     scale_px: displacement (px) that maps to 1.0 at the model input.
     clip: bound on the scaled input, |x / scale_px| <= clip.
     pool: cells per side of the pooled field fed to the "lstm" baseline.
+    field_width_px: width (px) of the camera frames the training fields were measured in
+        (``scale_px`` is in their px); a field from frames of another width is rescaled to it
+        first (:func:`width_gain`), since displacements in px scale with
+        the frame width. None: fields are taken as they come (fields of no camera, and
+        checkpoints from before this setting).
     """
 
     arch: str = "convlstm"
@@ -48,6 +53,7 @@ class ModelConfig:
     scale_px: float = 5.0
     clip: float = 20.0
     pool: int = 6
+    field_width_px: int | None = None
 
     def __post_init__(self) -> None:
         if self.arch not in ARCHS:
@@ -61,6 +67,9 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.scale_px must be finite and > 0, got {self.scale_px}")
         if not (np.isfinite(self.clip) and self.clip > 0):
             raise ValueError(f"ModelConfig.clip must be finite and > 0, got {self.clip}")
+        if self.field_width_px is not None and (isinstance(self.field_width_px, bool)
+                                                or not isinstance(self.field_width_px, int) or self.field_width_px < 1):
+            raise ValueError(f"ModelConfig.field_width_px must be None or a positive int, got {self.field_width_px!r}")
         if self.arch == "lstm" and self.pool > self.grid:
             raise ValueError(f"ModelConfig.pool ({self.pool}) must not exceed grid ({self.grid})")
 
@@ -123,12 +132,22 @@ def fast_layout(model: nn.Module, dtype: torch.dtype | None) -> nn.Module:
     return model
 
 
-def to_model_input(windows: np.ndarray | torch.Tensor) -> torch.Tensor:
-    """(B, T, H, W, 3) channel-last windows (px) -> (B, T, 3, H, W) float32 tensor (px)."""
+def width_gain(config: ModelConfig, width_px: int | None) -> float:
+    """Factor that takes fields (px) of frames ``width_px`` wide to px of the frames the model was
+    trained on (``config.field_width_px``); 1.0 when either width is unknown (None or 0)."""
+    if not config.field_width_px or not width_px:
+        return 1.0
+    return config.field_width_px / width_px
+
+
+def to_model_input(windows: np.ndarray | torch.Tensor, gain: float = 1.0) -> torch.Tensor:
+    """(B, T, H, W, 3) channel-last windows (px) -> (B, T, 3, H, W) float32 tensor (px), times ``gain``
+    (:func:`width_gain`: px of the frames the model was trained on)."""
     x = torch.as_tensor(windows)
     if x.ndim != 5 or x.shape[-1] != N_CHANNELS:
         raise ValueError(f"windows must have shape (B, T, H, W, 3), got {tuple(x.shape)}")
-    return x.to(torch.float32).permute(0, 1, 4, 2, 3)
+    x = x.to(torch.float32).permute(0, 1, 4, 2, 3)
+    return x if gain == 1.0 else x * gain
 
 
 class FieldNormaliser(nn.Module):

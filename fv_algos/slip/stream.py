@@ -41,7 +41,7 @@ def judge_stream(classifier: SlipClassifier, seconds: float, fps: float, seed: i
     for frame in islice(SimSensor(None, seed=seed, loop_fps=fps), frames):
         fields.append(perception.step(frame.image)[1].field)
         if len(fields) == window:
-            called.append(classifier.predict(np.stack(fields)) >= threshold)
+            called.append(classifier.predict(np.stack(fields), frame.image.shape[1]) >= threshold)
             truth.append(frame.truth.is_slip)
             actions.append(frame.truth.mechanics.command.action)
     called_a, truth_a = np.array(called), np.array(truth)

@@ -44,6 +44,7 @@ from fv_algos.slip.models import (
     build_model,
     fast_layout,
     to_model_input,
+    width_gain,
 )
 from fv_algos.slip.windows import SPLIT_KINDS, Split, load_sequences, make_windows, split_windows
 
@@ -172,16 +173,22 @@ def parameter_digest(model: nn.Module) -> str:
     return digest.hexdigest()
 
 
+def data_gain(config: ModelConfig, data: Split) -> float:
+    """:func:`width_gain` of ``data``'s fields (their sequences' ``frame_width_px``) for ``config``."""
+    return width_gain(config, data.windows.sequences.frame_width_px)
+
+
 def _score(model: nn.Module, data: Split, rows: np.ndarray, device: torch.device, amp: torch.dtype | None,
            batch: int = 128) -> tuple[float, float]:
     """Mean cross-entropy and accuracy of ``model`` on window rows (forward under autocast ``amp``)."""
+    gain = data_gain(model.config, data)
     model.eval()
     loss_sum, correct = 0.0, 0
     with torch.inference_mode():
         for lo in range(0, rows.size, batch):
             x, y = data.windows.get(rows[lo : lo + batch])
             with autocast_context(device, amp):
-                logits = model(to_model_input(x).to(device)).float()
+                logits = model(to_model_input(x, gain).to(device)).float()
             target = torch.as_tensor(y, device=device)
             loss_sum += float(F.cross_entropy(logits, target, reduction="sum"))
             correct += int((logits.argmax(1) == target).sum())
@@ -210,7 +217,7 @@ def train(config: TrainConfig, data: Split, resume: str | Path | None = None) ->
     torch.manual_seed(config.seed)
     model = fast_layout(build_model(config.model).to(device), amp)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
-    step, history = 0, []
+    step, history, gain = 0, [], data_gain(config.model, data)
     if resume is not None:
         checkpoint = load_checkpoint(resume, expected=config.model)
         model.load_state_dict(checkpoint.model_state)
@@ -232,7 +239,7 @@ def train(config: TrainConfig, data: Split, resume: str | Path | None = None) ->
         x, y = data.windows.get(rows)
         target = torch.as_tensor(y, device=device)
         with autocast_context(device, amp):
-            logits = net(to_model_input(x).to(device)).float()
+            logits = net(to_model_input(x, gain).to(device)).float()
         loss = F.cross_entropy(logits, target)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -323,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
     sequences = load_sequences(args.data)
     model_config = ModelConfig(
         arch=args.arch, hidden=args.hidden, kernel=args.kernel, window=args.window,
-        grid=sequences.grid, scale_px=args.scale_px,
+        grid=sequences.grid, scale_px=args.scale_px, field_width_px=sequences.frame_width_px,
     )
     config = TrainConfig(
         model=model_config, steps=args.steps, batch_size=args.batch_size, lr=args.lr, schedule=args.schedule,

@@ -35,7 +35,8 @@ class SequenceSet:
     fields: (S, F, H, W, 3) float16, px; finite and |value| <= 65504 (float16 range).
     labels: (S,) int64 in {0, 1}.
     object_ids: (S,) int64, which object each sequence was recorded with.
-    metadata: JSON-serialisable dict (e.g. {"seed": 0, "source": "synthetic"}).
+    metadata: JSON-serialisable dict (e.g. {"seed": 0, "source": "synthetic"}); ``frame_width_px``, when
+        the fields come from a camera, is its frame width (the px the fields are in).
     """
 
     fields: np.ndarray
@@ -76,6 +77,13 @@ class SequenceSet:
     def grid(self) -> int:
         """H (= W expected by the models)."""
         return int(self.fields.shape[2])
+
+    @property
+    def frame_width_px(self) -> int | None:
+        """Width (px) of the camera frames the fields were measured in (metadata ``frame_width_px``);
+        None for fields of no camera, or sets saved before it was recorded."""
+        width = self.metadata.get("frame_width_px")
+        return int(width) if width else None
 
 
 def save_sequences(path: str | Path, sequences: SequenceSet) -> Path:

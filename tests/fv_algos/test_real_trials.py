@@ -14,6 +14,7 @@ import torch
 
 from fv_algos.grasp_alarm import AlarmRule
 from fv_algos.real_trials import (
+    FIELD_WIDTH_PX,
     Trial,
     VideoFields,
     map_videos,
@@ -37,7 +38,7 @@ from fv_algos.trial_eval import (
     trial_windows,
     window_activity,
 )
-from fv_algos.trial_net import FIELD_ROWS, FIELD_WIDTH_PX, field_rows
+from fv_algos.trial_net import FIELD_ROWS, field_rows
 
 SHORT_TRIALS = {  # trial -> (object, label): the shortest slip trials and the shortest no-slip trial
     "train/nylon_thread/exp_num_1": ("nylon_thread", "slip"),
@@ -130,8 +131,9 @@ def test_video_fields_track_every_frame_without_swaps(isd_data: Path) -> None:
 
 def test_a_grasp_filmed_at_twice_the_resolution_gives_the_same_field_descriptors(isd_data: Path,
                                                                                    tmp_path: Path) -> None:
-    """The field descriptors are px of the frame at FIELD_WIDTH_PX wide: a 640x480 copy of a real slip
-    gives the rows of its 320x240 original within a tenth of their size (raw px would be twice them)."""
+    """The field descriptors, and the window models' fields, are px of the frame at FIELD_WIDTH_PX wide:
+    a 640x480 copy of a real slip gives the rows and windows of its 320x240 original within a tenth of
+    their size (raw px would be twice them)."""
     video = isd_data / "train/marker_pen/exp_num_2/camera_0.avi"  # a slip, 53 frames
     large = tmp_path / "camera_0.avi"
     _write_mjpeg(large, (cv2.resize(f, (640, 480), interpolation=cv2.INTER_CUBIC) for f in read_frames(video)))
@@ -141,6 +143,11 @@ def test_a_grasp_filmed_at_twice_the_resolution_gives_the_same_field_descriptors
     for column in (FIELD_ROWS.index(n) for n in ("field_px", "shear_x_px", "shear_y_px")):
         size = np.abs(rows[0][:, column]).mean()
         assert size > 1.0 and np.abs(rows[1][:, column] - rows[0][:, column]).mean() < 0.1 * size
+    trial = Trial("t", "marker_pen", 1, tmp_path, {"camera_0": video})
+    windows = [trial_windows([trial], {("t", "camera_0"): v}, 10, TrialRule()).windows for v in (original, copy)]
+    assert all(w.sequences.frame_width_px == FIELD_WIDTH_PX for w in windows)
+    fields = [w.sequences.fields.astype(np.float32)[..., 2] for w in windows]
+    assert fields[0].mean() > 1.0 and np.abs(fields[1].mean() - fields[0].mean()) < 0.1 * fields[0].mean()
 
 
 def test_map_videos_refuses_fewer_than_one_worker(tmp_path: Path) -> None:

@@ -27,6 +27,7 @@ def test_shapes_dtypes_and_balance(dataset: SequenceSet) -> None:
     assert Counter(dataset.metadata["kinds"]) == {kind: 2 for kind in SLIP_KINDS + NON_SLIP_KINDS}
     assert set(dataset.object_ids.tolist()) <= set(range(len(SHAPES)))
     assert dataset.metadata["object_names"] == list(OBJECT_NAMES)
+    assert dataset.frame_width_px == 640  # the simulated camera's frames, the px of the fields
     assert [len(f) for f in dataset.metadata["frame_slip"]] == [15] * 12
 
 

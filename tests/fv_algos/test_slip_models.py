@@ -23,6 +23,7 @@ from fv_algos.slip.models import (
     build_model,
     count_parameters,
     to_model_input,
+    width_gain,
 )
 from fv_algos.slip.windows import SyntheticConfig, make_windows, split_windows, synthetic_sequences
 
@@ -78,9 +79,30 @@ def test_model_config_validation_and_round_trip() -> None:
         ModelConfig(scale_px=0.0)
     with pytest.raises(ValueError, match="unknown ModelConfig fields"):
         ModelConfig.from_dict({"hidden": 8, "layers": 2})
-    config = ModelConfig(hidden=32, window=5, grid=20)
+    for width in (0, 2.5, True):
+        with pytest.raises(ValueError, match="field_width_px"):
+            ModelConfig(field_width_px=width)  # type: ignore[arg-type]
+    config = ModelConfig(hidden=32, window=5, grid=20, field_width_px=640)
     assert ModelConfig.from_dict(config.to_dict()) == config
-    assert config.mismatches(ModelConfig()) == ["hidden: 32 != 64", "window: 5 != 10", "grid: 20 != 30"]
+    assert config.mismatches(ModelConfig()) == ["hidden: 32 != 64", "window: 5 != 10", "grid: 20 != 30",
+                                                "field_width_px: 640 != None"]
+    # a checkpoint's config from before the frame width was recorded: fields are taken as they come
+    old = {k: v for k, v in config.to_dict().items() if k != "field_width_px"}
+    assert ModelConfig.from_dict(old).field_width_px is None
+
+
+def test_fields_are_rescaled_to_the_training_frame_width() -> None:
+    """A model trained on 640 px wide frames reads a 320 px camera's field of half the px as the 640 px
+    one; a model of no frame width (None), or a camera of unknown width, takes fields as they come."""
+    torch.manual_seed(0)
+    model = build_model(ModelConfig(hidden=8, window=4, grid=8, field_width_px=640)).eval()
+    window = np.random.default_rng(0).normal(0.0, 3.0, (1, 4, 8, 8, 3)).astype(np.float32)
+    at_640 = predict_proba(model, window, width_px=640)
+    assert predict_proba(model, window / 2, width_px=320) == pytest.approx(at_640, abs=1e-6)
+    assert predict_proba(model, window * 2, width_px=1280) == pytest.approx(at_640, abs=1e-6)
+    assert predict_proba(model, window, width_px=None) == pytest.approx(at_640, abs=1e-6)
+    assert predict_proba(model, window / 2, width_px=None) != pytest.approx(at_640, abs=1e-5)
+    assert width_gain(ModelConfig(), 320) == 1.0 and width_gain(model.config, 0) == 1.0
 
 
 @pytest.mark.parametrize("scale", [0.0, 1.0, 1e6, -1e6, 3e38])

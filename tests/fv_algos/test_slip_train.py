@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import os
+from dataclasses import replace
 import subprocess
 import sys
 from pathlib import Path
@@ -14,7 +15,16 @@ import torch
 from fv_algos.slip.classifier import SlipClassifier, load_checkpoint, model_from_checkpoint, save_checkpoint, Checkpoint
 from fv_algos.slip.models import ModelConfig, build_model
 from fv_algos.slip.train import TrainConfig, batch_rows, lr_at, main, parameter_digest, train
-from fv_algos.slip.windows import Split, SyntheticConfig, make_windows, save_sequences, split_windows, synthetic_sequences
+from fv_algos.slip.windows import (
+    SequenceSet,
+    Split,
+    SyntheticConfig,
+    make_windows,
+    save_sequences,
+    split_windows,
+    synthetic_sequences,
+    WindowSet,
+)
 
 torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parents[2]
@@ -146,6 +156,26 @@ def test_main_single_process(split: Split, tmp_path: Path) -> None:
     result = json.loads((out / "result_rank0.json").read_text())
     assert result["step"] == 4
     assert load_checkpoint(out / "checkpoint.pt").model_config.grid == 8
+
+
+def test_training_reads_fields_in_px_of_the_models_frame_width(split: Split, tmp_path: Path) -> None:
+    """Fields of frames half as wide (half the px), recorded as such, train the same weights as the
+    original fields: training rescales them to the model's ``field_width_px`` as inference does. And
+    `fv train` records the data's frame width in the model."""
+    def with_width(scale: float, width: int) -> Split:
+        s = split.windows.sequences
+        scaled = SequenceSet(s.fields.astype(np.float32) * scale, s.labels, s.object_ids, {"frame_width_px": width})
+        w = split.windows
+        return Split(WindowSet(scaled, w.window, w.sequence, w.start), split.train, split.test, split.kind)
+    config = _config(model=replace(TINY, field_width_px=640))
+    digests = [parameter_digest(train(config, with_width(scale, width)).model)
+               for scale, width in ((1.0, 640), (0.5, 320))]
+    assert digests[0] == digests[1]
+    data = save_sequences(tmp_path / "seq", with_width(0.5, 320).windows.sequences)
+    args = ["--data", str(data), "--out", str(tmp_path / "run"), "--hidden", "8", "--window", "4", "--steps", "2",
+            "--batch-size", "8", "--eval-every", "2", "--no-progress", "--per-sequence", "3"]
+    assert main(args) == 0
+    assert load_checkpoint(tmp_path / "run" / "checkpoint.pt").model_config.field_width_px == 320
 
 
 @pytest.mark.slow

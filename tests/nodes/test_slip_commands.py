@@ -90,10 +90,10 @@ def test_bench_slip_times_the_shipped_model(capsys: pytest.CaptureFixture) -> No
     assert row["params"] == 269_826 and row["ms_per_window"] > 0
 
 
-SHIPPED_SIM = {
-    "sim": ModelConfig(arch="convlstm", hidden=64, kernel=3, window=10, grid=30),
-    "sim_fast": ModelConfig(arch="convlstm", hidden=16, kernel=3, window=10, grid=30),
-    "sim_cnn_lstm": ModelConfig(arch="cnn_lstm", hidden=64, kernel=3, window=10, grid=30),
+SHIPPED_SIM = {  # trained on the simulated camera's 640x480 frames
+    "sim": ModelConfig(arch="convlstm", hidden=64, kernel=3, window=10, grid=30, field_width_px=640),
+    "sim_fast": ModelConfig(arch="convlstm", hidden=16, kernel=3, window=10, grid=30, field_width_px=640),
+    "sim_cnn_lstm": ModelConfig(arch="cnn_lstm", hidden=64, kernel=3, window=10, grid=30, field_width_px=640),
 }
 
 

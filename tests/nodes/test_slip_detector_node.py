@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from msgs import DisplacementField, SlipState
+from msgs import DisplacementField, MarkerArray, SlipState
 from nodes.bus import PublisherSocket, TopicReader
 from nodes.slip_detector import model_path
 from tests.nodes.conftest import REPO, wait_status
@@ -38,6 +38,10 @@ def test_decisions_per_field_with_window_stamps(bus, spawn) -> None:
         deadline = time.monotonic() + 10.0
         while not pub.has_subscribers("/field") and time.monotonic() < deadline:
             time.sleep(0.05)
+        while not pub.has_subscribers("/markers/reference") and time.monotonic() < deadline:
+            time.sleep(0.05)
+        pub.publish("/markers/reference", MarkerArray(stamp_ns=900_000_000, width=320, height=240), latched=True)
+        time.sleep(0.3)
         stamps = [1_000_000_000 + i * 66_000_000 for i in range(14)]
         for i, stamp in enumerate(stamps):
             pub.publish("/field", _field(stamp, 0.3 * i))
@@ -61,8 +65,32 @@ def test_decisions_per_field_with_window_stamps(bus, spawn) -> None:
     pub.close()
 
 
+def test_window_model_reads_fields_at_its_training_frame_width() -> None:
+    """A window model trained on 640 px wide frames (`sim_fast`) gives a 320 px camera's field of half
+    the px the probability of the 640 px one: the node rescales by the tracker's frame width."""
+    from nodes.slip_detector import SlipDetectorNode
+    node = SlipDetectorNode("slip_detector", {"model": "sim_fast"})
+    try:
+        node.setup()
+        assert node.classifier.config.field_width_px == 640
+        published: list[float] = []
+        node.publish_state = lambda msg, probability, stamps, valid: published.append(probability)
+        for i in range(10):  # no frame width yet (the tracker's reference): windows wait
+            node.on_field(_field(i, 1.0))
+        assert not published and node.counters["no_width"] == 1 and "/markers/reference" in node.message
+        for width, scale in ((640, 1.0), (320, 0.5), (1280, 2.0)):
+            node.on_window_reference(MarkerArray(stamp_ns=1, width=width, height=width * 3 // 4))
+            node.window.clear()
+            for i in range(10):
+                node.on_field(_field(10 + i, 0.8 * i * scale))
+        assert len(published) == 3 and published[0] > 0.5
+        assert published[1] == pytest.approx(published[0], abs=1e-5) == published[2]
+    finally:
+        node.close()
+
+
 def test_trial_model_refuses_grey_images_by_name() -> None:
-    from msgs import Image, MarkerArray
+    from msgs import Image
     from nodes.slip_detector import SlipDetectorNode
     node = SlipDetectorNode("slip_detector", {"model": "gelsight_trial"})
     try:
