@@ -317,7 +317,11 @@ def random_scenario(
                        the spin moves the patch);
         incipient      shear ramped from 0.8 to 0.97 mu P on curved objects (slip-zone
                        share >= 0.5 throughout);
-        pressing       normal load ramp, no shear;
+        pressing       normal load ramp, a third of them each: loading from a light touch
+                       (0.2-1 N, no shear), from rest (the contact appears over 4 frames
+                       or more, then is held) or a release (the load and a light shear,
+                       <= 0.3 mu P, back to zero over 4 frames or more, after a hold):
+                       what a gripper does before and after the motion;
         holding        constant load with shear <= 0.3 mu P;
         shear          hard negatives: shear ramped to 0.3-0.45 mu P, still stuck.
     Args:
@@ -369,9 +373,22 @@ def random_scenario(
         steps = [{"action": "shear", "duration_s": duration, "force_N": vec(float(rng.uniform(0.93, 0.97)))}]
         effects = {"normal", "shear"}
     elif kind == "pressing":
-        initial["normal_N"] = float(rng.uniform(0.2, 1.0))
-        steps = [{"action": "press", "duration_s": duration, "normal_N": normal + 1.0}]
-        effects = {"normal"}
+        mode = int(rng.integers(3))
+        ramp = float(rng.integers(4, n_frames + 1)) / fps
+        if mode == 0:  # loading from a light touch
+            initial["normal_N"] = float(rng.uniform(0.2, 1.0))
+            steps = [{"action": "press", "duration_s": duration, "normal_N": normal + 1.0}]
+            effects = {"normal"}
+        elif mode == 1:  # from rest: the contact appears, then is held
+            initial["normal_N"] = 0.0
+            steps = [{"action": "press", "duration_s": ramp, "normal_N": normal}]
+            effects = {"normal"}
+        else:  # a release: the normal load and a light shear back to zero
+            initial["force_N"] = vec(float(rng.uniform(0.0, 0.3)))
+            steps = [{"action": "release", "duration_s": ramp}]
+            effects = {"normal", "shear"}
+        if mode and duration - ramp > 1e-9:  # the rest of the sequence held, after the contact or before the release
+            steps.insert(0 if mode == 2 else 1, {"action": "hold", "duration_s": duration - ramp})
     elif kind == "holding":
         initial["force_N"] = vec(float(rng.uniform(0.0, 0.3)))
         steps = [{"action": "hold", "duration_s": duration}]
