@@ -206,7 +206,8 @@ def fit(data: TrialWindows, train_trials: np.ndarray, config: FitConfig, monitor
         start = load_checkpoint(init)
         train_config = replace(train_config, model=start.model_config, steps=start.step + train_config.steps)
     result = train(train_config, Split(data.windows, train_rows, monitor, "object"), resume=init)
-    probability = predict_rows(partial(predict_proba, result.model, width_px=FIELD_WIDTH_PX), data.windows,
+    width = data.windows.sequences.frame_width_px
+    probability = predict_rows(partial(predict_proba, result.model, width_px=width), data.windows,
                                np.flatnonzero(in_train))
     scores = trial_scores(probability, data.trial[in_train], len(data.objects), config.rule.top_k)
     threshold = choose_threshold(scores[train_trials], data.trial_labels[train_trials])
@@ -220,7 +221,8 @@ def judge(model: nn.Module, data: TrialWindows, trials: np.ndarray, threshold: f
     (labelled windows, p >= 0.5), trial_accuracy, confusion (trial level, [[TN, FP], [FN, TP]]),
     n_trials, n_windows, and per-trial scores."""
     rows = np.flatnonzero(np.isin(data.trial, trials))
-    probability = predict_rows(partial(predict_proba, model, width_px=FIELD_WIDTH_PX), data.windows, rows)
+    probability = predict_rows(partial(predict_proba, model, width_px=data.windows.sequences.frame_width_px),
+                               data.windows, rows)
     labelled = data.labelled[rows]
     window = classification_metrics(data.labels[rows][labelled], (probability[labelled] >= 0.5).astype(np.int64))
     scores = trial_scores(probability, data.trial[rows], len(data.objects), top_k)[trials]

@@ -102,7 +102,7 @@ class SlipDetectorNode(Node):
         self.classifier = SlipClassifier(path, device=p.device, threads=p.threads)
         cfg = self.classifier.config
         self.window: collections.deque = collections.deque(maxlen=cfg.window)
-        self.frame_width: int | None = None  # px, of the tracker's reference frame
+        self.frame_width_px: int | None = None  # of the tracker's reference frame
         self.counters.update(no_width=0)
         if cfg.field_width_px:
             self.subscribe("/markers/reference", MarkerArray, self.on_window_reference, depth=1)
@@ -144,7 +144,7 @@ class SlipDetectorNode(Node):
 
     def on_window_reference(self, msg: MarkerArray) -> None:
         """The camera's frame width, which the window model's fields are rescaled from."""
-        self.frame_width = msg.width or None
+        self.frame_width_px = msg.width or None
 
     def on_field(self, msg: DisplacementField) -> None:
         cfg = self.classifier.config
@@ -157,7 +157,7 @@ class SlipDetectorNode(Node):
         if self.field_sub.queue:  # newer fields wait: judge only the newest window (latency stays one call)
             self.counters["skipped"] += 1
             return
-        if cfg.field_width_px and self.frame_width is None:
+        if cfg.field_width_px and self.frame_width_px is None:
             self.counters["no_width"] += 1
             self.warn("no frame width from the tracker's /markers/reference yet: the model reads fields in px of "
                       f"{cfg.field_width_px} px wide frames, so windows wait for it (no_width)")
@@ -167,7 +167,7 @@ class SlipDetectorNode(Node):
         probability = 0.0
         if valid:
             try:
-                probability = self.classifier.predict(np.stack([f for _, f, _ in self.window]), self.frame_width)
+                probability = self.classifier.predict(np.stack([f for _, f, _ in self.window]), self.frame_width_px)
             except ValueError as exc:  # non-finite field values: flag the window, keep running
                 self.warn(f"window rejected: {exc}")
                 valid = False

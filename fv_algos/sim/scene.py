@@ -374,21 +374,20 @@ def random_scenario(
         effects = {"normal", "shear"}
     elif kind == "pressing":
         mode = int(rng.integers(3))
-        ramp = float(rng.integers(4, n_frames + 1)) / fps
+        ramp = float(rng.integers(4, n_frames + 1)) / fps  # drawn for every mode: the data set's draws stay as shipped
+        held = [{"action": "hold", "duration_s": duration - ramp}] if duration - ramp > 1e-9 else []
         if mode == 0:  # loading from a light touch
             initial["normal_N"] = float(rng.uniform(0.2, 1.0))
             steps = [{"action": "press", "duration_s": duration, "normal_N": normal + 1.0}]
             effects = {"normal"}
         elif mode == 1:  # from rest: the contact appears, then is held
             initial["normal_N"] = 0.0
-            steps = [{"action": "press", "duration_s": ramp, "normal_N": normal}]
+            steps = [{"action": "press", "duration_s": ramp, "normal_N": normal}, *held]
             effects = {"normal"}
-        else:  # a release: the normal load and a light shear back to zero
+        else:  # a release, after a hold: the normal load and a light shear back to zero
             initial["force_N"] = vec(float(rng.uniform(0.0, 0.3)))
-            steps = [{"action": "release", "duration_s": ramp}]
+            steps = [*held, {"action": "release", "duration_s": ramp}]
             effects = {"normal", "shear"}
-        if mode and duration - ramp > 1e-9:  # the rest of the sequence held, after the contact or before the release
-            steps.insert(0 if mode == 2 else 1, {"action": "hold", "duration_s": duration - ramp})
     elif kind == "holding":
         initial["force_N"] = vec(float(rng.uniform(0.0, 0.3)))
         steps = [{"action": "hold", "duration_s": duration}]
