@@ -4,8 +4,8 @@
 Two methods (`--method`): `trial` (default), the trial-level temporal network on per-frame
 contact-motion and field descriptors of :mod:`fv_algos.trial_net`, shipped as
 `fv_algos/weights/slip_gelsight_trial.pt`; `windows`, the paper's window classifiers (ConvLSTM and
-variants, :mod:`fv_algos.trial_eval`), shipped as `fv_algos/weights/slip_gelsight.pt`.
-`fv eval --trials DIR --model NAME` uses the shipped trial-level model `slip_NAME_trial.pt` when there is one, else the window model `slip_NAME.pt`.
+variants, :mod:`fv_algos.trial_eval`), shipped as `fv_algos/weights/slip_gelsight_windows.pt`.
+`fv eval --trials DIR --model NAME` judges the shipped model NAME (`gelsight` is `gelsight_trial`) or a checkpoint.
 
 A trials folder holds `labels.csv` (columns trial, object, label = slip / no_slip) and per trial
 `<trial>/camera_0.avi` (+ `camera_2.avi`; or .mp4, .mkv, .mov, .m4v). Fields are cached per video under
@@ -56,12 +56,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     _data_args(p)
     _fit_args(p, window_steps=600)
     p.add_argument("--out", type=output_file, required=True,
-                   help="checkpoint path, e.g. fv_algos/weights/slip_gelsight.pt")
+                   help="checkpoint path, e.g. fv_algos/weights/slip_gelsight_windows.pt")
     p.add_argument("--cv-report", type=Path, default=None, help="`fv real cv --out` report to record beside it")
     p.set_defaults(func=_train)
 
     p = sub.add_parser("eval-trials", help="judge a slip model on a folder of real trials (video to decision)")
-    p.add_argument("--model", required=True, help="shipped model name (gelsight, sim) or checkpoint path")
+    p.add_argument("--model", required=True, help="shipped model name (gelsight, gelsight_online, sim, ...) or checkpoint path")
     p.add_argument("--trials", type=Path, required=True,
                    help="folder with labels.csv and <trial>/camera_0.avi (or .mp4, .mkv, .mov, .m4v)")
     p.add_argument("--cache", type=Path, default=None, help="reuse / write cached fields here (default: none)")
@@ -383,14 +383,6 @@ def _train_trial(args: argparse.Namespace) -> int:
     return 0
 
 
-def resolve_trial_model(name: str) -> Path:
-    """The model `fv eval --trials` uses for ``name``: the shipped trial-level model
-    `slip_<name>_trial.pt` when there is one, else :func:`nodes.slip_detector.model_path`."""
-    from nodes.slip_detector import WEIGHTS_DIR, model_path
-    shipped = WEIGHTS_DIR / f"slip_{name}_trial.pt"
-    return shipped if shipped.is_file() else model_path(name)
-
-
 def _eval_trial_net(args: argparse.Namespace, model: TrialModel) -> dict[str, object]:
     """Report of the trial-level ``model`` on ``args.trials`` (video to decision, from the model's
     reference frame of each video on)."""
@@ -435,7 +427,7 @@ def eval_trials_command(args: argparse.Namespace) -> int:
     window_accuracy, confusion ([[TN, FP], [FN, TP]] at trial level), the timing (frames judged
     included), tracking quality and each trial's score and decision (without --json: the misjudged
     trials).
-    A trial-level model (:func:`resolve_trial_model`) has no windows: its window_accuracy is null; it
+    A trial-level model (`gelsight` is one: :func:`nodes.slip_detector.model_path`) has no windows: its window_accuracy is null; it
     judges every video at the model's frame rate (a faster video's frames picked at it, a video too slow
     for it refused by name: :mod:`fv_algos.frame_rate`)."""
     import cv2
@@ -444,7 +436,8 @@ def eval_trials_command(args: argparse.Namespace) -> int:
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     started = time.perf_counter()
-    path = resolve_trial_model(args.model)
+    from nodes.slip_detector import model_path
+    path = model_path(args.model)
     trial_model = read_trial_model(path)
     check_online(args, "fv eval --trials", trial_model is not None)
     out = _eval_windows(args, path) if trial_model is None else _eval_trial_net(args, trial_model)

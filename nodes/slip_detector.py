@@ -23,8 +23,9 @@ tracker's `reference_frame` should be the same (launch/video.yaml does so).
 
 `model` is a shipped model name (`sim_cnn_lstm`: per-field CNN then LSTM, the default and
 the fastest; `sim_fast`: the ConvLSTM with 16 hidden channels; `sim`: the paper's ConvLSTM;
-`gelsight`: the paper's ConvLSTM trained on real GelSight Mini grasps; `gelsight_trial` and
-`gelsight_online`: the trial models for GelSight Mini-class sensors) or a checkpoint path."""
+`gelsight_trial` (also named `gelsight`) and `gelsight_online`: the trial models for GelSight
+Mini-class sensors; `gelsight_windows`: the paper's ConvLSTM trained on real GelSight Mini grasps,
+at chance on unseen objects) or a checkpoint path."""
 from __future__ import annotations
 
 import collections
@@ -45,16 +46,21 @@ IMAGE_BUFFER = 64  # camera images kept for the fields still to come (trial mode
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "fv_algos" / "weights"
 
 
+# shipped names that stand for another shipped model: `gelsight` is the GelSight Mini model that
+# `fv eval --trials` and the slip detector both mean by it, the whole-grasp trial model
+ALIASES = {"gelsight": "gelsight_trial"}
+
+
 def model_path(name: str) -> Path:
-    """Checkpoint path of a shipped model name, or the path itself; FileNotFoundError
-    naming the shipped models."""
-    shipped = WEIGHTS_DIR / f"slip_{name}.pt"
+    """Checkpoint path of a shipped model name (or an ``ALIASES`` key), or the path itself;
+    FileNotFoundError naming the shipped models."""
+    shipped = WEIGHTS_DIR / f"slip_{ALIASES.get(name, name)}.pt"
     if shipped.is_file():
         return shipped
     path = Path(name)
     if path.is_file():
         return path
-    names = sorted(p.stem.removeprefix("slip_") for p in WEIGHTS_DIR.glob("slip_*.pt"))
+    names = sorted([*(p.stem.removeprefix("slip_") for p in WEIGHTS_DIR.glob("slip_*.pt")), *ALIASES])
     raise FileNotFoundError(f"model {name!r} is neither a shipped model ({names}) nor a checkpoint file")
 
 

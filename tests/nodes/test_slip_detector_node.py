@@ -25,12 +25,26 @@ def _field(stamp_ns: int, value: float, grid: int = 30) -> DisplacementField:
 
 
 def test_unknown_model_name_lists_the_shipped_ones() -> None:
-    with pytest.raises(FileNotFoundError, match="gelsight"):
+    with pytest.raises(FileNotFoundError, match="gelsight") as error:
         model_path("no_such_model")
+    assert "'gelsight'" in str(error.value) and "'gelsight_windows'" in str(error.value)
+
+
+def test_gelsight_names_one_model_for_the_node_and_fv_eval() -> None:
+    """`model:=gelsight` in a launch file runs the model `fv eval --trials --model gelsight` judges (the
+    whole-grasp trial model), not the window ConvLSTM, which is at chance on unseen objects."""
+    from nodes.slip_detector import SlipDetectorNode
+    assert model_path("gelsight") == model_path("gelsight_trial")
+    node = SlipDetectorNode("slip_detector", {"model": "gelsight"})
+    try:
+        node.setup()
+        assert hasattr(node, "judge") and not hasattr(node, "classifier")
+    finally:
+        node.close()
 
 
 def test_decisions_per_field_with_window_stamps(bus, spawn) -> None:
-    spawn("node", "slip_detector", "-p", "model=gelsight")
+    spawn("node", "slip_detector", "-p", "model=gelsight_windows")
     wait_status("slip_detector", timeout_s=30.0)
     pub = PublisherSocket("test_fields")
     assert pub.wait_connected(5.0)
@@ -50,7 +64,7 @@ def test_decisions_per_field_with_window_stamps(bus, spawn) -> None:
         assert all(s is not None for s in states)
         for k, item in enumerate(states):
             s = item.msg
-            assert 0.0 <= s.probability <= 1.0 and s.valid and s.model == "gelsight"
+            assert 0.0 <= s.probability <= 1.0 and s.valid and s.model == "gelsight_windows"
             assert list(s.window_stamps_ns) == stamps[k:k + 10] and s.stamp_ns == stamps[k + 9]
         # a non-finite field: the window is flagged invalid, the probability stays a number
         bad = _field(stamps[-1] + 66_000_000, 1.0)
