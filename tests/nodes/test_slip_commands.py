@@ -121,11 +121,10 @@ def test_the_main_jobs_endless_random_grasps_are_judged_as_their_truth(capsys) -
     assert main(["eval", "--stream", "20", "--fps", "15", "--model", default, "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["frames_judged"] == 300 - 9 and 0.3 < report["slip_share"] < 0.7
-    # measured: 0.835, held frames called slip 0.05, slipping ones 0.64; the model trained on the earlier
-    # data set (no contacts from rest, no releases) 0.931, 0.07, 0.94 on these 20 s, and 0.812 against
-    # 0.873 on the README's four runs of 60 s: the retrained one misses more of this stream's slides
-    assert report["accuracy"] >= 0.8 and report["held_called_slip"] <= 0.25 and report["slip_called_slip"] >= 0.6
-    assert report["accuracy"] >= 0.8 and report["held_called_slip"] <= 0.25 and report["slip_called_slip"] >= 0.6
+    # measured: 0.893, held frames called slip 0.05, slipping ones 0.80; the model trained on the earlier
+    # data set (no contacts from rest, no releases) 0.935, 0.07, 0.94 on these 20 s, and 0.814 against
+    # 0.880 on the README's four runs of 60 s: the retrained one misses more of this stream's slides
+    assert report["accuracy"] >= 0.85 and report["held_called_slip"] <= 0.15 and report["slip_called_slip"] >= 0.75
     assert {"press", "hold", "release", "slide"} <= set(report["phases"])
     assert sum(row["frames"] for row in report["phases"].values()) == report["frames_judged"]
     assert main(["eval", "--stream", "0.2", "--model", default]) == 2
