@@ -94,6 +94,11 @@ def _eval_stream(args: argparse.Namespace) -> int:
           f"({report['wall_s']:.0f} s)")
     for action, row in report["phases"].items():
         print(f"  {action:8s} {row['frames']:5d} frames, slip {row['slip_share']:.2f}, accuracy {row['accuracy']:.3f}")
+    lag = report["transition"]
+    steady, changing, before = ("-" if lag[key] is None else f"{lag[key]:.3f}"
+                                for key in ("steady_accuracy", "accuracy", "slip_before_called_slip"))
+    print(f"  windows whose truth changes within them: {lag['share']:.2f} of the frames, accuracy {changing} "
+          f"(the others {steady}); held at their last field after slip, called slip {before}")
     return 0
 
 

@@ -7,7 +7,8 @@ node does; after each frame the model reads the window of the last ``window`` fi
 detector node does. Every frame from the first full window on is scored against its truth (incipient
 and gross slip are slip), in all and per scripted action (press, hold, shear, slide, twist, release),
 so that the frames a model gets wrong can be told apart: a window still holding the last motion, a
-release read as slip, a shear near the friction limit.
+release read as slip, a shear near the friction limit. The frames whose window holds a change of the
+truth are also scored apart (``transition``): there a window model lags by up to its window.
 """
 from __future__ import annotations
 
@@ -27,9 +28,12 @@ def judge_stream(classifier: SlipClassifier, seconds: float, fps: float, seed: i
     tracker ``preset``), slip when P(slip) >= ``threshold``.
 
     Returns frames_judged, accuracy, slip_share (of the frames judged, by truth), held_called_slip and
-    slip_called_slip (shares of the held / slipping frames called slip; None without such frames), and
-    ``phases``: action -> {frames, slip_share, accuracy}. ValueError when the stream is shorter than
-    one window.
+    slip_called_slip (shares of the held / slipping frames called slip; None without such frames),
+    ``phases``: action -> {frames, slip_share, accuracy}, and ``transition``: {share (of the frames
+    judged whose window's truth changes within it), accuracy there and on the other frames
+    (``steady_accuracy``), ``slip_before_called_slip`` (of the windows held at their last field but
+    slipping earlier in them, the share called slip: the window's lag)}; an accuracy or share is None
+    without such frames. ValueError when the stream is shorter than one window.
     """
     window = classifier.config.window
     frames = int(round(seconds * fps))
@@ -37,14 +41,18 @@ def judge_stream(classifier: SlipClassifier, seconds: float, fps: float, seed: i
         raise ValueError(f"{seconds} s at {fps} fps is {frames} frames, fewer than the model's window of {window}")
     perception = Perception(PerceptionParams.preset(preset))  # type: ignore[arg-type]
     fields: deque[np.ndarray] = deque(maxlen=window)
-    called, truth, actions = [], [], []
+    window_truth: deque[bool] = deque(maxlen=window)
+    called, truth, actions, mixed, slipped_before = [], [], [], [], []
     for frame in islice(SimSensor(None, seed=seed, loop_fps=fps), frames):
         fields.append(perception.step(frame.image)[1].field)
+        window_truth.append(frame.truth.is_slip)
         if len(fields) == window:
             called.append(classifier.predict(np.stack(fields), frame.image.shape[1]) >= threshold)
             truth.append(frame.truth.is_slip)
             actions.append(frame.truth.mechanics.command.action)
-    called_a, truth_a = np.array(called), np.array(truth)
+            mixed.append(len(set(window_truth)) > 1)
+            slipped_before.append(not frame.truth.is_slip and any(window_truth))
+    called_a, truth_a, mixed_a, before_a = np.array(called), np.array(truth), np.array(mixed), np.array(slipped_before)
     right = called_a == truth_a
     by_action: dict[str, list[int]] = defaultdict(list)
     for i, action in enumerate(actions):
@@ -53,8 +61,15 @@ def judge_stream(classifier: SlipClassifier, seconds: float, fps: float, seed: i
         "frames_judged": int(right.size),
         "accuracy": float(right.mean()),
         "slip_share": float(truth_a.mean()),
-        "held_called_slip": float(called_a[~truth_a].mean()) if (~truth_a).any() else None,
-        "slip_called_slip": float(called_a[truth_a].mean()) if truth_a.any() else None,
+        "held_called_slip": _share(called_a, ~truth_a),
+        "slip_called_slip": _share(called_a, truth_a),
         "phases": {action: {"frames": len(rows), "slip_share": float(truth_a[rows].mean()),
                             "accuracy": float(right[rows].mean())} for action, rows in sorted(by_action.items())},
+        "transition": {"share": float(mixed_a.mean()), "accuracy": _share(right, mixed_a),
+                       "steady_accuracy": _share(right, ~mixed_a), "slip_before_called_slip": _share(called_a, before_a)},
     }
+
+
+def _share(values: np.ndarray, rows: np.ndarray) -> float | None:
+    """Mean of the bool ``values`` (N,) over the bool mask ``rows`` (N,); None when it selects none."""
+    return float(values[rows].mean()) if rows.any() else None
