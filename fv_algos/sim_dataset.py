@@ -8,7 +8,13 @@ and given to :meth:`Perception.reset`, then every scenario frame goes through
 :meth:`Perception.step` (detect, track, interpolate: the fields a real sensor would yield, not
 ground-truth ones), giving fields (F, 30, 30, 3) float32 px (dx, dy, magnitude).
 
-Reproducibility: sequence ``i`` depends only on (seed, i) (its generator is
+With ``grasps``, each of the S draws is instead a whole grasp as the main job's camera plays it
+(:func:`fv_algos.sim.scene.grasp_scene`: pressed from rest, ``GRASP_MOTION_S`` of a scenario of that
+kind, released, at rest), cut into sequences of F frames starting every ``GRASP_SEGMENT_STEP`` frames,
+every frame labelled with its truth: windows then straddle the changes of the truth (a slide that
+stops, a release) and are labelled by their last frame, which the paper's sequences never show.
+
+Reproducibility: sequence (or grasp) ``i`` depends only on (seed, i) (its generator is
 ``numpy.random.default_rng([seed, i])``) and its kind comes from a balanced plan shuffled by
 ``seed``, so any chunking over worker processes gives identical data.
 """
@@ -26,7 +32,7 @@ from tqdm import tqdm
 
 from fv_algos.perception import Perception, PerceptionParams
 from fv_algos.sim.objects import SHAPES, shape_name
-from fv_algos.sim.scene import DEFAULT_RENDER_EFFECTS, NON_SLIP_KINDS, SLIP_KINDS, random_scenario
+from fv_algos.sim.scene import DEFAULT_RENDER_EFFECTS, NON_SLIP_KINDS, SLIP_KINDS, Scene, grasp_scene, random_scenario
 from fv_algos.sim.sensor import SimSensor
 from fv_algos.slip.windows import SequenceSet
 
@@ -34,6 +40,8 @@ OBJECT_NAMES: tuple[str, ...] = tuple(SHAPES)
 """Object id i of a sequence is the shape OBJECT_NAMES[i]."""
 
 _THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+GRASP_MOTION_S = (2.0, 4.0)  # a grasp's scenario lasts one of these, s: the main job's 60 frames at 30 and 15 fps
+GRASP_SEGMENT_STEP = 10  # frames between the starts of a grasp's sequences
 
 
 @dataclass(frozen=True)
@@ -46,6 +54,7 @@ class SimDatasetConfig:
     seed: master seed; sequence i uses default_rng([seed, i]).
     preset: perception preset name (PerceptionParams.preset).
     render_effects: renderer effects of every scenario (fv_algos.sim.render.EFFECTS).
+    grasps: each of the S draws is a whole grasp, cut into sequences with per-frame labels (module doc).
     """
 
     n_sequences: int = 1600
@@ -54,6 +63,7 @@ class SimDatasetConfig:
     seed: int = 0
     preset: str = "default"
     render_effects: tuple[str, ...] = tuple(sorted(DEFAULT_RENDER_EFFECTS))
+    grasps: bool = False
 
     def __post_init__(self) -> None:
         if self.n_sequences < 2:
@@ -93,43 +103,61 @@ def kind_plan(n_sequences: int, seed: int) -> list[str]:
     return [kinds[i] for i in order]
 
 
-def simulate_sequence(config: SimDatasetConfig, index: int, kind: str) -> SimSequence:
-    """Render sequence ``index`` of kind ``kind`` and run perception on it (deterministic in
-    (config.seed, index))."""
-    rng = np.random.default_rng([config.seed, index])
-    effects = frozenset(config.render_effects)
-    scene = random_scenario(rng, kind, config.n_frames, config.fps, effects)
+def _perceive(scene: Scene, rng: np.random.Generator, preset: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Render ``scene`` (camera noise seeded from ``rng``) and run perception on it from the skin at rest:
+    fields (F, 30, 30, 3) float32 px, true slip (F,) bool, field flagged invalid (F,) bool, and the
+    camera's frame width (px)."""
     sensor = SimSensor(scene, seed=int(rng.integers(2**31)))
     rest_markers = np.column_stack([sensor.markers_ref_mm, np.zeros(len(sensor.markers_ref_mm))])
-    perception = Perception(PerceptionParams.preset(config.preset))  # type: ignore[arg-type]
+    perception = Perception(PerceptionParams.preset(preset))  # type: ignore[arg-type]
     perception.reset(sensor.renderer.render(rest_markers).image)
-    fields, frame_slip, invalid = [], [], 0
+    fields, frame_slip, invalid = [], [], []
     for frame in sensor:
         _, dense = perception.step(frame.image)
         fields.append(dense.field)
         frame_slip.append(frame.truth.is_slip)
-        invalid += not dense.valid
-    return SimSequence(
-        fields=np.stack(fields),
-        kind=kind,
-        label=int(kind in SLIP_KINDS),
-        object_id=OBJECT_NAMES.index(shape_name(scene.obj)),
-        frame_slip=np.array(frame_slip, dtype=bool),
-        invalid_frames=invalid,
-        width_px=sensor.camera.width,
-    )
+        invalid.append(not dense.valid)
+    return np.stack(fields), np.array(frame_slip, dtype=bool), np.array(invalid, dtype=bool), sensor.camera.width
 
 
-def _simulate_job(job: tuple[SimDatasetConfig, int, str]) -> SimSequence:
-    return simulate_sequence(*job)
+def simulate_sequence(config: SimDatasetConfig, index: int, kind: str) -> SimSequence:
+    """Render sequence ``index`` of kind ``kind`` and run perception on it (deterministic in
+    (config.seed, index))."""
+    rng = np.random.default_rng([config.seed, index])
+    scene = random_scenario(rng, kind, config.n_frames, config.fps, frozenset(config.render_effects))
+    fields, frame_slip, invalid, width = _perceive(scene, rng, config.preset)
+    return SimSequence(fields, kind, int(kind in SLIP_KINDS), OBJECT_NAMES.index(shape_name(scene.obj)), frame_slip,
+                       int(invalid.sum()), width)
+
+
+def simulate_grasp(config: SimDatasetConfig, index: int, kind: str) -> list[SimSequence]:
+    """Grasp ``index``: a scenario of kind ``kind`` lasting one of ``GRASP_MOTION_S``, played as
+    :func:`fv_algos.sim.scene.grasp_scene` plays it, cut into sequences of ``config.n_frames`` frames
+    starting every ``GRASP_SEGMENT_STEP`` frames, each labelled slip when any of its frames slips
+    (deterministic in (config.seed, index))."""
+    rng = np.random.default_rng([config.seed, index])
+    motion_frames = int(round(GRASP_MOTION_S[int(rng.integers(len(GRASP_MOTION_S)))] * config.fps))
+    scenario = random_scenario(rng, kind, motion_frames, config.fps, frozenset(config.render_effects))
+    fields, frame_slip, invalid, width = _perceive(grasp_scene(scenario), rng, config.preset)
+    object_id = OBJECT_NAMES.index(shape_name(scenario.obj))
+    cuts = [slice(start, start + config.n_frames)
+            for start in range(0, len(fields) - config.n_frames + 1, GRASP_SEGMENT_STEP)]
+    return [SimSequence(fields[cut], kind, int(frame_slip[cut].any()), object_id, frame_slip[cut],
+                        int(invalid[cut].sum()), width) for cut in cuts]
+
+
+def _simulate_job(job: tuple[SimDatasetConfig, int, str]) -> list[SimSequence]:
+    config, index, kind = job
+    return simulate_grasp(config, index, kind) if config.grasps else [simulate_sequence(config, index, kind)]
 
 
 def _single_threaded_workers() -> None:
     cv2.setNumThreads(1)
 
 
-def iter_sequences(config: SimDatasetConfig, workers: int = 1) -> Iterator[SimSequence]:
-    """Sequences 0 .. S-1 in order, computed in ``workers`` processes (1: in this process).
+def iter_sequences(config: SimDatasetConfig, workers: int = 1) -> Iterator[list[SimSequence]]:
+    """The sequences of draws 0 .. S-1 in order, one list per draw (one sequence, or a grasp's), computed
+    in ``workers`` processes (1: in this process).
 
     Worker processes are spawned (safe next to torch/OpenMP) with one BLAS/OpenMP/OpenCV thread
     each, so W workers use about W cores; as with any spawned pool, a calling script needs the
@@ -161,11 +189,13 @@ def generate(config: SimDatasetConfig, workers: int = 1, progress: bool = True) 
 
     metadata holds: source "sim", ``frame_width_px`` (the camera's), the config, object_names, per-sequence ``kinds`` and
     ``frame_slip`` (true per-frame slip flags as 0/1 lists), ``invalid_frames`` (total fields
-    perception flagged invalid), ``generation_s`` (wall time) and ``workers``.
+    perception flagged invalid), ``generation_s`` (wall time) and ``workers``. With ``config.grasps`` the
+    set also has ``frame_labels`` (the same flags), by which its windows are labelled.
     """
     started = time.perf_counter()
-    sequences = list(tqdm(iter_sequences(config, workers), total=config.n_sequences, desc="simulate",
-                          unit="seq", disable=not progress))
+    sequences = [sequence for draw in tqdm(iter_sequences(config, workers), total=config.n_sequences,
+                                           desc="simulate", unit="grasp" if config.grasps else "seq",
+                                           disable=not progress) for sequence in draw]
     elapsed = time.perf_counter() - started
     return to_sequence_set(sequences, config, {"generation_s": round(elapsed, 2), "workers": workers})
 
@@ -193,4 +223,5 @@ def to_sequence_set(sequences: Sequence[SimSequence], config: SimDatasetConfig,
         np.array([s.label for s in sequences], dtype=np.int64),
         np.array([s.object_id for s in sequences], dtype=np.int64),
         metadata,
+        np.stack([s.frame_slip for s in sequences]) if config.grasps else None,
     )

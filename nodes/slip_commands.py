@@ -20,7 +20,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     kinds = p.add_subparsers(dest="dataset_kind", required=True, metavar="KIND")
     q = kinds.add_parser("sim", help="simulated sequences through the real perception pipeline (paper protocol)")
     q.add_argument("--out", type=output_file, required=True, help="output .npz (float16 fields)")
-    q.add_argument("--sequences", type=int, default=1600, help="raw sequences, half slip (default 1600)")
+    q.add_argument("--sequences", type=int, default=1600, help="raw sequences, half slip (default 1600); with "
+                   "--grasps, the grasps")
+    q.add_argument("--grasps", action="store_true", help="whole grasps as the main job plays them (pressed from rest, "
+                   "2 or 4 s of a scenario, released), cut into sequences of --frames every 10 frames, every frame "
+                   "labelled with its truth: extra training data for `fv train --extra`")
     q.add_argument("--frames", type=int, default=15, help="frames per sequence (default 15)")
     q.add_argument("--fps", type=float, default=15.0, help="frame rate, Hz (default 15)")
     q.add_argument("--seed", type=int, default=0, help="master seed (default 0)")
@@ -31,6 +35,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("train", help="train a slip classifier (works under torchrun: DDP)")
     p.add_argument("--data", type=Path, required=True, help="sequence dataset .npz (fv dataset sim)")
+    p.add_argument("--extra", type=Path, default=None, help="a second dataset whose windows only add to the training "
+                   "rows (whole grasps: fv dataset sim --grasps); the split and test rows stay --data's")
     p.add_argument("--out", type=output_folder, required=True,
                    help="run folder: checkpoint.pt, metrics.json, run.json, curve.png")
     _model_flags(p)
@@ -143,13 +149,15 @@ def _dataset_sim(args: argparse.Namespace) -> int:
     from fv_algos.sim_dataset import SimDatasetConfig, generate
     from fv_algos.slip.windows import save_sequences
     config = SimDatasetConfig(n_sequences=args.sequences, n_frames=args.frames, fps=args.fps, seed=args.seed,
-                              preset=args.preset)
+                              preset=args.preset, grasps=args.grasps)
     started = time.perf_counter()
     sequences = generate(config, workers=args.workers, progress=not args.no_progress)
     sequences.metadata["command"] = command_line(args)
     path = save_sequences(args.out, sequences)
     kinds = Counter(sequences.metadata["kinds"])
-    print(f"wrote {len(sequences.labels)} sequences ({int(sequences.labels.sum())} slip) of "
+    source = f"from {args.sequences} grasps, {int(sequences.labels.sum())} with slipping frames" if args.grasps else \
+        f"{int(sequences.labels.sum())} slip"
+    print(f"wrote {len(sequences.labels)} sequences ({source}) of "
           f"{sequences.n_frames} frames to {path} ({path.stat().st_size / 1e6:.1f} MB) in "
           f"{time.perf_counter() - started:.1f} s; kinds {dict(sorted(kinds.items()))}; "
           f"invalid fields {sequences.metadata['invalid_frames']}")
@@ -163,13 +171,13 @@ CURVE_PNG = "curve.png"
 def _write_run(out: Path, *, command: str, data: Path, fingerprint: str, split: str, seed: int, test_fraction: float,
                model_config: dict, params: int, history: list[dict], wall_s: float, windows_per_s: float,
                dataset_metadata: dict, resumed_from: Path | None = None, windows_per_cpu_s: float | None = None,
-               autocast: str | None = None) -> dict:
+               autocast: str | None = None, extra: tuple[Path, str] | None = None) -> dict:
     """Write run.json (provenance and final metrics) and curve.png (accuracy and loss vs step,
     like the paper's Fig. 7) into ``out``; returns the record. wall_s is this invocation's time;
     wall_s_total adds the wall_s_total of the run resumed from (its folder's run.json).
     windows_per_cpu_s (training windows per CPU-second per torch thread) estimates the
     quiet-machine windows_per_s when other processes share the cores; autocast is the training
-    autocast dtype (None: fp32)."""
+    autocast dtype (None: fp32); extra is the (path, fingerprint) of the training-only dataset, if any."""
     from nodes.plots import curve_plot
     if not history:
         raise ValueError(f"training in {out} recorded no evaluation")
@@ -184,6 +192,7 @@ def _write_run(out: Path, *, command: str, data: Path, fingerprint: str, split: 
         "wall_s_total": round(wall_s + _previous_wall_s(resumed_from), 1), "windows_per_s": round(windows_per_s, 2),
         "windows_per_cpu_s": None if windows_per_cpu_s is None else round(windows_per_cpu_s, 2), "autocast": autocast,
         "resumed_from": None if resumed_from is None else str(resumed_from),
+        **({} if extra is None else {"extra_data": str(extra[0]), "extra_fingerprint": extra[1]}),
     }
     out.mkdir(parents=True, exist_ok=True)
     (out / RUN_RECORD).write_text(json.dumps(record, indent=1))
@@ -232,8 +241,10 @@ def _train(args: argparse.Namespace) -> int:
     sequences = load_sequences(args.data)
     # validate here: train.main's own parser would exit instead of raising a clear ValueError
     ModelConfig(arch=args.model, hidden=args.hidden, kernel=args.kernel, window=args.window, grid=sequences.grid)
+    extra = None if args.extra is None else load_sequences(args.extra)
     optional = {"--steps": args.steps, "--lr": args.lr, "--batch-size": args.batch, "--eval-every": args.eval_every,
-                "--threads": args.threads, "--resume": args.resume, "--precision": args.precision}
+                "--threads": args.threads, "--resume": args.resume, "--precision": args.precision,
+                "--extra": args.extra}
     argv = ["--data", str(args.data), "--out", str(args.out), "--split", SPLITS[args.split], "--arch", args.model,
             "--hidden", str(args.hidden), "--kernel", str(args.kernel), "--window", str(args.window),
             "--seed", str(args.seed), "--test-fraction", str(args.test_fraction),
@@ -252,7 +263,8 @@ def _train(args: argparse.Namespace) -> int:
         split=args.split, seed=args.seed, test_fraction=args.test_fraction, model_config=checkpoint.model_config.to_dict(),
         params=count_parameters(build_model(checkpoint.model_config)), history=checkpoint.history, wall_s=wall_s,
         windows_per_s=result["windows_per_s"], dataset_metadata=sequences.metadata, resumed_from=args.resume,
-        windows_per_cpu_s=result.get("windows_per_cpu_s"), autocast=result.get("autocast"))
+        windows_per_cpu_s=result.get("windows_per_cpu_s"), autocast=result.get("autocast"),
+        extra=None if extra is None else (args.extra, dataset_fingerprint(extra)))
     print(f"{record['model_config']['arch']} on the {args.split} split: test accuracy "
           f"{record['test_accuracy']:.4f} on {record['test_windows']} windows after {record['steps']} steps, "
           f"{wall_s:.0f} s -> {args.out}")

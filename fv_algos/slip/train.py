@@ -46,7 +46,7 @@ from fv_algos.slip.models import (
     to_model_input,
     width_gain,
 )
-from fv_algos.slip.windows import SPLIT_KINDS, Split, load_sequences, make_windows, split_windows
+from fv_algos.slip.windows import SPLIT_KINDS, Split, load_sequences, make_windows, split_windows, with_extra_training
 
 PAPER_LR = 1e-5
 SCHEDULES = ("cosine", "constant")
@@ -297,6 +297,8 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     defaults_m, defaults_t = ModelConfig(), TrainConfig()
     p = argparse.ArgumentParser(prog="python -m fv_algos.slip.train", description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True, help="sequence dataset .npz (fv_algos.slip.windows.save_sequences)")
+    p.add_argument("--extra", default=None, help="a second sequence dataset whose windows only add to the training "
+                   "rows (e.g. whole grasps, `fv dataset sim --grasps`); the test rows stay --data's")
     p.add_argument("--out", required=True, help="output folder for checkpoint.pt, metrics.json, result_rank<r>.json")
     p.add_argument("--resume", default=None, help="checkpoint to continue from")
     p.add_argument("--split", choices=SPLIT_KINDS, default="random")
@@ -340,6 +342,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     windows = make_windows(sequences, window=args.window, per_sequence=args.per_sequence)
     split = split_windows(windows, args.split, args.test_fraction, args.seed)
+    if args.extra is not None:
+        split = with_extra_training(split, load_sequences(args.extra), args.per_sequence)
     launched = int(os.environ.get("WORLD_SIZE", "1")) > 1
     if launched:
         cuda = torch.device(args.device).type == "cuda"

@@ -1,7 +1,9 @@
 """Raw displacement-field sequences -> 10-frame windows, train/test splits, compact storage.
 
 A sequence set holds S raw sequences of F frames each, ``fields`` (S, F, H, W, 3) float16 in px
-(dx, dy, magnitude), one label per sequence (0 = no slip, 1 = slip) and an object id per sequence.
+(dx, dy, magnitude), one label per sequence (0 = no slip, 1 = slip) and an object id per sequence,
+and may hold a label per frame (segments of whole grasps, whose truth changes within them): a window
+is then labelled by its last frame, the slip detector's question (is it slipping now).
 Windows are never copied out: a :class:`WindowSet` is an index (sequence, start frame) into the
 sequences and :meth:`WindowSet.get` gathers a batch (B, T, H, W, 3) float32 on demand.
 
@@ -10,8 +12,8 @@ The paper cuts 5 windows of 10 frames (stride 1) from each 15-frame sequence (8,
 (0..4 by default), so frame 14 is not used.
 
 On disk (:func:`save_sequences` / :func:`load_sequences`): one ``.npz`` with ``fields`` float16,
-``labels`` int64, ``object_ids`` int64 and ``metadata`` (a JSON string with the format name and
-version and any user metadata such as the generating seed).
+``labels`` int64, ``object_ids`` int64, ``frame_labels`` int64 when the set has them, and ``metadata``
+(a JSON string with the format name and version and any user metadata such as the generating seed).
 """
 from __future__ import annotations
 
@@ -37,12 +39,15 @@ class SequenceSet:
     object_ids: (S,) int64, which object each sequence was recorded with.
     metadata: JSON-serialisable dict (e.g. {"seed": 0, "source": "synthetic"}); ``frame_width_px``, when
         the fields come from a camera, is its frame width (the px the fields are in).
+    frame_labels: (S, F) int64 in {0, 1}, the truth of every frame, or None (every frame of a sequence
+        has its label).
     """
 
     fields: np.ndarray
     labels: np.ndarray
     object_ids: np.ndarray
     metadata: dict[str, object] = field(default_factory=dict)
+    frame_labels: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         values = np.asarray(self.fields)
@@ -67,6 +72,20 @@ class SequenceSet:
             raise ValueError(f"object_ids must have shape ({n},) to match fields, got {self.object_ids.shape}")
         if not np.isin(self.labels, (0, 1)).all():
             raise ValueError(f"labels must be 0 (no slip) or 1 (slip), got values {np.unique(self.labels).tolist()}")
+        if self.frame_labels is not None:
+            self.frame_labels = np.asarray(self.frame_labels).astype(np.int64, copy=False)
+            if self.frame_labels.shape != self.fields.shape[:2]:
+                raise ValueError(f"frame_labels must have shape {self.fields.shape[:2]} (sequences, frames), "
+                                 f"got {self.frame_labels.shape}")
+            if not np.isin(self.frame_labels, (0, 1)).all():
+                raise ValueError(f"frame_labels must be 0 (no slip) or 1 (slip), got values "
+                                 f"{np.unique(self.frame_labels).tolist()}")
+
+    def per_frame_labels(self) -> np.ndarray:
+        """(S, F) int64 label of every frame: ``frame_labels``, or each sequence's label on all its frames."""
+        if self.frame_labels is not None:
+            return self.frame_labels
+        return np.repeat(self.labels[:, None], self.n_frames, axis=1)
 
     @property
     def n_frames(self) -> int:
@@ -92,12 +111,14 @@ def save_sequences(path: str | Path, sequences: SequenceSet) -> Path:
     if path.suffix != ".npz":
         path = path.with_suffix(".npz")
     meta = {"format": DATASET_FORMAT, "format_version": DATASET_FORMAT_VERSION, "user": sequences.metadata}
+    frame_labels = {} if sequences.frame_labels is None else {"frame_labels": sequences.frame_labels}
     np.savez_compressed(
         path,
         fields=sequences.fields,
         labels=sequences.labels,
         object_ids=sequences.object_ids,
         metadata=np.array(json.dumps(meta)),
+        **frame_labels,
     )
     return path
 
@@ -128,7 +149,8 @@ def load_sequences(path: str | Path) -> SequenceSet:
         )
     if arrays["fields"].dtype != np.float16:
         raise ValueError(f"{path}: fields must be stored as float16, found {arrays['fields'].dtype}")
-    return SequenceSet(arrays["fields"], arrays["labels"], arrays["object_ids"], dict(meta.get("user", {})))
+    return SequenceSet(arrays["fields"], arrays["labels"], arrays["object_ids"], dict(meta.get("user", {})),
+                       arrays.get("frame_labels"))
 
 
 @dataclass
@@ -149,8 +171,11 @@ class WindowSet:
 
     @property
     def labels(self) -> np.ndarray:
-        """(N,) int64 label of each window (its sequence's label)."""
-        return self.sequences.labels[self.sequence]
+        """(N,) int64 label of each window: its last frame's when the sequences have frame labels, else
+        its sequence's."""
+        if self.sequences.frame_labels is None:
+            return self.sequences.labels[self.sequence]
+        return self.sequences.frame_labels[self.sequence, self.start + self.window - 1]
 
     @property
     def object_ids(self) -> np.ndarray:
@@ -234,6 +259,29 @@ def split_windows(windows: WindowSet, kind: str = "random", test_fraction: float
     if train.size == 0 or test.size == 0:
         raise ValueError(f"{kind!r} split with test_fraction={test_fraction} leaves an empty side ({train.size}/{test.size})")
     return Split(windows, train, test, kind)
+
+
+def with_extra_training(split: Split, extra: SequenceSet, per_sequence: int) -> Split:
+    """``split`` with the first ``per_sequence`` windows of every ``extra`` sequence added to its training
+    rows; its test rows stay those of its own sequences (the figures stay comparable with a split without
+    extra data). In an object split, extra sequences of the test objects are left out. ValueError when the
+    two sets differ in frames per sequence, grid or frame width."""
+    own = split.windows.sequences
+    shapes = [f"{s.n_frames} frames on a {s.grid} grid, "
+              + (f"frames {s.frame_width_px} px wide" if s.frame_width_px else "frame width unknown") for s in (extra, own)]
+    if shapes[0] != shapes[1]:
+        raise ValueError(f"extra sequences ({shapes[0]}) do not join the sequences of the split ({shapes[1]})")
+    joined = SequenceSet(np.concatenate([own.fields, extra.fields]), np.concatenate([own.labels, extra.labels]),
+                         np.concatenate([own.object_ids, extra.object_ids]), own.metadata,
+                         np.concatenate([own.per_frame_labels(), extra.per_frame_labels()]))
+    windows = make_windows(joined, split.windows.window, per_sequence)
+    if not (np.array_equal(windows.sequence[:len(split.windows)], split.windows.sequence)
+            and np.array_equal(windows.start[:len(split.windows)], split.windows.start)):
+        raise ValueError(f"the split's windows are not the first {per_sequence} of each sequence")
+    added = np.arange(len(split.windows), len(windows))
+    if split.kind == "object":
+        added = added[~np.isin(windows.object_ids[added], split.windows.object_ids[split.test])]
+    return Split(windows, np.concatenate([split.train, added]), split.test, split.kind)
 
 
 @dataclass(frozen=True)

@@ -8,8 +8,9 @@ import pytest
 
 from fv_algos.sim.objects import SHAPES
 from fv_algos.sim.scene import NON_SLIP_KINDS, SLIP_KINDS
-from fv_algos.sim_dataset import OBJECT_NAMES, SimDatasetConfig, generate, iter_sequences, kind_plan, simulate_sequence
-from fv_algos.slip.windows import SequenceSet, load_sequences, save_sequences
+from fv_algos.sim_dataset import (GRASP_SEGMENT_STEP, OBJECT_NAMES, SimDatasetConfig, generate, iter_sequences, kind_plan,
+                                  simulate_grasp, simulate_sequence)
+from fv_algos.slip.windows import SequenceSet, load_sequences, make_windows, save_sequences
 
 CONFIG = SimDatasetConfig(n_sequences=12, seed=5)
 
@@ -67,6 +68,27 @@ def test_save_load_round_trip(dataset: SequenceSet, tmp_path) -> None:
     np.testing.assert_array_equal(loaded.fields, dataset.fields)
     assert loaded.metadata["config"]["seed"] == 5
     assert loaded.metadata["kinds"] == dataset.metadata["kinds"]
+
+
+def test_grasps_are_cut_into_sequences_labelled_frame_by_frame() -> None:
+    """Whole grasps (pressed from rest, a scenario, released): sequences every GRASP_SEGMENT_STEP frames,
+    per-frame truth as frame_labels, so that windows across a change of the truth carry its last frame's."""
+    config = SimDatasetConfig(n_sequences=6, seed=1, grasps=True)
+    grasps = generate(config, workers=2, progress=False)
+    assert grasps.frame_labels is not None and grasps.frame_labels.shape == grasps.fields.shape[:2]
+    assert np.array_equal(grasps.labels, grasps.frame_labels.any(axis=1))
+    assert grasps.metadata["frame_slip"] == grasps.frame_labels.tolist()
+    first = simulate_grasp(config, 0, kind_plan(6, 1)[0])  # in-process: the worker's sequences again
+    assert len(first) >= 3 and all(s.fields.shape == (15, 30, 30, 3) for s in first)
+    np.testing.assert_array_equal(first[0].fields.astype(np.float16), grasps.fields[0])
+    np.testing.assert_array_equal(first[1].fields[:15 - GRASP_SEGMENT_STEP], first[0].fields[GRASP_SEGMENT_STEP:])
+    rest = np.abs(grasps.fields[0, 0].astype(np.float32)).max()
+    assert rest < 0.3  # a grasp starts from the skin at rest
+    slipping = [k for k, kind in enumerate(grasps.metadata["kinds"]) if kind in SLIP_KINDS]
+    assert slipping and any(0 < grasps.frame_labels[k].sum() < 15 for k in slipping)  # the truth changes within
+    labels = make_windows(grasps, 10, 5).labels.reshape(-1, 5)
+    assert np.array_equal(labels, grasps.frame_labels[:, 9:14])
+    assert not grasps.frame_labels[[k for k in range(len(grasps.labels)) if k not in slipping]].any()
 
 
 def test_bad_input_is_rejected() -> None:

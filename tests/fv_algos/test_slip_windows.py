@@ -15,6 +15,7 @@ from fv_algos.slip.windows import (
     save_sequences,
     split_windows,
     synthetic_sequences,
+    with_extra_training,
 )
 
 SMALL = SyntheticConfig(n_frames=15, grid=12, n_objects=5)
@@ -141,3 +142,49 @@ def test_sequence_set_validation(sequences: SequenceSet) -> None:
         SequenceSet(nan, sequences.labels, sequences.object_ids)
     with pytest.raises(ValueError, match="float16 storage range"):
         SequenceSet(f32 * 1e5, sequences.labels, sequences.object_ids)
+
+
+def _grasp_like(sequences: SequenceSet, change_at: int = 7) -> SequenceSet:
+    """``sequences`` with per-frame labels: every sequence slips from frame ``change_at`` on."""
+    frame_labels = np.zeros(sequences.fields.shape[:2], np.int64)
+    frame_labels[:, change_at:] = 1
+    return SequenceSet(sequences.fields, np.ones_like(sequences.labels), sequences.object_ids, {}, frame_labels)
+
+
+def test_frame_labels_label_each_window_by_its_last_frame(sequences: SequenceSet, tmp_path: Path) -> None:
+    grasps = _grasp_like(sequences)
+    windows = make_windows(grasps, window=4, per_sequence=5)  # last frames 3 .. 7: only the last one slips
+    assert windows.labels.reshape(-1, 5).tolist() == [[0, 0, 0, 0, 1]] * len(sequences.labels)
+    assert np.array_equal(windows.get(np.arange(5))[1], [0, 0, 0, 0, 1])
+    loaded = load_sequences(save_sequences(tmp_path / "grasps", grasps))
+    assert np.array_equal(loaded.frame_labels, grasps.frame_labels)
+    assert load_sequences(save_sequences(tmp_path / "plain", sequences)).frame_labels is None
+    assert np.array_equal(sequences.per_frame_labels()[:, 0], sequences.labels)
+    with pytest.raises(ValueError, match=r"frame_labels must have shape \(40, 15\)"):
+        SequenceSet(sequences.fields, sequences.labels, sequences.object_ids, {}, grasps.frame_labels[:, :3])
+    with pytest.raises(ValueError, match="frame_labels must be 0"):
+        SequenceSet(sequences.fields, sequences.labels, sequences.object_ids, {}, grasps.frame_labels * 2)
+
+
+@pytest.mark.parametrize("kind", ["sequence", "object"])
+def test_extra_sequences_only_add_training_windows(sequences: SequenceSet, kind: str) -> None:
+    split = split_windows(make_windows(sequences, window=4, per_sequence=5), kind, 0.25, seed=1)
+    extra = _grasp_like(synthetic_sequences(6, SMALL, seed=9))
+    joined = with_extra_training(split, extra, per_sequence=5)
+    assert np.array_equal(joined.test, split.test) and joined.kind == kind
+    assert np.array_equal(joined.train[:split.train.size], split.train)
+    added = joined.train[split.train.size:]
+    assert np.all(joined.windows.sequence[added] >= 40)  # the extra sequences' windows, after the own ones
+    for rows in (split.train, split.test):  # the own windows keep their rows and labels
+        assert np.array_equal(joined.windows.labels[rows], split.windows.labels[rows])
+        assert np.array_equal(joined.windows.get(rows[:3])[0], split.windows.get(rows[:3])[0])
+    assert set(joined.windows.labels[added].tolist()) == {0, 1}  # labelled by their last frame
+    test_objects = set(split.windows.object_ids[split.test].tolist())
+    extra_objects = joined.windows.object_ids[len(split.windows):]
+    if kind == "object":  # no extra window of a test object is trained on
+        assert not test_objects & set(joined.windows.object_ids[added].tolist())
+        assert 0 < added.size == np.count_nonzero(~np.isin(extra_objects, list(test_objects))) < 30
+    else:
+        assert added.size == 30
+    with pytest.raises(ValueError, match="do not join"):
+        with_extra_training(split, synthetic_sequences(4, SyntheticConfig(n_frames=12, grid=12), seed=1), 5)
