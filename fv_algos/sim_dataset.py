@@ -188,8 +188,8 @@ def generate(config: SimDatasetConfig, workers: int = 1, progress: bool = True) 
     """The whole dataset as a :class:`SequenceSet` (fields (S, F, 30, 30, 3) float16 px).
 
     metadata holds: source "sim", ``frame_width_px`` (the camera's), the config, object_names, per-sequence ``kinds`` and
-    ``frame_slip`` (true per-frame slip flags as 0/1 lists), ``invalid_frames`` (total fields
-    perception flagged invalid), ``generation_s`` (wall time) and ``workers``. With ``config.grasps`` the
+    ``frame_slip`` (true per-frame slip flags as 0/1 lists), ``invalid_frames`` (fields perception
+    flagged invalid, summed over the sequences: a grasp's overlapping sequences count a frame in each), ``generation_s`` (wall time) and ``workers``. With ``config.grasps`` the
     set also has ``frame_labels`` (the same flags), by which its windows are labelled.
     """
     started = time.perf_counter()
