@@ -343,7 +343,7 @@ def main(argv: list[str] | None = None) -> int:
     windows = make_windows(sequences, window=args.window, per_sequence=args.per_sequence)
     split = split_windows(windows, args.split, args.test_fraction, args.seed)
     if args.extra is not None:
-        split = with_extra_training(split, load_sequences(args.extra), args.per_sequence)
+        split = with_extra_training(split, load_sequences(args.extra))
     launched = int(os.environ.get("WORLD_SIZE", "1")) > 1
     if launched:
         cuda = torch.device(args.device).type == "cuda"

@@ -261,27 +261,32 @@ def split_windows(windows: WindowSet, kind: str = "random", test_fraction: float
     return Split(windows, train, test, kind)
 
 
-def with_extra_training(split: Split, extra: SequenceSet, per_sequence: int) -> Split:
-    """``split`` with the first ``per_sequence`` windows of every ``extra`` sequence added to its training
-    rows; its test rows stay those of its own sequences (the figures stay comparable with a split without
-    extra data). In an object split, extra sequences of the test objects are left out. ValueError when the
-    two sets differ in frames per sequence, grid or frame width."""
-    own = split.windows.sequences
-    shapes = [f"{s.n_frames} frames on a {s.grid} grid, "
-              + (f"frames {s.frame_width_px} px wide" if s.frame_width_px else "frame width unknown") for s in (extra, own)]
-    if shapes[0] != shapes[1]:
-        raise ValueError(f"extra sequences ({shapes[0]}) do not join the sequences of the split ({shapes[1]})")
+def _layout(sequences: SequenceSet) -> str:
+    """What sequences must share to be windowed together, in words."""
+    width = sequences.frame_width_px
+    return (f"{sequences.n_frames} frames on a {sequences.grid} grid, "
+            + (f"frames {width} px wide" if width else "frame width unknown"))
+
+
+def with_extra_training(split: Split, extra: SequenceSet) -> Split:
+    """``split`` with the windows of every ``extra`` sequence, cut at the starts of the split's own, added
+    to its training rows; its test rows stay those of its own sequences (the figures stay comparable with
+    a split without extra data). In an object split, extra sequences of the test objects are left out.
+    ValueError when the two sets differ in frames per sequence, grid or frame width."""
+    own, windows = split.windows.sequences, split.windows
+    if (extra.n_frames, extra.grid, extra.frame_width_px) != (own.n_frames, own.grid, own.frame_width_px):
+        raise ValueError(f"extra sequences ({_layout(extra)}) do not join the sequences of the split ({_layout(own)})")
     joined = SequenceSet(np.concatenate([own.fields, extra.fields]), np.concatenate([own.labels, extra.labels]),
                          np.concatenate([own.object_ids, extra.object_ids]), own.metadata,
                          np.concatenate([own.per_frame_labels(), extra.per_frame_labels()]))
-    windows = make_windows(joined, split.windows.window, per_sequence)
-    if not (np.array_equal(windows.sequence[:len(split.windows)], split.windows.sequence)
-            and np.array_equal(windows.start[:len(split.windows)], split.windows.start)):
-        raise ValueError(f"the split's windows are not the first {per_sequence} of each sequence")
-    added = np.arange(len(split.windows), len(windows))
+    starts = windows.start[windows.sequence == windows.sequence[0]]  # make_windows cuts every sequence alike
+    extra_sequence = np.repeat(np.arange(len(own.labels), len(joined.labels)), starts.size)
+    joined_windows = WindowSet(joined, windows.window, np.concatenate([windows.sequence, extra_sequence]),
+                               np.concatenate([windows.start, np.tile(starts, len(extra.labels))]))
+    added = np.arange(len(windows), len(joined_windows))
     if split.kind == "object":
-        added = added[~np.isin(windows.object_ids[added], split.windows.object_ids[split.test])]
-    return Split(windows, np.concatenate([split.train, added]), split.test, split.kind)
+        added = added[~np.isin(joined_windows.object_ids[added], windows.object_ids[split.test])]
+    return Split(joined_windows, np.concatenate([split.train, added]), split.test, split.kind)
 
 
 @dataclass(frozen=True)

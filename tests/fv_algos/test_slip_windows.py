@@ -170,7 +170,7 @@ def test_frame_labels_label_each_window_by_its_last_frame(sequences: SequenceSet
 def test_extra_sequences_only_add_training_windows(sequences: SequenceSet, kind: str) -> None:
     split = split_windows(make_windows(sequences, window=4, per_sequence=5), kind, 0.25, seed=1)
     extra = _grasp_like(synthetic_sequences(6, SMALL, seed=9))
-    joined = with_extra_training(split, extra, per_sequence=5)
+    joined = with_extra_training(split, extra)
     assert np.array_equal(joined.test, split.test) and joined.kind == kind
     assert np.array_equal(joined.train[:split.train.size], split.train)
     added = joined.train[split.train.size:]
@@ -187,4 +187,4 @@ def test_extra_sequences_only_add_training_windows(sequences: SequenceSet, kind:
     else:
         assert added.size == 30
     with pytest.raises(ValueError, match="do not join"):
-        with_extra_training(split, synthetic_sequences(4, SyntheticConfig(n_frames=12, grid=12), seed=1), 5)
+        with_extra_training(split, synthetic_sequences(4, SyntheticConfig(n_frames=12, grid=12), seed=1))
