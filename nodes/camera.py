@@ -1,6 +1,7 @@
 """The `camera` node: frames from the simulator, a video file, a folder of images or a
 V4L2 device, published as `Image` on `/camera/image` with capture stamps, plus a latched
-`CameraInfo` on `/camera/info`. A lost source is reported in NodeStatus and reopened
+`CameraInfo` on `/camera/info`. `crop` and `size` cut a share off each border of every frame
+and resize the rest (after `undistort`; `CameraInfo` describes the frames as published). A lost source is reported in NodeStatus and reopened
 with backoff; a source that cannot be opened at start fails with a clear error.
 
 `start_after` holds the first frame back until the named nodes have reported (their first
@@ -16,6 +17,7 @@ import numpy as np
 
 from msgs import CameraInfo, Image, NodeStatus
 from nodes.camera_sources import FolderSource, Frame, FrameSource, SourceError, V4L2Source, VideoFileSource
+from nodes.frame_crop import FrameCrop
 from nodes.node import Node
 
 SOURCES = ("sim", "video", "folder", "v4l2")
@@ -29,12 +31,14 @@ class CameraParams:
     scene: str = ""  # sim: scene file (YAML/JSON); "" = looping random scenarios
     fps: float = 30.0  # publish rate in Hz (video: 0 = the file's own rate)
     loop: bool = True  # video / folder: start again at the end
-    width: int = 640  # v4l2 capture size (px)
+    width: int = 640  # v4l2 capture size (px); 0 = the camera's own
     height: int = 480
     exposure: float = -1.0  # v4l2 manual exposure (driver units), < 0 = auto
     white_balance: float = -1.0  # v4l2 white balance temperature (K), < 0 = auto
     calibration: str = ""  # calibration JSON from `fv calibrate` ("" = none / sim's own)
     undistort: bool = False  # remap frames with the calibration before publishing
+    crop: list[float] = field(default_factory=list)  # shares cut off the borders: [] none, [s] each, [top, bottom, left, right]
+    size: list[int] = field(default_factory=list)  # [width, height] px the cropped frame is resized to ([] = as cut)
     encoding: str = "mono8"  # mono8 | bgr8
     seed: int = 0  # sim: random seed
     prerender: bool = False  # sim: render the scene once at start and replay it from memory
@@ -56,6 +60,11 @@ class CameraParams:
             raise ValueError("undistort needs a calibration file")
         if self.start_timeout_s < 0:
             raise ValueError(f"start_timeout_s {self.start_timeout_s} must be >= 0")
+        if self.width < 0 or self.height < 0:
+            raise ValueError(f"capture size {self.width}x{self.height} must be >= 0 (0: the camera's own)")
+        if len(self.crop) not in (0, 1, 4):
+            raise ValueError(f"crop {self.crop} must be [], [share] or [top, bottom, left, right]")
+        FrameCrop.from_params(self.crop, self.size)  # ValueError names a bad share or size
 
 
 def make_source(p: CameraParams) -> FrameSource:
@@ -83,6 +92,7 @@ class CameraNode(Node):
         self.info_pub = self.publisher("/camera/info", CameraInfo, latched=True)
         self.fisheye = self._load_calibration()
         self.maps = self.fisheye.undistort_maps() if (p.undistort and self.fisheye) else None
+        self.crop = FrameCrop.from_params(p.crop, p.size)
         self._publish_info()
         rate = p.fps or getattr(self.source, "file_fps", 0.0) or 30.0
         self.backoff_s = 0.0
@@ -114,12 +124,19 @@ class CameraNode(Node):
         return getattr(self.source, "camera", None)
 
     def _publish_info(self) -> None:
+        """The camera model of the frames as published: undistorted frames are a pinhole camera
+        (the undistorted matrix, no distortion), cropped and resized ones a moved, scaled one."""
         cam = self.fisheye
         if cam is None:
             return
-        self.info_pub.publish(CameraInfo(stamp_ns=time.time_ns(), frame_id=self.params.frame_id, width=cam.width,
-                                         height=cam.height, K=np.asarray(cam.K, np.float64),
-                                         D=np.asarray(cam.D, np.float64).reshape(4), rms_px=float(getattr(cam, "rms_px", 0.0) or 0.0)))
+        K, D = np.asarray(cam.K, np.float64), np.asarray(cam.D, np.float64).reshape(4)
+        if self.maps is not None:
+            K, D = cam.undistorted_camera_matrix(), np.zeros(4)
+        width, height = cam.width, cam.height
+        if self.crop is not None:
+            K, width, height = self.crop.camera_matrix(K, width, height)
+        self.info_pub.publish(CameraInfo(stamp_ns=time.time_ns(), frame_id=self.params.frame_id, width=width,
+                                         height=height, K=K, D=D, rms_px=float(getattr(cam, "rms_px", 0.0) or 0.0)))
 
     def tick(self) -> None:
         if getattr(self.source, "finished", False) or self.waiting():
@@ -172,6 +189,8 @@ class CameraNode(Node):
             image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
         if self.maps is not None:
             image = cv2.remap(image, self.maps[0], self.maps[1], cv2.INTER_LINEAR)
+        if self.crop is not None:
+            image = self.crop.apply(image)
         self.image_pub.publish(Image(stamp_ns=frame.stamp_ns, frame_id=self.params.frame_id,
                                      encoding=self.params.encoding, data=np.ascontiguousarray(image)))
         self.counters["frames"] += 1

@@ -156,26 +156,65 @@ def _as_uint8(image: np.ndarray) -> np.ndarray:
     return image
 
 
+V4L2_SYSFS = Path("/sys/class/video4linux")  # one folder per device node, with its `name` and `index`
+
+
+def find_v4l2_device(name: str, sysfs: Path = V4L2_SYSFS) -> str:
+    """The /dev path of the one V4L2 capture node whose name holds `name` (case-insensitive;
+    e.g. "GelSight Mini", or a serial number to pick one of two). A UVC camera has a
+    metadata node of the same name beside its capture node: only index 0 counts. Raises
+    SourceError naming the devices seen when none or several match."""
+    seen, matches = [], []
+    for node in sorted(sysfs.glob("video*"), key=lambda d: (len(d.name), d.name)):
+        try:
+            label = (node / "name").read_text().strip()
+            index = (node / "index").read_text().strip() if (node / "index").exists() else "0"
+        except OSError:
+            continue
+        seen.append(f"/dev/{node.name} ({label})")
+        if name.lower() in label.lower() and index == "0":
+            matches.append(f"/dev/{node.name}")
+    if len(matches) == 1:
+        return matches[0]
+    listed = ", ".join(seen) or "none"
+    if matches:
+        raise SourceError(f"v4l2 {name!r}: {len(matches)} cameras match ({', '.join(matches)}); "
+                          f"give more of the name (a serial number) or the /dev path. Devices: {listed}")
+    raise SourceError(f"v4l2 {name!r}: no camera of that name (plugged in?). Devices: {listed}")
+
+
 class V4L2Source:
-    """A V4L2 webcam (index or /dev/videoN) with size, rate, exposure and white balance
-    locked by params (a negative exposure / white balance keeps the camera's auto mode)."""
+    """A V4L2 webcam (index, /dev/videoN, or part of its name: see `find_v4l2_device`, looked
+    up at every open, so a camera plugged back under another number is found) with size,
+    rate, exposure and white balance locked by params (a size of 0 keeps the camera's own, a
+    negative exposure / white balance the camera's auto mode)."""
 
     def __init__(self, device: str, width: int, height: int, fps: float, exposure: float,
                  white_balance: float) -> None:
-        self.device = int(device) if device.isdigit() else device
+        self.device = device
         self.name = f"v4l2 {device}"
         self.settings = (width, height, fps, exposure, white_balance)
         self._cap: cv2.VideoCapture | None = None
 
+    def _target(self) -> int | str:
+        """The device to open: an index, a /dev path, or the node found by name."""
+        if self.device.isdigit():
+            return int(self.device)
+        if self.device.startswith("/"):
+            return self.device
+        return find_v4l2_device(self.device)
+
     def open(self) -> None:
+        target = self._target()
         # OpenCV's V4L2 backend ignores CAP_PROP_READ_TIMEOUT_MSEC; it reads this once, at the first capture
         os.environ.setdefault("OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT", str(V4L2_READ_TIMEOUT_S))
-        cap = cv2.VideoCapture(self.device, cv2.CAP_V4L2)
+        cap = cv2.VideoCapture(target, cv2.CAP_V4L2)
         if not cap.isOpened():
-            raise SourceError(f"{self.name}: cannot open the device (missing, busy or no permission)")
+            raise SourceError(f"{self.name}: cannot open {target} (missing, busy or no permission)")
         width, height, fps, exposure, white_balance = self.settings
-        cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
-        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
+        if width and height:
+            cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
+            cap.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
         cap.set(cv2.CAP_PROP_FPS, fps)
         cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)
         if exposure >= 0:

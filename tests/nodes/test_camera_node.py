@@ -68,6 +68,52 @@ def test_sim_source_publishes_frames_and_latched_info(bus, spawn) -> None:
     assert info is not None and info.msg.K.shape == (3, 3) and info.msg.width == 640
 
 
+def test_frames_are_cropped_and_resized_and_the_info_follows(bus, spawn) -> None:
+    """The simulated 640x480 camera with 1/10 off each border, resized to 320x240: the frames come
+    that size, and /camera/info gives the matrix of those frames (its focal lengths scaled by
+    320 / 512)."""
+    from nodes.frame_crop import FrameCrop
+    from nodes.sim_source import SimSource
+    spawn("node", "camera", "-p", "fps=20", "-p", "crop=[0.1]", "-p", "size=[320, 240]")
+    _, msg = _rate("/camera/image", 1.0)
+    assert msg.data.shape == (240, 320)
+    with TopicReader(["/camera/info"]) as late_joiner:
+        info = late_joiner.recv(3.0).msg
+    cam = SimSource("", 0, 20.0).camera
+    K, width, height = FrameCrop((0.1,) * 4, (320, 240)).camera_matrix(np.asarray(cam.K), cam.width, cam.height)
+    assert (info.width, info.height) == (width, height) == (320, 240)
+    np.testing.assert_allclose(info.K, K)
+    assert info.K[0, 0] == pytest.approx(cam.K[0, 0] * 320 / 512)
+
+
+def test_undistorted_frames_come_with_their_pinhole_matrix_and_no_distortion(bus, spawn) -> None:
+    from nodes.sim_source import SimSource
+    spawn("node", "camera", "-p", "fps=20", "-p", "undistort=true")
+    with TopicReader(["/camera/info"]) as late_joiner:
+        info = late_joiner.recv(15.0).msg
+    cam = SimSource("", 0, 20.0).camera
+    np.testing.assert_allclose(info.K, cam.undistorted_camera_matrix())
+    assert not info.D.any() and (info.width, info.height) == (cam.width, cam.height)
+
+
+def test_a_video_is_cropped_frame_by_frame(bus, spawn, tmp_path: Path) -> None:
+    from nodes.frame_crop import FrameCrop
+    video = tmp_path / "clip.avi"
+    _write_video(video, frames=5)
+    spawn("node", "camera", "-p", "source=video", "-p", f"path={video}", "-p", "fps=25", "-p", "encoding=bgr8",
+          "-p", "crop=[0.25, 0.25, 0.125, 0.125]")
+    with TopicReader(["/camera/image"]) as reader:
+        got = [reader.recv(15.0 if k == 0 else 5.0) for k in range(12)]
+    cap = cv2.VideoCapture(str(video))
+    decoded = [cap.read()[1] for _ in range(5)]
+    assert all(g is not None for g in got)
+    for g in got:  # the video loops: frame seq % 5
+        frame = decoded[g.msg.seq % 5]
+        assert g.msg.data.shape == (60, 120, 3)
+        np.testing.assert_array_equal(g.msg.data, FrameCrop((0.25, 0.25, 0.125, 0.125)).apply(frame))
+        np.testing.assert_array_equal(g.msg.data, frame[30:90, 20:140])
+
+
 def test_video_that_disappears_is_reported_not_fatal(bus, spawn, tmp_path: Path) -> None:
     video = tmp_path / "clip.avi"
     _write_video(video, frames=10)

@@ -83,13 +83,29 @@ def test_demo_launch_file_is_valid() -> None:
     assert names == ["talker", "listener"]
 
 
-@pytest.mark.parametrize("name", ["pipeline.yaml", "view.yaml", "video.yaml"])
+@pytest.mark.parametrize("name", ["pipeline.yaml", "view.yaml", "video.yaml", "gelsight_mini.yaml"])
 def test_the_cameras_of_the_shipped_pipelines_wait_for_the_nodes_that_take_a_reference(name: str) -> None:
     """The tracker takes its reference from the first frame it gets: a camera that starts before it hands
     it a deformed skin (on the simulated main job, every held frame was then called slip)."""
     args = {"video": "clip.avi"} if name == "video.yaml" else {}
     specs = {s.name: s for s in load_launch(REPO / "launch" / name, args)}
     assert set(specs["camera"].params["start_after"]) == {"tracker", "interpolator", "slip_detector"}
+
+
+def test_the_live_gelsight_mini_launch_gives_the_default_model_frames_as_it_was_trained() -> None:
+    """320x240 frames (1/7 off each border, as GelSight's software records them), at the model's
+    rate, in colour, with the tracker's reference at the model's reference frame."""
+    from nodes.camera import CameraParams
+    from nodes.frame_crop import FrameCrop
+    from nodes.slip_detector import model_path
+    from fv_algos.trial_net import load_trial_model
+    specs = {s.name: s for s in load_launch(REPO / "launch" / "gelsight_mini.yaml", {})}
+    camera = CameraParams(**specs["camera"].params)
+    model = load_trial_model(model_path(specs["slip_detector"].params["model"]))
+    crop = FrameCrop.from_params(camera.crop, camera.size)
+    assert camera.source == "v4l2" and camera.path == "GelSight Mini" and camera.encoding == "bgr8"
+    assert crop.window(448, 336) == (64, 48, 384, 288) and crop.size == (320, 240)
+    assert camera.fps == model.fps and specs["tracker"].params["reference_frame"] == model.reference_frame
 
 
 def test_bad_file_from_the_command_line_starts_nothing(bus_env: Bus, tmp_path: Path) -> None:

@@ -140,14 +140,33 @@ def test_a_camera_faster_than_the_trial_model_is_judged_at_the_model_rate() -> N
     assert all(published[k].probability == published[k - 1].probability for k in (1, 3, 5, 7))
 
 
+def _offline_running_p_slip(video: Path, name: str, start: int) -> list[float]:
+    """What `fv eval` computes of `video` with model `name` from reference frame `start`: the
+    running P(slip) of the grasp after each judged frame."""
+    from fv_algos.contact_motion import contact_series
+    from fv_algos.grasp_judge import GraspJudge
+    from fv_algos.real_trials import read_frames, video_fields
+    from fv_algos.trial_net import field_rows
+    fields = video_fields(video, reference_frame=start)
+    series = contact_series(read_frames(video), reference_frame=start)
+    judge = GraspJudge.from_file(model_path(name))
+    return [judge.push(s, r) for s, r in zip(series, field_rows(fields.fields, fields.valid_share, fields.width_px))]
+
+
+def _launched_running_p_slip(spawn, n: int, *launch_args: str) -> list[SlipState]:
+    """The first `n` SlipStates of `fv launch launch/video.yaml ARGS...`."""
+    with TopicReader(["/slip"]) as reader:
+        spawn("launch", str(REPO / "launch" / "video.yaml"), *launch_args)
+        states = [reader.recv(60.0 if k == 0 else 10.0) for k in range(n)]
+    assert all(s is not None for s in states), f"{sum(s is not None for s in states)} of {n} decisions"
+    return [s.msg for s in states]
+
+
 def test_video_launch_with_the_trial_model_judges_the_grasp_as_offline(bus_env, spawn, isd_data: Path) -> None:
     """launch/video.yaml replays a real grasp whole: one decision per frame from the model's reference
     frame on (the launch file's default), each the default trial model's (gelsight_online) P(slip)
     of the grasp so far, as `fv eval` computes it from the same video."""
-    from fv_algos.contact_motion import contact_series
-    from fv_algos.grasp_judge import GraspJudge
-    from fv_algos.real_trials import read_frames, video_fields
-    from fv_algos.trial_net import field_rows, load_trial_model
+    from fv_algos.trial_net import load_trial_model
     from nodes.launch_file import load_launch
     video = isd_data / "train" / "marker_pen" / "exp_num_2" / "camera_0.avi"  # a slip, 53 frames
     nodes = {n.kind: n for n in load_launch(REPO / "launch" / "video.yaml", {"video": str(video)})}
@@ -156,18 +175,36 @@ def test_video_launch_with_the_trial_model_judges_the_grasp_as_offline(bus_env, 
     start = load_trial_model(model_path(name)).reference_frame
     trained_from = load_trial_model(model_path("gelsight_trial")).reference_frame
     assert nodes["tracker"].params["reference_frame"] == start == trained_from
-    fields = video_fields(video, reference_frame=start)
-    series = contact_series(read_frames(video), reference_frame=start)
-    judge = GraspJudge.from_file(model_path(name))
-    expected = [judge.push(s, r) for s, r in zip(series, field_rows(fields.fields, fields.valid_share, fields.width_px))]
-    with TopicReader(["/slip"]) as reader:
-        spawn("launch", str(REPO / "launch" / "video.yaml"), f"video:={video}")
-        states = [reader.recv(60.0 if k == 0 else 10.0) for k in range(len(expected))]
-    assert all(s is not None for s in states), f"{sum(s is not None for s in states)} of {len(expected)} decisions"
-    got = [s.msg for s in states]
+    expected = _offline_running_p_slip(video, name, start)
+    got = _launched_running_p_slip(spawn, len(expected), f"video:={video}")
     assert len({int(m.window_stamps_ns[0]) for m in got}) == 1 and got[0].window_stamps_ns[0] == got[0].stamp_ns
     np.testing.assert_allclose([m.probability for m in got], expected, atol=1e-4)
     assert got[-1].slip and got[-1].model == name
+
+
+def test_raw_gelsight_mini_frames_cropped_in_the_camera_are_judged_as_the_recorded_ones(
+        bus_env, spawn, isd_data: Path, tmp_path: Path) -> None:
+    """A GelSight Mini's frames before its software cuts 1/7 off each border: the recorded grasp inside
+    a 448x336 frame with a dark housing and a bright rim around it (lossless, so the inside is the
+    recording's decoded pixels). `crop:=[0.142857]` in the camera gives the recording's P(slip) frame by
+    frame."""
+    import cv2
+    video = isd_data / "train" / "marker_pen" / "exp_num_2" / "camera_0.avi"
+    raw = tmp_path / "raw_mini.avi"
+    cap = cv2.VideoCapture(str(video))
+    writer = cv2.VideoWriter(str(raw), cv2.VideoWriter_fourcc(*"FFV1"), 25.0, (448, 336))
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        big = np.full((336, 448, 3), 25, np.uint8)
+        cv2.rectangle(big, (40, 30), (407, 305), (200, 210, 220), 12)  # the rim of the gel's frame
+        big[48:288, 64:384] = frame
+        writer.write(big)
+    writer.release()
+    expected = _offline_running_p_slip(video, "gelsight_online", 1)
+    got = _launched_running_p_slip(spawn, len(expected), f"video:={raw}", "crop:=[0.142857]", "size:=[320, 240]")
+    np.testing.assert_allclose([m.probability for m in got], expected, atol=1e-4)
 
 
 def test_tracker_reset_starts_a_new_grasp(bus_env, spawn, isd_data: Path) -> None:
