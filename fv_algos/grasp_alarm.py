@@ -1,7 +1,7 @@
 """How early the running P(slip) of grasps in progress tells slips from held grasps.
 
 After every frame t of a grasp (frame 0: the tracker's reference, t / fps seconds later), the
-pipeline's slip detector publishes P(slip) of the grasp so far, one camera per pipeline
+pipeline's slip detector publishes P(slip) of the grasp so far, one camera per slip detector
 (:func:`fv_algos.trial_net.running_probability` gives the same series offline). From such series of
 labelled grasps, one per camera, :func:`online_summary` measures
 

@@ -24,6 +24,7 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
+from scipy.special import expit
 from torch import nn
 
 from fv_algos.contact_motion import ContactMotionParams, TrialSeries
@@ -234,7 +235,8 @@ class RunningTrial:
     @torch.no_grad()
     def push(self, column: torch.Tensor) -> float:
         """P(slip) of the grasp up to and including the frame of ``column`` (C,) (its descriptors,
-        as a column of :func:`descriptor_matrix`)."""
+        as a column of :func:`descriptor_matrix`), in float64 from the float32 logit, so that
+        :func:`fv_algos.camera_vote.camera_vote` can take the logit back from it."""
         self._columns.append(column)
         self.frames += 1
         h = self.net.features(torch.stack(tuple(self._columns), dim=1)[None])[0]  # (width, columns)
@@ -247,7 +249,7 @@ class RunningTrial:
         live = h[:, self._final - first_column:]  # never empty: the newest frame is never final
         peak = torch.maximum(self._max, live.amax(dim=1))
         pooled = torch.cat([(self._sum + live.sum(dim=1)) / self.frames, peak])
-        return torch.sigmoid(self.net.logit(pooled)).item()
+        return float(expit(self.net.logit(pooled).item()))  # float64: P keeps the logit to |logit| ~ 36
 
 
 def running_probability(net: TrialNet, x: torch.Tensor) -> np.ndarray:

@@ -14,6 +14,7 @@ NODES: dict[str, str] = {
     "tracker": "nodes.tracker:TrackerNode",
     "interpolator": "nodes.interpolator:InterpolatorNode",
     "slip_detector": "nodes.slip_detector:SlipDetectorNode",
+    "slip_fusion": "nodes.slip_fusion:SlipFusion",
     "bag_record": "nodes.bag.recorder:BagRecord",
     "bag_play": "nodes.bag.player:BagPlay",
     "viewer": "nodes.viewer:ViewerNode",

@@ -108,6 +108,20 @@ def test_the_live_gelsight_mini_launch_gives_the_default_model_frames_as_it_was_
     assert camera.fps == model.fps and specs["tracker"].params["reference_frame"] == model.reference_frame
 
 
+@pytest.mark.parametrize("name, args", [("video_pair.yaml", {"left": "a.avi", "right": "b.avi"}),
+                                        ("gelsight_mini_pair.yaml", {"left": "2BKR", "right": "28G8"})])
+def test_both_fingers_start_together_and_their_slips_are_the_fusion_inputs(name: str, args: dict) -> None:
+    specs = {s.name: s for s in load_launch(REPO / "launch" / name, args)}
+    waited = {n for n in specs if not n.endswith("_camera") and n != "slip_monitor"}
+    assert waited == {f"{side}_{kind}" for side in ("left", "right") for kind in ("tracker", "interpolator", "slip_detector")} | {"slip_fusion"}
+    for side in ("left", "right"):
+        camera = specs[f"{side}_camera"]
+        assert set(camera.params["start_after"]) == waited and camera.params["path"] == args[side]
+        assert camera.remap["/camera/image"] == specs[f"{side}_tracker"].remap["/camera/image"] == f"/{side}/camera/image"
+        assert specs[f"{side}_interpolator"].remap["/field"] == specs[f"{side}_slip_detector"].remap["/field"] == f"/{side}/field"
+    assert specs["slip_fusion"].params["inputs"] == [specs[f"{side}_slip_detector"].remap["/slip"] for side in ("left", "right")]
+
+
 def test_bad_file_from_the_command_line_starts_nothing(bus_env: Bus, tmp_path: Path) -> None:
     path = _write(tmp_path, "bad.yaml", "nodes:\n  - kind: talker\n    params: {rate_hz: fast}\n")
     result = run_fv("launch", str(path))

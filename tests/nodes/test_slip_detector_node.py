@@ -207,6 +207,38 @@ def test_raw_gelsight_mini_frames_cropped_in_the_camera_are_judged_as_the_record
     np.testing.assert_allclose([m.probability for m in got], expected, atol=1e-4)
 
 
+def test_both_fingers_voted_on_slip_give_the_trial_score_of_fv_eval(bus_env, spawn, isd_data: Path) -> None:
+    """launch/video_pair.yaml replays both cameras of a grasp through two finger pipelines and slip_fusion:
+    each finger's /left/slip, /right/slip is that camera's running P(slip), and /slip at the end is the
+    trial network on both cameras, what `fv eval --trials` reports of the trial. The bag of peanuts 8's
+    cameras disagree (P 0.52 and 0.82 at the end)."""
+    import torch
+    from fv_algos.camera_vote import camera_vote
+    from fv_algos.contact_motion import contact_series
+    from fv_algos.real_trials import read_frames, video_fields
+    from fv_algos.trial_net import camera_descriptors, load_trial_model
+    trial = isd_data / "train" / "bag_of_peanuts" / "exp_num_8"
+    videos = [trial / "camera_0.avi", trial / "camera_2.avi"]
+    model = load_trial_model(model_path("gelsight_online"))
+    alone = [_offline_running_p_slip(v, "gelsight_online", 1) for v in videos]
+    inputs = [camera_descriptors(contact_series(read_frames(v), reference_frame=1), video_fields(v, reference_frame=1))
+              for v in videos]
+    with torch.no_grad():
+        trial_score = torch.sigmoid(model.net(inputs)).item()
+    assert camera_vote([a[-1] for a in alone]) == pytest.approx(trial_score, abs=1e-6)
+    n = sum(len(a) for a in alone)
+    last: dict[str, SlipState] = {}
+    with TopicReader(["/slip", "/left/slip", "/right/slip"]) as reader:
+        spawn("launch", str(REPO / "launch" / "video_pair.yaml"), f"left:={videos[0]}", f"right:={videos[1]}")
+        for k in range(2 * n):
+            item = reader.recv(90.0 if k == 0 else 10.0)
+            assert item is not None, f"{k} of {2 * n} states"
+            last[item.topic] = item.msg
+    assert last["/left/slip"].probability == pytest.approx(alone[0][-1], abs=1e-4)
+    assert last["/right/slip"].probability == pytest.approx(alone[1][-1], abs=1e-4)
+    assert last["/slip"].probability == pytest.approx(trial_score, abs=1e-4) and last["/slip"].slip
+
+
 def test_tracker_reset_starts_a_new_grasp(bus_env, spawn, isd_data: Path) -> None:
     video = isd_data / "train" / "marker_pen" / "exp_num_2" / "camera_0.avi"
     with TopicReader(["/slip"]) as reader:

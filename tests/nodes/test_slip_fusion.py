@@ -1,0 +1,79 @@
+"""slip_fusion: both fingers' vote after every state, never a mix of grasps, a stopped camera left
+out and named, and bad params refused."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fv_algos.camera_vote import camera_vote
+from msgs import SlipState
+from nodes.slip_fusion import SlipFusion
+
+S = 1_000_000_000  # ns
+
+
+def _state(stamp_s: float, p: float, grasp_s: float = 0.0, valid: bool = True) -> SlipState:
+    return SlipState(stamp_ns=int(stamp_s * S), probability=p, slip=p >= 0.5, model="gelsight_online", valid=valid,
+                     window_stamps_ns=np.array([int(grasp_s * S), int(stamp_s * S)], np.int64))
+
+
+@pytest.fixture
+def fusion():
+    node = SlipFusion("slip_fusion", {})
+    published: list[SlipState] = []
+    node.setup()
+    node.pub.publish = published.append
+    yield node, published
+    node.close()
+
+
+def test_every_state_publishes_the_vote_of_both_fingers(fusion) -> None:
+    node, out = fusion
+    node.on_state("/left/slip", _state(0.04, 0.3))
+    assert out[0].probability == pytest.approx(0.3) and "/right/slip: no state yet" in node.message
+    node.on_state("/right/slip", _state(0.05, 0.9))
+    assert out[1].probability == pytest.approx(camera_vote([0.3, 0.9])) and node.state == "ok"
+    node.on_state("/left/slip", _state(0.08, 0.8))
+    assert out[2].probability == pytest.approx(camera_vote([0.8, 0.9])) and out[2].slip
+    assert out[2].stamp_ns == int(0.08 * S) and list(out[2].window_stamps_ns) == [0, int(0.08 * S)]
+    assert node.counters["voted"] == 3 and node.counters["alone"] == 1
+
+
+def test_after_a_reset_a_finger_still_on_the_earlier_grasp_is_left_out(fusion) -> None:
+    node, out = fusion
+    node.on_state("/left/slip", _state(9.96, 0.99))
+    node.on_state("/right/slip", _state(9.97, 0.98))
+    node.on_state("/left/slip", _state(10.00, 0.05, grasp_s=10.0))  # /tracker/reset: left's new grasp
+    assert out[-1].probability == pytest.approx(0.05) and not out[-1].slip  # not a mix with right's old grasp
+    assert "/right/slip: on an earlier grasp" in node.message and node.counters["earlier_grasp"] == 1
+    node.on_state("/right/slip", _state(10.01, 0.10, grasp_s=10.01))
+    assert out[-1].probability == pytest.approx(camera_vote([0.05, 0.10])) and node.state == "ok"
+
+
+def test_a_stopped_camera_is_left_out_and_named(fusion) -> None:
+    node, out = fusion
+    node.on_state("/left/slip", _state(1.0, 0.2))
+    node.on_state("/right/slip", _state(1.0, 0.9))
+    node.on_state("/left/slip", _state(2.5, 0.3))
+    assert out[-1].probability == pytest.approx(0.3)
+    assert "/right/slip: no state for 1.0 s" in node.message and node.counters["stale"] == 1
+
+
+def test_invalid_states_do_not_vote(fusion) -> None:
+    node, out = fusion
+    node.on_state("/left/slip", _state(1.0, 0.0, valid=False))
+    assert not out[-1].valid and out[-1].probability == 0.0
+    node.on_state("/right/slip", _state(1.01, 0.7))
+    assert out[-1].valid and out[-1].probability == pytest.approx(0.7)
+
+
+@pytest.mark.parametrize("params, message", [
+    ({"inputs": ["/left/slip"]}, "two or more different topics"),
+    ({"inputs": ["/a", "/a"]}, "two or more different topics"),
+    ({"inputs": ["/slip", "/b"]}, "is also an input"),
+    ({"stale_after_s": 0.0}, "must be > 0"),
+])
+def test_bad_params_are_refused(params: dict, message: str) -> None:
+    from nodes.slip_fusion import SlipFusionParams
+    with pytest.raises(ValueError, match=message):
+        SlipFusionParams(**params)
