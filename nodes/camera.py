@@ -60,8 +60,8 @@ class CameraParams:
             raise ValueError("undistort needs a calibration file")
         if self.start_timeout_s < 0:
             raise ValueError(f"start_timeout_s {self.start_timeout_s} must be >= 0")
-        if self.width < 0 or self.height < 0:
-            raise ValueError(f"capture size {self.width}x{self.height} must be >= 0 (0: the camera's own)")
+        if self.width < 0 or self.height < 0 or (self.width == 0) != (self.height == 0):
+            raise ValueError(f"capture size {self.width}x{self.height}: both > 0, or both 0 for the camera's own")
         if len(self.crop) not in (0, 1, 4):
             raise ValueError(f"crop {self.crop} must be [], [share] or [top, bottom, left, right]")
         FrameCrop.from_params(self.crop, self.size)  # ValueError names a bad share or size

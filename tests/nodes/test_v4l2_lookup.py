@@ -50,3 +50,11 @@ def test_a_source_named_by_a_camera_absent_from_this_machine_fails_to_open_by_na
     source = V4L2Source("No Such Tactile Camera 0000", 0, 0, 25.0, -1.0, -1.0)
     with pytest.raises(SourceError, match="v4l2 'No Such Tactile Camera 0000': no camera of that name"):
         source.open()
+
+
+@pytest.mark.parametrize("width, height", [(0, 480), (640, 0), (-1, 480)])
+def test_a_capture_size_given_by_half_is_refused(width: int, height: int) -> None:
+    from nodes.camera import CameraParams
+    with pytest.raises(ValueError, match=f"capture size {width}x{height}: both > 0, or both 0"):
+        CameraParams(source="v4l2", path="GelSight Mini", width=width, height=height)
+    assert CameraParams(source="v4l2", path="GelSight Mini", width=0, height=0).width == 0
