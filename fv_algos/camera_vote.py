@@ -1,9 +1,11 @@
-"""`camera_vote`: one grasp's P(slip) from the P(slip) of each of its cameras, as the trial network
-(:mod:`fv_algos.trial_net`) judges all the cameras of a trial together. No torch: the slip fusion
-node imports it."""
+"""One grasp's P(slip) from the P(slip) of each of its cameras, as the trial network
+(:mod:`fv_algos.trial_net`) judges all the cameras of a trial together: :func:`camera_vote`, and
+:class:`CameraVote`, which keeps the cameras' latest answers while the grasp goes on and says which
+count. No torch: the slip fusion node imports it."""
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import expit, logit
@@ -22,3 +24,70 @@ def camera_vote(probabilities: Sequence[float]) -> float:
     with np.errstate(divide="ignore"):  # P 0 or 1: logit -inf or +inf, clipped
         z = np.clip(logit(np.asarray(probabilities, np.float64)), -LOGIT_LIMIT, LOGIT_LIMIT)
     return float(expit(z.mean()))
+
+
+@dataclass(frozen=True)
+class CameraAnswer:
+    """One camera's latest answer: stamp_ns, capture stamp of its frame; grasp_start_ns, of its grasp's
+    first frame; last_judged_ns, of the last frame the model judged; probability, P(slip) of the grasp so
+    far; valid, False for an answer that does not count (e.g. an invalid window)."""
+
+    stamp_ns: int
+    grasp_start_ns: int
+    last_judged_ns: int
+    probability: float
+    valid: bool = True
+
+
+@dataclass(frozen=True)
+class Vote:
+    """The vote after an answer: probability (None when no camera counts); newest_grasp_ns, the latest
+    grasp start of the fresh answers; first_ns, last_ns, the first grasp start and last judged stamp of
+    the cameras that count (with none: the newest grasp start and answer); voters; and why each other
+    camera is left out, by name: "no answer yet", "stale" or "earlier grasp" (an invalid answer is
+    left out without a reason)."""
+
+    probability: float | None
+    newest_grasp_ns: int
+    first_ns: int
+    last_ns: int
+    voters: tuple[str, ...]
+    left_out: dict[str, str]
+
+
+class CameraVote:
+    """The vote of named cameras' latest answers (:func:`camera_vote`). Left out: a camera with no answer
+    within ``stale_after_s`` of the newest (a camera that stopped), and one still on an earlier grasp,
+    whose grasp started more than ``same_grasp_s`` before the newest (after a reset every camera starts a
+    new grasp with its next frame: a vote never mixes grasps)."""
+
+    def __init__(self, cameras: Sequence[str], stale_after_s: float = 1.0, same_grasp_s: float = 1.0) -> None:
+        if len(cameras) < 2 or len(set(cameras)) != len(cameras):
+            raise ValueError(f"cameras {list(cameras)} must be two or more different names")
+        if stale_after_s <= 0 or same_grasp_s <= 0:
+            raise ValueError(f"stale_after_s {stale_after_s} and same_grasp_s {same_grasp_s} must be > 0")
+        self.cameras = tuple(cameras)
+        self.stale_after_ns, self.same_grasp_ns = stale_after_s * 1e9, same_grasp_s * 1e9
+        self.latest: dict[str, CameraAnswer] = {}
+
+    def update(self, camera: str, answer: CameraAnswer) -> Vote:
+        """Take ``camera``'s newest answer; the vote of all the cameras' latest."""
+        self.latest[camera] = answer
+        now = max(a.stamp_ns for a in self.latest.values())
+        fresh = {c: a for c, a in self.latest.items() if now - a.stamp_ns <= self.stale_after_ns}
+        grasp = max(a.grasp_start_ns for a in fresh.values())
+        left_out, voters = {}, {}
+        for name in self.cameras:
+            if name not in self.latest:
+                left_out[name] = "no answer yet"
+            elif name not in fresh:
+                left_out[name] = "stale"
+            elif grasp - fresh[name].grasp_start_ns > self.same_grasp_ns:
+                left_out[name] = "earlier grasp"
+            elif fresh[name].valid:
+                voters[name] = fresh[name]
+        if not voters:
+            return Vote(None, grasp, grasp, now, (), left_out)
+        return Vote(camera_vote([a.probability for a in voters.values()]), grasp,
+                    min(a.grasp_start_ns for a in voters.values()), max(a.last_judged_ns for a in voters.values()),
+                    tuple(voters), left_out)

@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from fv_algos.frame_crop import FrameCrop
 from msgs import CameraInfo, Image, NodeStatus
 from nodes.camera_sources import FolderSource, Frame, FrameSource, SourceError, V4L2Source, VideoFileSource
-from nodes.frame_crop import FrameCrop
 from nodes.node import Node
 
 SOURCES = ("sim", "video", "folder", "v4l2")
@@ -62,9 +62,7 @@ class CameraParams:
             raise ValueError(f"start_timeout_s {self.start_timeout_s} must be >= 0")
         if self.width < 0 or self.height < 0 or (self.width == 0) != (self.height == 0):
             raise ValueError(f"capture size {self.width}x{self.height}: both > 0, or both 0 for the camera's own")
-        if len(self.crop) not in (0, 1, 4):
-            raise ValueError(f"crop {self.crop} must be [], [share] or [top, bottom, left, right]")
-        FrameCrop.from_params(self.crop, self.size)  # ValueError names a bad share or size
+        FrameCrop.from_lists(self.crop, self.size)  # ValueError names a bad crop or size
 
 
 def make_source(p: CameraParams) -> FrameSource:
@@ -92,7 +90,7 @@ class CameraNode(Node):
         self.info_pub = self.publisher("/camera/info", CameraInfo, latched=True)
         self.fisheye = self._load_calibration()
         self.maps = self.fisheye.undistort_maps() if (p.undistort and self.fisheye) else None
-        self.crop = FrameCrop.from_params(p.crop, p.size)
+        self.crop = FrameCrop.from_lists(p.crop, p.size)
         self._publish_info()
         rate = p.fps or getattr(self.source, "file_fps", 0.0) or 30.0
         self.backoff_s = 0.0

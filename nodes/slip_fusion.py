@@ -2,9 +2,9 @@
 fingers of a gripper (`launch/gelsight_mini_pair.yaml`).
 
 Each input is a `SlipState` topic (`/left/slip`, `/right/slip`). On every state that comes in, the
-node publishes on `output` the vote of the inputs' latest states: P(slip) whose logit is the mean
-of theirs (`fv_algos.camera_vote`, what a trial model says of all the cameras of a
-grasp together, as `fv eval --trials` judges both cameras), slip when it reaches the threshold.
+node publishes on `output` the vote of the inputs' latest states (`fv_algos.camera_vote.CameraVote`):
+P(slip) whose logit is the mean of theirs, what a trial model says of all the cameras of a grasp
+together, as `fv eval --trials` judges both cameras; slip when it reaches the threshold.
 
 Left out of a vote, and named in the node's warning:
 - an input with no state within `stale_after_s` of the newest state (by capture stamp): a
@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fv_algos.camera_vote import camera_vote
+from fv_algos.camera_vote import CameraAnswer, CameraVote, Vote
 from msgs import SlipState
 from nodes.node import Node
 
@@ -39,13 +39,15 @@ class SlipFusionParams:
             raise ValueError(f"inputs {self.inputs} must name two or more different topics")
         if self.output in self.inputs:
             raise ValueError(f"output {self.output!r} is also an input")
-        if self.stale_after_s <= 0 or self.same_grasp_s <= 0:
-            raise ValueError(f"stale_after_s {self.stale_after_s} and same_grasp_s {self.same_grasp_s} must be > 0")
+        CameraVote(self.inputs, self.stale_after_s, self.same_grasp_s)  # ValueError names a bad duration
 
 
-def _grasp_start(msg: SlipState) -> int:
-    """Capture stamp (ns) of the first frame the state judged: a trial model's grasp start."""
-    return int(msg.window_stamps_ns[0]) if len(msg.window_stamps_ns) else msg.stamp_ns
+def _answer(msg: SlipState) -> CameraAnswer:
+    """A slip detector's state as the vote takes it: a trial model's window_stamps_ns hold its grasp's
+    first stamp and its last judged (a window model's, its window's first and last)."""
+    stamps = msg.window_stamps_ns
+    first, last = (int(stamps[0]), int(stamps[-1])) if len(stamps) else (msg.stamp_ns, msg.stamp_ns)
+    return CameraAnswer(msg.stamp_ns, first, last, msg.probability, msg.valid)
 
 
 class SlipFusion(Node):
@@ -56,53 +58,42 @@ class SlipFusion(Node):
 
     def setup(self) -> None:
         p = self.params
-        self.latest: dict[str, SlipState] = {}
+        self.vote = CameraVote(p.inputs, p.stale_after_s, p.same_grasp_s)
         self.pub = self.publisher(p.output, SlipState)
         self.counters.update(voted=0, alone=0, stale=0, earlier_grasp=0)
         for topic in p.inputs:
             self.subscribe(topic, SlipState, lambda msg, topic=topic: self.on_state(topic, msg), depth=None)
 
     def on_state(self, topic: str, msg: SlipState) -> None:
-        self.latest[topic] = msg
-        self.pub.publish(self.vote(msg))
-
-    def vote(self, newest: SlipState) -> SlipState:
-        """The state published after `newest` came in: the vote of the inputs that count."""
-        p = self.params
-        now = max(m.stamp_ns for m in self.latest.values())
-        fresh = {t: m for t, m in self.latest.items() if now - m.stamp_ns <= p.stale_after_s * 1e9}
-        grasp = max(_grasp_start(m) for m in fresh.values())
-        voters = {t: m for t, m in fresh.items() if grasp - _grasp_start(m) <= p.same_grasp_s * 1e9 and m.valid}
-        left_out = self._left_out(fresh, grasp)
-        if left_out:
-            self.warn("; ".join(left_out))
+        vote = self.vote.update(topic, _answer(msg))
+        self._report(vote)
+        stamps = np.array([vote.first_ns, vote.last_ns], np.int64)
+        if vote.probability is None:
+            state = SlipState(stamp_ns=msg.stamp_ns, threshold=msg.threshold, model=msg.model, valid=False,
+                              window_stamps_ns=stamps)
         else:
-            self.clear_warning()
-        self.counters["voted"] += 1
-        self.counters["alone"] += len(voters) == 1
-        if not voters:
-            return SlipState(stamp_ns=newest.stamp_ns, threshold=newest.threshold, model=newest.model, valid=False,
-                             window_stamps_ns=np.array([grasp, now], np.int64))
-        probability = camera_vote([m.probability for m in voters.values()])
-        first = min(_grasp_start(m) for m in voters.values())
-        last = max(int(m.window_stamps_ns[-1]) if len(m.window_stamps_ns) else m.stamp_ns for m in voters.values())
-        return SlipState(stamp_ns=newest.stamp_ns, probability=probability, slip=probability >= newest.threshold,
-                         threshold=newest.threshold, model=newest.model,
-                         window_stamps_ns=np.array([first, last], np.int64))
+            state = SlipState(stamp_ns=msg.stamp_ns, probability=vote.probability,
+                              slip=vote.probability >= msg.threshold, threshold=msg.threshold, model=msg.model,
+                              window_stamps_ns=stamps)
+        self.pub.publish(state)
 
-    def _left_out(self, fresh: dict[str, SlipState], grasp: int) -> list[str]:
-        """Why each input is left out of the vote (counted), in words."""
-        p = self.params
+    def _report(self, vote: Vote) -> None:
+        """Count the vote and the inputs left out of it, and name them in the node's warning."""
+        self.counters["voted"] += 1
+        self.counters["alone"] += len(vote.voters) == 1
         why = []
-        for topic in p.inputs:
-            if topic not in self.latest:
+        for topic, reason in vote.left_out.items():
+            if reason == "no answer yet":
                 why.append(f"{topic}: no state yet")
-            elif topic not in fresh:
+            elif reason == "stale":
                 self.counters["stale"] += 1
-                why.append(f"{topic}: no state for {p.stale_after_s} s")
-            elif grasp - _grasp_start(fresh[topic]) > p.same_grasp_s * 1e9:
+                why.append(f"{topic}: no state for {self.params.stale_after_s} s")
+            else:
                 self.counters["earlier_grasp"] += 1
-                ahead = (grasp - _grasp_start(fresh[topic])) / 1e9
+                ahead = (vote.newest_grasp_ns - self.vote.latest[topic].grasp_start_ns) / 1e9
                 why.append(f"{topic}: on an earlier grasp ({ahead:.1f} s before the newest; "
                            f"one message on /tracker/reset starts every camera's grasp together)")
-        return why
+        if why:
+            self.warn("; ".join(why))
+        else:
+            self.clear_warning()

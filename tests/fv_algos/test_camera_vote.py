@@ -32,3 +32,18 @@ def test_the_vote_is_symmetric_and_bounded_at_certain_cameras() -> None:
 def test_a_vote_of_no_camera_is_refused() -> None:
     with pytest.raises(ValueError, match="at least one camera"):
         camera_vote([])
+
+
+def test_the_running_vote_leaves_out_cameras_stopped_or_on_an_earlier_grasp() -> None:
+    from fv_algos.camera_vote import CameraAnswer, CameraVote
+    s = 1_000_000_000
+    vote = CameraVote(["left", "right"], stale_after_s=1.0, same_grasp_s=1.0)
+    assert vote.update("left", CameraAnswer(1 * s, 0, 1 * s, 0.9)).left_out == {"right": "no answer yet"}
+    both = vote.update("right", CameraAnswer(1 * s, 0, 1 * s, 0.2))
+    assert both.voters == ("left", "right") and both.probability == pytest.approx(camera_vote([0.9, 0.2]))
+    reset = vote.update("left", CameraAnswer(3 * s, 3 * s, 3 * s, 0.1))
+    assert reset.left_out == {"right": "stale"} and reset.probability == pytest.approx(0.1)
+    later = vote.update("right", CameraAnswer(int(3.1 * s), 0, int(3.1 * s), 0.8))
+    assert later.left_out == {"right": "earlier grasp"} and (later.first_ns, later.last_ns) == (3 * s, 3 * s)
+    with pytest.raises(ValueError, match="two or more different names"):
+        CameraVote(["left", "left"])

@@ -72,7 +72,7 @@ def test_frames_are_cropped_and_resized_and_the_info_follows(bus, spawn) -> None
     """The simulated 640x480 camera with 1/10 off each border, resized to 320x240: the frames come
     that size, and /camera/info gives the matrix of those frames (its focal lengths scaled by
     320 / 512)."""
-    from nodes.frame_crop import FrameCrop
+    from fv_algos.frame_crop import FrameCrop
     from nodes.sim_source import SimSource
     spawn("node", "camera", "-p", "fps=20", "-p", "crop=[0.1]", "-p", "size=[320, 240]")
     _, msg = _rate("/camera/image", 1.0)
@@ -97,7 +97,7 @@ def test_undistorted_frames_come_with_their_pinhole_matrix_and_no_distortion(bus
 
 
 def test_a_video_is_cropped_frame_by_frame(bus, spawn, tmp_path: Path) -> None:
-    from nodes.frame_crop import FrameCrop
+    from fv_algos.frame_crop import FrameCrop
     video = tmp_path / "clip.avi"
     _write_video(video, frames=5)
     spawn("node", "camera", "-p", "source=video", "-p", f"path={video}", "-p", "fps=25", "-p", "encoding=bgr8",

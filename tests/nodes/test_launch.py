@@ -96,13 +96,13 @@ def test_the_live_gelsight_mini_launch_gives_the_default_model_frames_as_it_was_
     """320x240 frames (1/7 off each border, as GelSight's software records them), at the model's
     rate, in colour, with the tracker's reference at the model's reference frame."""
     from nodes.camera import CameraParams
-    from nodes.frame_crop import FrameCrop
+    from fv_algos.frame_crop import FrameCrop
     from nodes.slip_detector import model_path
     from fv_algos.trial_net import load_trial_model
     specs = {s.name: s for s in load_launch(REPO / "launch" / "gelsight_mini.yaml", {})}
     camera = CameraParams(**specs["camera"].params)
     model = load_trial_model(model_path(specs["slip_detector"].params["model"]))
-    crop = FrameCrop.from_params(camera.crop, camera.size)
+    crop = FrameCrop.from_lists(camera.crop, camera.size)
     assert camera.source == "v4l2" and camera.path == "GelSight Mini" and camera.encoding == "bgr8"
     assert crop.window(448, 336) == (64, 48, 384, 288) and crop.size == (320, 240)
     assert camera.fps == model.fps and specs["tracker"].params["reference_frame"] == model.reference_frame

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nodes.frame_crop import FrameCrop
+from fv_algos.frame_crop import FrameCrop
 
 
 def test_a_seventh_off_each_border_of_a_448x336_frame_keeps_its_central_320x240() -> None:
-    crop = FrameCrop.from_params([0.142857], [320, 240])
+    crop = FrameCrop.from_lists([0.142857], [320, 240])
     assert crop.window(448, 336) == (64, 48, 384, 288)
     image = np.random.default_rng(0).integers(0, 255, (336, 448, 3), np.uint8)
     np.testing.assert_array_equal(crop.apply(image), image[48:288, 64:384])
@@ -40,10 +40,10 @@ def test_the_camera_matrix_follows_a_point_through_the_crop_and_resize(size: tup
 
 
 def test_params_give_no_crop_one_share_for_all_borders_or_four() -> None:
-    assert FrameCrop.from_params([], []) is None
-    assert FrameCrop.from_params([0.25], []) == FrameCrop((0.25,) * 4, None)
-    assert FrameCrop.from_params([], [64, 48]) == FrameCrop((0.0,) * 4, (64, 48))
-    assert FrameCrop.from_params([0.1, 0.2, 0.3, 0.4], []).borders == (0.1, 0.2, 0.3, 0.4)
+    assert FrameCrop.from_lists([], []) is None
+    assert FrameCrop.from_lists([0.25], []) == FrameCrop((0.25,) * 4, None)
+    assert FrameCrop.from_lists([], [64, 48]) == FrameCrop((0.0,) * 4, (64, 48))
+    assert FrameCrop.from_lists([0.1, 0.2, 0.3, 0.4], []).borders == (0.1, 0.2, 0.3, 0.4)
 
 
 @pytest.mark.parametrize("crop, size, message", [
@@ -54,7 +54,7 @@ def test_params_give_no_crop_one_share_for_all_borders_or_four() -> None:
 ])
 def test_bad_params_are_refused_by_name(crop: list, size: list, message: str) -> None:
     with pytest.raises(ValueError, match=message):
-        FrameCrop.from_params(crop, size)
+        FrameCrop.from_lists(crop, size)
 
 
 def test_a_crop_that_leaves_nothing_of_a_small_frame_is_refused() -> None:

@@ -1,7 +1,7 @@
-"""The camera node's crop and resize: cut a fixed share off each border of every frame (a
+"""Crop and resize of camera frames: cut a fixed share off each border of every frame (a
 sensor's housing, the dark corners of its lens) and scale the rest to a fixed size, as the
 GelSight Mini's own software does (1/7 off each border, then 320x240) before the frames its
-users record. The camera matrix of `/camera/info` follows the same cut and scale."""
+users record. The camera matrix follows the same cut and scale."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -28,10 +28,12 @@ class FrameCrop:
             raise ValueError(f"size {list(self.size)} must be [width, height] in px, both >= 1")
 
     @classmethod
-    def from_params(cls, crop: list[float], size: list[int]) -> FrameCrop | None:
-        """From the camera node's params: `crop` [] (none), [share] (every border) or
-        [top, bottom, left, right]; `size` [] (as cut) or [width, height]. None when both
-        are empty: frames pass untouched."""
+    def from_lists(cls, crop: list[float], size: list[int]) -> FrameCrop | None:
+        """From plain lists (the camera node's params): `crop` [] (none), [share] (every border)
+        or [top, bottom, left, right]; `size` [] (as cut) or [width, height]. None when both
+        are empty: frames pass untouched. ValueError names a bad list, share or size."""
+        if len(crop) not in (0, 1, 4):
+            raise ValueError(f"crop {list(crop)} must be [], [share] or [top, bottom, left, right]")
         if not crop and not size:
             return None
         if len(crop) == 1:
