@@ -16,9 +16,10 @@ import cv2
 import numpy as np
 
 from fv_algos.frame_crop import FrameCrop
-from msgs import CameraInfo, Image, NodeStatus
+from msgs import CameraInfo, Image
 from nodes.camera_sources import FolderSource, Frame, FrameSource, SourceError, V4L2Source, VideoFileSource
 from nodes.node import Node
+from nodes.start_gate import StartGate
 
 SOURCES = ("sim", "video", "folder", "v4l2")
 ENCODINGS = ("mono8", "bgr8")
@@ -96,24 +97,8 @@ class CameraNode(Node):
         self.backoff_s = 0.0
         self.retry_at = 0.0
         self.counters.update(frames=0, lost=0, reopened=0)
-        self.awaited = set(p.start_after)
-        self.start_by = time.monotonic() + p.start_timeout_s
-        if self.awaited:
-            self.subscribe("/status", NodeStatus, self.on_status, depth=None)
+        self.start_gate = StartGate(self, p.start_after, p.start_timeout_s)
         self.timer(1.0 / rate, self.tick)
-
-    def on_status(self, msg: NodeStatus) -> None:
-        self.awaited.discard(msg.node)
-
-    def waiting(self) -> bool:
-        """Whether the first frame is still held back for the nodes of `start_after`."""
-        if not self.awaited:
-            return False
-        if time.monotonic() < self.start_by:
-            return True
-        self.warn(f"started without a status from {sorted(self.awaited)} after {self.params.start_timeout_s} s")
-        self.awaited = set()
-        return False
 
     def _load_calibration(self):
         from fv_algos.fisheye import FisheyeCamera
@@ -137,7 +122,7 @@ class CameraNode(Node):
                                          height=height, K=K, D=D, rms_px=float(getattr(cam, "rms_px", 0.0) or 0.0)))
 
     def tick(self) -> None:
-        if getattr(self.source, "finished", False) or self.waiting():
+        if getattr(self.source, "finished", False) or self.start_gate.waiting():
             return
         if self.retry_at:
             if time.monotonic() < self.retry_at:

@@ -7,7 +7,10 @@ reference: its markers are published latched on `/markers/reference`. Any messag
 A tracker that restarts (respawned after a crash) while the skin may be deformed must not
 take a deformed frame as the reference: with `resume`, it first waits up to
 `resume_wait_s` for the latched `/markers/reference` of its previous process (same node
-name, same image size) and goes on tracking against it."""
+name, same image size, stamped no later than the first frame this process sees) and goes
+on tracking against it. A reference stamped after that frame belongs to another stream
+(e.g. the live session a bus still holds, when a recording of it is replayed) and is
+not resumed."""
 from __future__ import annotations
 
 import time
@@ -60,6 +63,7 @@ class TrackerNode(Node):
         self.started_ns = time.time_ns()
         self.resume_until = time.monotonic() + (p.resume_wait_s if p.resume else 0.0)
         self.inherited: MarkerArray | None = None
+        self.first_stamp_ns: int | None = None  # stamp of the first frame this process sees
         self.markers_pub = self.publisher("/markers", MarkerArray)
         self.reference_pub = self.publisher("/markers/reference", MarkerArray, latched=True)
         self.subscribe("/camera/image", Image, self.on_image, depth=1, stale_after_s=p.input_timeout_s or None)
@@ -81,8 +85,13 @@ class TrackerNode(Node):
 
     def on_image(self, msg: Image) -> None:
         self.frames_seen += 1
+        if self.first_stamp_ns is None:
+            self.first_stamp_ns = msg.stamp_ns
         if self.needs_reference:
             old = self.inherited
+            if old is not None and old.stamp_ns > self.first_stamp_ns:
+                self.log.info("not resumed: the latched reference is stamped after this stream's first frame")
+                self.inherited = old = None
             if old is not None and (old.width, old.height) == (msg.width, msg.height):
                 state = self.perception.resume(msg.data, old.ref_px)
                 self.counters["resumed"] += 1

@@ -10,7 +10,9 @@ Timing follows the recorded log (receive) times scaled by `rate`; `fast` drops t
 timing for batch processing, and `sync_topic` adds flow control: after each message
 on `sync_on` the player waits until the pipeline answers on `sync_topic` with a
 message stamped at or after it, so a slow consumer never loses a frame. Before the
-first message the player waits until every played volatile topic has a subscriber.
+first message the player waits for the nodes of `start_after` to report (a replay
+pipeline's nodes, every subscription made) and until every played volatile topic has
+a subscriber.
 """
 from __future__ import annotations
 
@@ -32,6 +34,7 @@ from nodes.bag.codec import split_payload
 from nodes.bag.reader import BagError, BagMessage, BagReader
 from nodes.bus import PublisherSocket, TopicReader
 from nodes.node import Node
+from nodes.start_gate import StartGate
 
 SUBSCRIBER_POLL_S = 0.02
 KEY_POLL_S = 0.2
@@ -45,10 +48,13 @@ class BagPlayParams:
     loop: start over at the end. start_offset_s: skip this much of the bag (the last
     latched message of each latched topic before it is still sent first).
     duration_s: play this much of the bag (0 = to the end). topics: recorded topics to
-    play ([] = all). fast: as fast as possible, no timing (batch processing).
+    play ([] = all); each must be in the bag. optional_topics: topics also played when
+    the bag has them (e.g. /tracker/reset, recorded only where a gripper sent it). fast: as fast as possible, no timing (batch processing).
     start_paused: wait for space/enter (terminal) or SIGUSR1 before the first message.
     wait_for_subscribers: before the first message, wait up to subscriber_timeout_s
-    until each played volatile topic has a subscriber.
+    until each played volatile topic has a subscriber. start_after: nodes whose first
+    NodeStatus the first message also waits for (a replay pipeline's nodes, so that each
+    gets the bag whole), for start_timeout_s at most (then it plays, warned).
     sync_topic: flow control, wait for an answer on this topic after each `sync_on`
     message ("" = off); sync_on: recorded topic that waits ("" = the first Image
     topic); sync_window: `sync_on` messages allowed in flight unanswered;
@@ -62,10 +68,13 @@ class BagPlayParams:
     start_offset_s: float = 0.0
     duration_s: float = 0.0
     topics: list[str] = field(default_factory=list)
+    optional_topics: list[str] = field(default_factory=list)
     fast: bool = False
     start_paused: bool = False
     wait_for_subscribers: bool = True
     subscriber_timeout_s: float = 5.0
+    start_after: list[str] = field(default_factory=list)
+    start_timeout_s: float = 30.0
     sync_topic: str = ""
     sync_on: str = ""
     sync_window: int = 1
@@ -77,8 +86,8 @@ class BagPlayParams:
             raise ValueError("path: give the bag to play")
         if self.rate <= 0:
             raise ValueError(f"rate {self.rate} must be > 0")
-        if self.start_offset_s < 0 or self.duration_s < 0 or self.subscriber_timeout_s < 0:
-            raise ValueError("start_offset_s, duration_s and subscriber_timeout_s must be >= 0")
+        if min(self.start_offset_s, self.duration_s, self.subscriber_timeout_s, self.start_timeout_s) < 0:
+            raise ValueError("start_offset_s, duration_s, subscriber_timeout_s and start_timeout_s must be >= 0")
         if self.sync_window < 1 or self.sync_timeout_s <= 0:
             raise ValueError("sync_window must be >= 1 and sync_timeout_s > 0")
 
@@ -95,7 +104,11 @@ class BagPlay(Node):
         for topic in p.topics + ([p.sync_on] if p.sync_on else []):
             if topic not in known:
                 raise BagError(p.path, f"has no topic {topic!r}; topics: {sorted(known)}")
-        self.played_topics = p.topics or list(known)
+        absent = [t for t in p.optional_topics if t not in known]
+        if absent:
+            self.log.info("not in the bag, not played: %s", ", ".join(absent))
+        present = [t for t in p.optional_topics if t in known and t not in p.topics]
+        self.played_topics = p.topics + present if p.topics else list(known)
         self.out_topic = {t: self.resolve(t) for t in self.played_topics}
         images = [t for t in self.played_topics if known[t].type_name == Image.TYPE]
         self.sync_on = p.sync_on or (images[0] if images else "")
@@ -105,6 +118,7 @@ class BagPlay(Node):
         self._pending: collections.deque[int] = collections.deque()
         self._pub = PublisherSocket(self.name, self.address, self.ctx)
         self._sync = TopicReader([p.sync_topic], self.address, self.ctx) if p.sync_topic else None
+        self.start_gate = StartGate(self, p.start_after, p.start_timeout_s)
         if threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGUSR1, lambda *_: self._toggle_pause())
         if p.keyboard and sys.stdin.isatty():
@@ -132,6 +146,8 @@ class BagPlay(Node):
     def _run_play(self) -> None:
         try:
             self._pub.wait_connected(2.0)
+            while self.start_gate.waiting() and not self.stopped:
+                time.sleep(SUBSCRIBER_POLL_S)
             if self.params.wait_for_subscribers:
                 self._wait_for_subscribers()
             if self.clock.paused:

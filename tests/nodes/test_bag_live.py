@@ -197,6 +197,30 @@ def test_play_offset_duration_topics_remap_and_latched_first(bus: BusAddress, tm
     assert len(want) == 10 and node.counters["played"] == 11
 
 
+def test_optional_topics_are_played_when_recorded_and_skipped_when_not(bus: BusAddress, tmp_path: Path) -> None:
+    """`optional_topics` (replay.yaml's /tracker/reset) play in their recorded order among the frames
+    when the bag holds them; a bag without them plays its required topics, where a required topic
+    missing is an error naming it."""
+    messages = sample_messages(6, np.random.default_rng(3))
+    reset_at = messages[3 * 3][3] + 10  # between the third frame's slip state and the fourth frame
+    with_reset = [m for m in messages if m[0] != "/slip"] + [("/tracker/reset", False, SlipState(), reset_at)]
+    write_bag(tmp_path / "with", sorted(with_reset, key=lambda m: m[3]))
+    write_bag(tmp_path / "without", messages)
+    params = {"fast": True, "topics": ["/camera/image"], "optional_topics": ["/tracker/reset", "/not_recorded"]}
+    for name, want in (("with", ["/camera/image"] * 3 + ["/tracker/reset"] + ["/camera/image"] * 3),
+                       ("without", ["/camera/image"] * 6)):
+        with TopicReader(["/camera/image", "/tracker/reset"], bus) as reader:
+            node = BagPlay("play", {"path": str(tmp_path / name), **params}, address=bus)
+            thread = in_thread(node)
+            got = []
+            while (item := reader.recv(2.0)) is not None:
+                got.append(item.topic)
+            thread.join(5)
+        assert got == want and node.error is None, name
+    with pytest.raises(BagError, match="has no topic '/tracker/reset'"):
+        BagPlay("play", {"path": str(tmp_path / "without"), "topics": ["/tracker/reset"]}, address=bus).setup()
+
+
 def test_start_paused_until_sigusr1(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
     write_bag(tmp_path / "b", sample_messages(20, np.random.default_rng(4)))
     with TopicReader(["/slip"], bus) as reader:
@@ -243,10 +267,12 @@ def test_record_node_selection_split_attachments(bus: BusAddress, tmp_path: Path
 
 
 def test_replay_launch_plays_the_camera_topics(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
-    """The bag part of launch/replay.yaml (the pipeline nodes land later)."""
+    """The bag part of launch/replay.yaml alone, waiting for no pipeline node (test_session_replay.py
+    replays whole sessions through it)."""
     doc = yaml.safe_load((REPO / "launch" / "replay.yaml").read_text())
     kinds = [n["kind"] for n in doc["nodes"]]
     assert kinds[0] == "bag_play" and {"tracker", "interpolator", "slip_detector"} <= set(kinds)
+    assert set(doc["nodes"][0]["params"].pop("start_after")) == {"tracker", "interpolator", "slip_detector"}
     only_bag = tmp_path / "replay_bag.yaml"
     only_bag.write_text(yaml.safe_dump({"args": doc["args"], "nodes": doc["nodes"][:1]}))
     messages = sample_messages(30, np.random.default_rng(6))

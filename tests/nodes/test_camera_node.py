@@ -143,17 +143,20 @@ def test_unknown_source_param_is_rejected(bus) -> None:
 
 
 def test_start_after_holds_the_first_frame_until_the_named_nodes_report(bus, spawn, tmp_path: Path) -> None:
+    """A status of the named node from before the camera started (latched on the forwarder, left by an
+    earlier launch) does not count: the camera waits for one published since."""
     from msgs import NodeStatus
     from nodes.bus import PublisherSocket
     video = tmp_path / "clip.avi"
     _write_video(video)
+    pub = PublisherSocket("late_node")
+    assert pub.wait_connected(5.0)
+    pub.publish("/status", NodeStatus(), latched=True)  # the earlier launch's late_node
     with TopicReader(["/camera/image"]) as reader:
         spawn("node", "camera", "-p", "source=video", "-p", f"path={video}", "-p", "fps=25", "-p", "loop=false",
               "-p", "start_after=[late_node]")
         wait_status("camera", timeout_s=20.0)
-        assert reader.recv(1.0) is None  # held back: late_node has not reported
-        pub = PublisherSocket("late_node")
-        assert pub.wait_connected(5.0)
+        assert reader.recv(1.0) is None  # held back: late_node has not reported since
         pub.publish("/status", NodeStatus(), latched=True)
         frames = [reader.recv(5.0) for _ in range(20)]
         pub.close()
