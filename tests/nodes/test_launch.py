@@ -83,13 +83,14 @@ def test_demo_launch_file_is_valid() -> None:
     assert names == ["talker", "listener"]
 
 
-@pytest.mark.parametrize("name", ["pipeline.yaml", "view.yaml", "video.yaml", "gelsight_mini.yaml"])
+@pytest.mark.parametrize("name", ["pipeline.yaml", "view.yaml", "video.yaml", "gelsight_mini.yaml", "replay.yaml"])
 def test_the_cameras_of_the_shipped_pipelines_wait_for_the_nodes_that_take_a_reference(name: str) -> None:
-    """The tracker takes its reference from the first frame it gets: a camera that starts before it hands
-    it a deformed skin (on the simulated main job, every held frame was then called slip)."""
-    args = {"video": "clip.avi"} if name == "video.yaml" else {}
+    """The tracker takes its reference from the first frame it gets: a camera (or a bag player) that starts
+    before it hands it a deformed skin (on the simulated main job, every held frame was then called slip)."""
+    args = {"video.yaml": {"video": "clip.avi"}, "replay.yaml": {"bag": "run1"}}.get(name, {})
     specs = {s.name: s for s in load_launch(REPO / "launch" / name, args)}
-    assert set(specs["camera"].params["start_after"]) == {"tracker", "interpolator", "slip_detector"}
+    source = specs["bag_play" if name == "replay.yaml" else "camera"]
+    assert set(source.params["start_after"]) == {"tracker", "interpolator", "slip_detector"}
 
 
 def test_the_live_gelsight_mini_launch_gives_the_default_model_frames_as_it_was_trained() -> None:
@@ -109,15 +110,21 @@ def test_the_live_gelsight_mini_launch_gives_the_default_model_frames_as_it_was_
 
 
 @pytest.mark.parametrize("name, args", [("video_pair.yaml", {"left": "a.avi", "right": "b.avi"}),
-                                        ("gelsight_mini_pair.yaml", {"left": "2BKR", "right": "28G8"})])
+                                        ("gelsight_mini_pair.yaml", {"left": "2BKR", "right": "28G8"}),
+                                        ("replay_pair.yaml", {"bag": "session"})])
 def test_both_fingers_start_together_and_their_slips_are_the_fusion_inputs(name: str, args: dict) -> None:
     specs = {s.name: s for s in load_launch(REPO / "launch" / name, args)}
-    waited = {n for n in specs if not n.endswith("_camera") and n != "slip_monitor"}
+    waited = {n for n in specs if not n.endswith("_camera") and n not in ("slip_monitor", "bag_play")}
     assert waited == {f"{side}_{kind}" for side in ("left", "right") for kind in ("tracker", "interpolator", "slip_detector")} | {"slip_fusion"}
     for side in ("left", "right"):
-        camera = specs[f"{side}_camera"]
-        assert set(camera.params["start_after"]) == waited and camera.params["path"] == args[side]
-        assert camera.remap["/camera/image"] == specs[f"{side}_tracker"].remap["/camera/image"] == f"/{side}/camera/image"
+        if name == "replay_pair.yaml":  # the bag plays both fingers' frames
+            source, topic = specs["bag_play"], f"/{side}/camera/image"
+            assert topic in source.params["topics"] and set(source.params["start_after"]) == waited
+        else:
+            source = specs[f"{side}_camera"]
+            topic = source.remap["/camera/image"]
+            assert set(source.params["start_after"]) == waited and source.params["path"] == args[side]
+        assert topic == specs[f"{side}_tracker"].remap["/camera/image"] == f"/{side}/camera/image"
         assert specs[f"{side}_interpolator"].remap["/field"] == specs[f"{side}_slip_detector"].remap["/field"] == f"/{side}/field"
     assert specs["slip_fusion"].params["inputs"] == [specs[f"{side}_slip_detector"].remap["/slip"] for side in ("left", "right")]
 

@@ -1,0 +1,86 @@
+"""A recorded session replayed: a real grasp played live (video.yaml, video_pair.yaml) with the gripper's
+/tracker/reset in the middle, recorded with `fv bag record -a`, then replayed through replay.yaml /
+replay_pair.yaml. The replay gives every slip state the live run gave, at the same frame stamps, with
+the same grasp starts (the reset replayed) and the same P(slip)."""
+from __future__ import annotations
+
+import signal
+from pathlib import Path
+
+import pytest
+
+from msgs import SlipState
+from nodes.bag.reader import read_bag
+from nodes.bus import PublisherSocket, TopicReader
+from tests.nodes.conftest import REPO, wait_status
+
+GRASP = Path("train") / "bag_of_peanuts" / "exp_num_8"  # a slip, 57 frames per camera
+
+
+def _record_live(spawn, bag: Path, launch_args: list[str], states_before_reset: int, states_after: int) -> None:
+    """Record every topic of `fv launch LAUNCH_ARGS` into ``bag`` while it gives ``states_before_reset``
+    states on /slip, a /tracker/reset, then ``states_after`` more."""
+    recorder = spawn("bag", "record", "-a", "-x", "^/status$", "--compression", "none", "-o", str(bag))
+    wait_status("bag_record", timeout_s=20.0)
+    with TopicReader(["/slip"]) as reader:
+        launch = spawn("launch", *launch_args)
+        before = [reader.recv(90.0 if k == 0 else 10.0) for k in range(states_before_reset)]
+        assert all(s is not None for s in before), f"{sum(s is not None for s in before)} states before the reset"
+        gripper = PublisherSocket("gripper")
+        assert gripper.wait_connected(5.0)
+        gripper.publish("/tracker/reset", SlipState())  # any message: the gripper has just closed again
+        after = [reader.recv(10.0) for _ in range(states_after)]
+        assert all(s is not None for s in after), f"{sum(s is not None for s in after)} states after the reset"
+        gripper.close()
+    for process in (launch, recorder):  # the launch stops its nodes before it exits: none is left to talk
+        process.send_signal(signal.SIGINT)
+        process.wait(30.0)
+    assert recorder.returncode == 0
+
+
+def _replay(spawn, bag: Path, launch_file: str, topics: list[str], last_stamp_ns: dict[str, int]) -> dict[str, list]:
+    """The states on ``topics`` of `fv launch launch_file bag:=BAG` until each topic has given its state at
+    ``last_stamp_ns[topic]``."""
+    got: dict[str, list] = {t: [] for t in topics}
+    with TopicReader(topics) as reader:
+        spawn("launch", str(REPO / "launch" / launch_file), f"bag:={bag}", "model:=gelsight_online")
+        while any(not got[t] or got[t][-1].stamp_ns != last_stamp_ns[t] for t in topics):
+            item = reader.recv(90.0 if not any(got.values()) else 10.0)
+            assert item is not None, f"replay stopped at {({t: len(v) for t, v in got.items()})} states"
+            got[item.topic].append(item.msg)
+    return got
+
+
+def _assert_replayed_as_live(recorded: list[SlipState], replayed: list[SlipState], topic: str) -> None:
+    """Every live state of ``topic`` replayed at the same stamp, with the same grasp start and P(slip)."""
+    live = {s.stamp_ns: s for s in recorded}
+    again = {s.stamp_ns: s for s in replayed}
+    assert sorted(again) == sorted(live), f"{topic}: {len(live)} live states, {len(again)} replayed"
+    assert len({int(s.window_stamps_ns[0]) for s in recorded}) == 2, f"{topic}: the reset did not start a grasp"
+    for stamp, state in live.items():
+        assert int(again[stamp].window_stamps_ns[0]) == int(state.window_stamps_ns[0]), topic
+        assert again[stamp].probability == pytest.approx(state.probability, abs=1e-4), topic
+
+
+def test_one_camera_session_with_a_reset_replays_as_live(bus, spawn, isd_data: Path, tmp_path: Path) -> None:
+    video = isd_data / GRASP / "camera_0.avi"
+    bag = tmp_path / "session"
+    _record_live(spawn, bag, [str(REPO / "launch" / "video.yaml"), f"video:={video}", "loop:=true"], 30, 40)
+    recorded = [m for _, m, _ in read_bag(bag, topics=["/slip"])]
+    replayed = _replay(spawn, bag, "replay.yaml", ["/slip"], {"/slip": recorded[-1].stamp_ns})
+    _assert_replayed_as_live(recorded, replayed["/slip"], "/slip")
+
+
+def test_two_finger_session_with_a_reset_replays_as_live(bus, spawn, isd_data: Path, tmp_path: Path) -> None:
+    """replay_pair.yaml: both fingers' states as live, and the fingers' vote on /slip at the end."""
+    bag = tmp_path / "session"
+    videos = [isd_data / GRASP / "camera_0.avi", isd_data / GRASP / "camera_2.avi"]
+    _record_live(spawn, bag, [str(REPO / "launch" / "video_pair.yaml"), f"left:={videos[0]}", f"right:={videos[1]}",
+                              "loop:=true"], 60, 80)
+    fingers = ["/left/slip", "/right/slip"]
+    recorded = {t: [m for _, m, _ in read_bag(bag, topics=[t])] for t in [*fingers, "/slip"]}
+    replayed = _replay(spawn, bag, "replay_pair.yaml", [*fingers, "/slip"],
+                       {t: recorded[t][-1].stamp_ns for t in [*fingers, "/slip"]})
+    for topic in fingers:
+        _assert_replayed_as_live(recorded[topic], replayed[topic], topic)
+    assert replayed["/slip"][-1].probability == pytest.approx(recorded["/slip"][-1].probability, abs=1e-4)
