@@ -39,7 +39,9 @@ import cv2
 import numpy as np
 
 from fv_algos.frame_rate import pick
-from fv_algos.real_trials import Trial, VideoKey, cache_folder, cache_stem, map_videos, read_frames, write_atomically
+from fv_algos.frame_crop import FrameCrop
+from fv_algos.real_trials import (Trial, VideoKey, cache_folder, cache_stem, map_videos, read_frames, video_key,
+                                   write_atomically)
 
 SERIES = ("relative_px", "marker_px", "contact_above_min", "imprint_change", "imprint_step_rms")
 SERIES_CACHE_VERSION = 5
@@ -137,10 +139,9 @@ def contact_series(frames: Iterable[np.ndarray], params: ContactMotionParams = C
 
 
 def _series_cache_path(cache_dir: Path, video: Path, reference_frame: int, params: ContactMotionParams,
-                       rates: tuple[float, float] | None) -> Path:
-    stat = video.stat()
-    key = [SERIES_CACHE_VERSION, str(video.resolve()), stat.st_size, stat.st_mtime_ns, reference_frame,
-           asdict(params), hashlib.sha256(Path(__file__).read_bytes()).hexdigest()]
+                       rates: tuple[float, float] | None, crop: FrameCrop | None) -> Path:
+    key = [SERIES_CACHE_VERSION, *video_key(video, reference_frame, crop), asdict(params),
+           hashlib.sha256(Path(__file__).read_bytes()).hexdigest()]
     text = json.dumps(key if rates is None else [*key, list(rates)])
     return cache_dir / f"{cache_stem(video)}__contact__{hashlib.sha256(text.encode()).hexdigest()[:16]}.npy"
 
@@ -148,16 +149,17 @@ def _series_cache_path(cache_dir: Path, video: Path, reference_frame: int, param
 TrialSeries = dict[VideoKey, np.ndarray]
 
 
-def _cached_series(video: Path, cache_dir: str | Path | None, reference_frame: int,
-                   params: ContactMotionParams, rates: Mapping[Path, tuple[float, float]]) -> np.ndarray:
-    """:func:`contact_series` of one video (picked at ``rates[video]`` when it is there), read from /
-    written to the cache when there is a cache folder."""
+def _cached_series(video: Path, cache_dir: str | Path | None, reference_frame: int, params: ContactMotionParams,
+                   rates: Mapping[Path, tuple[float, float]], crop: FrameCrop | None) -> np.ndarray:
+    """:func:`contact_series` of one video (its frames cut by ``crop`` when given, picked at ``rates[video]``
+    when it is there), read from / written to the cache when there is a cache folder."""
     rate = rates.get(video)
-    cached = None if cache_dir is None else _series_cache_path(Path(cache_dir), video, reference_frame, params, rate)
+    cached = (None if cache_dir is None
+              else _series_cache_path(Path(cache_dir), video, reference_frame, params, rate, crop))
     if cached is not None and cached.is_file():
         return np.load(cached)
     try:
-        series = contact_series(read_frames(video), params, reference_frame, rate)
+        series = contact_series(read_frames(video, crop), params, reference_frame, rate)
     except ValueError as exc:
         raise ValueError(f"{video}: {exc}") from exc
     if cached is not None:
@@ -167,12 +169,14 @@ def _cached_series(video: Path, cache_dir: str | Path | None, reference_frame: i
 
 def trial_series(trials: Sequence[Trial], cache_dir: str | Path | None = None, reference_frame: int = 1,
                  params: ContactMotionParams = ContactMotionParams(), workers: int = 1,
-                 progress: bool = True, rates: Mapping[Path, tuple[float, float]] | None = None) -> TrialSeries:
+                 progress: bool = True, rates: Mapping[Path, tuple[float, float]] | None = None,
+                 crop: FrameCrop | None = None) -> TrialSeries:
     """:func:`contact_series` of every camera of every trial, keyed (trial name, camera), in
     ``workers`` processes with one progress bar; cached as one .npy per video under ``cache_dir``
-    (None: no cache; ValueError naming a folder that cannot be written), keyed by the video, the
-    parameters, the rates and this module's code. ``rates``: (video fps, model fps) of the videos whose
-    frames are picked at the model's rate (the others: all frames)."""
+    (None: no cache; ValueError naming a folder that cannot be written), keyed by the video, the crop,
+    the parameters, the rates and this module's code. ``rates``: (video fps, model fps) of the videos whose
+    frames are picked at the model's rate (the others: all frames). ``crop``: the frames' cut (raw
+    recordings, see :func:`fv_algos.real_trials.read_frames`)."""
     compute = partial(_cached_series, cache_dir=cache_folder(cache_dir), reference_frame=reference_frame,
-                      params=params, rates=rates or {})
+                      params=params, rates=rates or {}, crop=crop)
     return map_videos(trials, compute, workers, progress, "contact motion")

@@ -40,6 +40,7 @@ from tqdm import tqdm
 
 from fv_algos import detection, perception, tracking
 from fv_algos import field as field_module
+from fv_algos.frame_crop import FrameCrop
 from fv_algos.perception import Perception, PerceptionParams
 from fv_algos.tracking import neighbour_consistency
 
@@ -179,8 +180,10 @@ class VideoFields:
                            self.n_markers, self.seconds, self.width_px, self.missing_frames)
 
 
-def read_frames(path: str | Path) -> Iterator[np.ndarray]:
-    """BGR frames (H, W, 3) uint8 of a video file; FileNotFoundError / ValueError name the file."""
+def read_frames(path: str | Path, crop: FrameCrop | None = None) -> Iterator[np.ndarray]:
+    """BGR frames (H, W, 3) uint8 of a video file, cut and resized by ``crop`` when given (a raw
+    recording's frames made the ones a model was trained on, e.g. a GelSight Mini's border cut off);
+    FileNotFoundError / ValueError name the file (ValueError also a crop that leaves nothing)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"video not found: {path}")
@@ -192,7 +195,7 @@ def read_frames(path: str | Path) -> Iterator[np.ndarray]:
             ok, frame = capture.read()
             if not ok:
                 return
-            yield frame
+            yield frame if crop is None else crop.apply(frame)
     finally:
         capture.release()
 
@@ -207,15 +210,16 @@ def frame_count(path: str | Path) -> int:
 
 
 def video_fields(
-    path: str | Path, params: PerceptionParams | None = None, reference_frame: int = 1
+    path: str | Path, params: PerceptionParams | None = None, reference_frame: int = 1, crop: FrameCrop | None = None
 ) -> VideoFields:
-    """Run the perception core over one video (see the module docstring); ValueError naming the
-    file when it has no frame at ``reference_frame`` or its reference shows too few markers. Frames the
-    container lists after the last one decoded are counted in ``missing_frames``."""
+    """Run the perception core over one video (see the module docstring), its frames cut by ``crop``
+    when given (:func:`read_frames`); ValueError naming the file when it has no frame at
+    ``reference_frame`` or its reference shows too few markers. Frames the container lists after the
+    last one decoded are counted in ``missing_frames``."""
     started = time.perf_counter()
     core = Perception(params or PerceptionParams.preset("default"))
     fields, field_valid, shares, swaps = [], [], [], []
-    for index, frame in enumerate(read_frames(path)):
+    for index, frame in enumerate(read_frames(path, crop)):
         if index < reference_frame:
             continue
         if index == reference_frame:
@@ -251,17 +255,20 @@ def _perception_digest() -> str:
     return digest.hexdigest()
 
 
-def _cache_key(video: Path, reference_frame: int) -> str:
+def video_key(video: Path, reference_frame: int, crop: FrameCrop | None) -> list:
+    """What a video's cached results depend on besides the code: the file (path, size, mtime), the
+    reference frame and the crop (left out when there is none, so entries cached before crops stay
+    valid)."""
     stat = video.stat()
-    text = json.dumps([CACHE_VERSION, str(video.resolve()), stat.st_size, stat.st_mtime_ns, reference_frame,
-                       _perception_digest()])
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
+    key = [str(video.resolve()), stat.st_size, stat.st_mtime_ns, reference_frame]
+    return key if crop is None else [*key, list(crop.borders), crop.size and list(crop.size)]
 
 
-def cache_path(cache_dir: str | Path, video: Path, reference_frame: int = 1) -> Path:
-    """Where the fields of ``video`` are cached: one .npz per video, named after a key of the video
-    (path, size, mtime), the reference frame and the perception code, so a stale entry is never read."""
-    return Path(cache_dir) / f"{cache_stem(video)}__{_cache_key(video, reference_frame)}.npz"
+def cache_path(cache_dir: str | Path, video: Path, reference_frame: int = 1, crop: FrameCrop | None = None) -> Path:
+    """Where the fields of ``video`` are cached: one .npz per video, named after :func:`video_key` and the
+    perception code, so a stale entry is never read."""
+    text = json.dumps([CACHE_VERSION, *video_key(video, reference_frame, crop), _perception_digest()])
+    return Path(cache_dir) / f"{cache_stem(video)}__{hashlib.sha256(text.encode()).hexdigest()[:16]}.npz"
 
 
 def cache_stem(video: Path) -> str:
@@ -316,12 +323,13 @@ def load_video_fields(path: Path) -> VideoFields:
                            int(data["missing_frames"]))
 
 
-def _cached_fields(video: Path, cache_dir: str | Path | None, reference_frame: int) -> VideoFields:
+def _cached_fields(video: Path, cache_dir: str | Path | None, reference_frame: int,
+                   crop: FrameCrop | None) -> VideoFields:
     """Fields of one video, read from / written to the cache when there is a cache folder."""
-    cached = None if cache_dir is None else cache_path(cache_dir, video, reference_frame)
+    cached = None if cache_dir is None else cache_path(cache_dir, video, reference_frame, crop)
     if cached is not None and cached.is_file():
         return load_video_fields(cached)
-    value = video_fields(video, reference_frame=reference_frame)
+    value = video_fields(video, reference_frame=reference_frame, crop=crop)
     if cached is not None:
         save_video_fields(cached, value)
     return value
@@ -370,15 +378,17 @@ def trial_fields(
     reference_frame: int = 1,
     workers: int = 1,
     progress: bool = True,
+    crop: FrameCrop | None = None,
 ) -> TrialFields:
-    """Fields of every camera of every trial, keyed (trial name, camera).
+    """Fields of every camera of every trial, keyed (trial name, camera), the frames cut by ``crop``
+    when given (raw recordings, see :func:`read_frames`).
 
     cache_dir: folder for one .npz per video (None: no cache; ValueError naming it when it cannot be
     written, see :func:`cache_folder`). workers: processes (1 = this one).
     One progress bar (in frames) covers the whole set. A video whose decoding stops before the frames its
     container lists is logged as a warning, naming it (see ``VideoFields.missing_frames``).
     """
-    compute = partial(_cached_fields, cache_dir=cache_folder(cache_dir), reference_frame=reference_frame)
+    compute = partial(_cached_fields, cache_dir=cache_folder(cache_dir), reference_frame=reference_frame, crop=crop)
     fields = map_videos(trials, compute, workers, progress, "fields")
     for (name, camera), value in fields.items():
         if value.missing_frames:

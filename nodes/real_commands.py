@@ -25,6 +25,7 @@ from nodes.arg_types import output_file, positive_int
 
 if TYPE_CHECKING:  # torch is imported only where a model is used
     from fv_algos.contact_motion import ContactMotionParams
+    from fv_algos.frame_crop import FrameCrop
     from fv_algos.real_trials import Trial, TrialFields
     from fv_algos.trial_net import TrialModel
 
@@ -67,9 +68,30 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cache", type=Path, default=None, help="reuse / write cached fields here (default: none)")
     p.add_argument("--workers", type=positive_int, default=1,
                    help="processes for the fields and contact motion (default 1)")
+    crop_flags(p)
     online_flags(p)
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=eval_trials_command)
+
+
+def crop_flags(p: argparse.ArgumentParser) -> None:
+    """--crop and --size: every frame of the trials' videos cut and resized as it is read (raw recordings,
+    e.g. a GelSight Mini's frames with the border its software cuts off; :func:`frame_crop` reads them)."""
+    p.add_argument("--crop", type=float, nargs="+", default=[], metavar="SHARE",
+                   help="shares cut off the frames' borders as they are read: one for every border or four (top, "
+                        "bottom, left, right); 0.142857 for a GelSight Mini's raw frames (default: none)")
+    p.add_argument("--size", type=int, nargs=2, default=[], metavar=("WIDTH", "HEIGHT"),
+                   help="px the cut frames are resized to, e.g. 320 240 (default: as cut)")
+
+
+def frame_crop(args: argparse.Namespace) -> FrameCrop | None:
+    """The :class:`fv_algos.frame_crop.FrameCrop` of --crop / --size (None: neither given); SystemExit
+    naming a bad value."""
+    from fv_algos.frame_crop import FrameCrop
+    try:
+        return FrameCrop.from_lists(args.crop, args.size)
+    except ValueError as error:
+        raise SystemExit(f"--crop / --size: {error}") from None
 
 
 def online_flags(p: argparse.ArgumentParser) -> None:
@@ -109,6 +131,7 @@ def _alarm_rule(text: str):
 
 def _data_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trials", type=Path, required=True, help="folder with labels.csv and the trial folders")
+    crop_flags(p)
     p.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help=f"field cache folder (default {DEFAULT_CACHE})")
     p.add_argument("--workers", type=positive_int, default=1,
                    help="processes for the fields, the contact motion and the folds of `cv` (default 1)")
@@ -159,19 +182,21 @@ def _rule(args: argparse.Namespace):
     return TrialRule(stride=args.stride, **overrides)
 
 
-def _load(trials_dir: Path, cache: Path | None, workers: int, reference_frame: int = 1):
-    """(trials, fields, seconds) of the trials in ``trials_dir`` from ``reference_frame`` of each video on,
-    fields cached under ``cache`` (None: no cache)."""
+def _load(args: argparse.Namespace, reference_frame: int = 1):
+    """(trials, fields, seconds) of the trials in ``args.trials`` from ``reference_frame`` of each video on,
+    the frames cut by --crop / --size, fields cached under ``args.cache`` (None: no cache) and computed in
+    ``args.workers`` processes."""
     from fv_algos.real_trials import read_trials, trial_fields
-    trials = read_trials(trials_dir)
+    crop = frame_crop(args)
+    trials = read_trials(args.trials)
     started = time.perf_counter()
-    fields = trial_fields(trials, cache, workers=workers, reference_frame=reference_frame)
+    fields = trial_fields(trials, args.cache, workers=args.workers, reference_frame=reference_frame, crop=crop)
     return trials, fields, time.perf_counter() - started
 
 
 def _fields(args: argparse.Namespace) -> int:
     from fv_algos.real_trials import tracking_quality
-    trials, fields, seconds = _load(args.trials, args.cache, args.workers)
+    trials, fields, seconds = _load(args)
     quality = tracking_quality(fields)
     report = {"trials": len(trials), "wall_s": seconds, "cache": str(args.cache), **quality}
     if args.json:
@@ -225,11 +250,11 @@ def _trial_inputs(args: argparse.Namespace, reference_frame: int, params: Contac
     from fv_algos.contact_motion import ContactMotionParams, trial_series
     from fv_algos.frame_rate import judged_rates, picked_frames
     from fv_algos.trial_net import trial_inputs
-    trials, fields, field_s = _load(args.trials, args.cache, args.workers, reference_frame)
+    trials, fields, field_s = _load(args, reference_frame)
     fps, faster = judged_rates(trials, fps, stretch)
     paths = {(t.name, camera): path for t in trials for camera, path in t.videos.items()}
     series = trial_series(trials, args.cache, reference_frame, params or ContactMotionParams(), workers=args.workers,
-                          rates={paths[key]: (rate, fps) for key, rate in faster.items()})
+                          rates={paths[key]: (rate, fps) for key, rate in faster.items()}, crop=frame_crop(args))
     picked = {key: value if key not in faster else value.at(picked_frames(len(value.fields), faster[key], fps))
               for key, value in fields.items()}
     inputs = trial_inputs(trials, series, picked)
@@ -253,7 +278,7 @@ def _cv(args: argparse.Namespace) -> int:
         from fv_algos.trial_eval import cross_validate, trial_windows
         from nodes.slip_detector import model_path
         config = _fit_config(args)
-        trials, fields, _ = _load(args.trials, args.cache, args.workers)
+        trials, fields, _ = _load(args)
         data = trial_windows(trials, fields, config.train.model.window, config.rule)
         init = None if args.init is None else str(model_path(args.init))
         report = cross_validate(data, config, args.folds, args.seed, init, workers=args.workers)
@@ -323,7 +348,7 @@ def _train(args: argparse.Namespace) -> int:
     from fv_algos.slip.models import count_parameters
     from fv_algos.trial_eval import fit, trial_windows
     config = _fit_config(args)
-    trials, fields, _ = _load(args.trials, args.cache, args.workers)
+    trials, fields, _ = _load(args)
     data = trial_windows(trials, fields, config.train.model.window, config.rule)
     started = time.perf_counter()
     model, threshold, record = fit(data, np.arange(len(trials)), config)
@@ -468,7 +493,7 @@ def _eval_windows(args: argparse.Namespace, path: Path) -> dict[str, object]:
     rule = TrialRule(**info["fit"]["rule"]) if "fit" in info else TrialRule()
     threshold = float(info.get("trial_threshold", 0.5))
     classifier = SlipClassifier(path, threads=1)
-    trials, fields, field_s = _load(args.trials, args.cache, args.workers)
+    trials, fields, field_s = _load(args)
     data = trial_windows(trials, fields, classifier.config.window, rule)
     report = judge(classifier.model, data, np.arange(len(trials)), threshold, rule.top_k)
     return {"trial_accuracy": report["trial_accuracy"], "n_trials": report["n_trials"],

@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 from nodes.arg_types import output_file, output_folder, positive_float, positive_int
-from nodes.real_commands import online_flags
+from nodes.real_commands import crop_flags, online_flags
 
 SPLITS = {"sequence": "sequence", "paper": "random", "object": "object"}
 """CLI split name -> fv_algos.slip.windows split kind ("paper" = the paper's random windows)."""
@@ -63,6 +63,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cache", type=Path, help="with --trials: folder to cache the fields in (default: none)")
     p.add_argument("--workers", type=positive_int, default=2,
                    help="with --trials: processes for the fields (default 2)")
+    crop_flags(p)
     online_flags(p)
     p.add_argument("--models", type=Path, default=None,
                    help="checkpoint folder: DIR/<split>_<model>[_variant]/ as fv train writes; missing ones are "
@@ -342,6 +343,8 @@ class _ModelStore:
 def _eval(args: argparse.Namespace) -> int:
     if args.trials is None and (args.online or args.alarm or args.plot):
         raise ValueError("--online, --alarm and --plot need --trials (a trial-level model judged frame by frame)")
+    if args.trials is None and (args.crop or args.size):
+        raise ValueError("--crop and --size need --trials (the frames of its videos are cut as they are read)")
     if args.stream is not None:
         return _eval_stream(args)
     if args.trials is not None:

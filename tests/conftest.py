@@ -24,3 +24,24 @@ def isd_data() -> Path:
     if not path.is_dir():
         pytest.skip(f"incipient-slip dataset not found at {path} (../shared/data/isd is absent)")
     return path
+
+
+def write_raw_mini(video: Path, out: Path) -> None:
+    """A GelSight Mini's frames before its software cuts 1/7 off each border: every frame of the
+    recorded ``video`` (320x240) inside a 448x336 frame with a dark housing and a bright rim, written
+    lossless (FFV1) to ``out``, so that the inside is the recording's decoded pixels. A crop of
+    0.142857 on every border keeps exactly the recording."""
+    import cv2
+    import numpy as np
+    cap = cv2.VideoCapture(str(video))
+    writer = cv2.VideoWriter(str(out), cv2.VideoWriter_fourcc(*"FFV1"), 25.0, (448, 336))
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        big = np.full((336, 448, 3), 25, np.uint8)
+        cv2.rectangle(big, (40, 30), (407, 305), (200, 210, 220), 12)  # the rim of the gel's frame
+        big[48:288, 64:384] = frame
+        writer.write(big)
+    writer.release()
+    cap.release()

@@ -12,11 +12,13 @@ import numpy as np
 import pytest
 import torch
 
+from fv_algos.frame_crop import FrameCrop
 from fv_algos.grasp_alarm import AlarmRule
 from fv_algos.real_trials import (
     FIELD_WIDTH_PX,
     Trial,
     VideoFields,
+    cache_path,
     map_videos,
     read_frames,
     read_trials,
@@ -39,6 +41,7 @@ from fv_algos.trial_eval import (
     window_activity,
 )
 from fv_algos.trial_net import FIELD_ROWS, field_rows
+from tests.conftest import write_raw_mini
 
 SHORT_TRIALS = {  # trial -> (object, label): the shortest slip trials and the shortest no-slip trial
     "train/nylon_thread/exp_num_1": ("nylon_thread", "slip"),
@@ -167,6 +170,22 @@ def test_field_cache_round_trip(isd_data: Path, tmp_path: Path) -> None:
     assert quality["videos"] == 2 and quality["frames"] == 96
 
 
+def test_raw_frames_cut_as_read_give_the_recorded_fields_cached_apart(isd_data: Path, tmp_path: Path) -> None:
+    """A GelSight Mini's raw frames (:func:`write_raw_mini`) read with the crop its software makes give the
+    recorded video's fields, frame for frame; each crop has its own cache entry."""
+    video = isd_data / "train" / "marker_pen" / "exp_num_2" / "camera_0.avi"
+    raw = tmp_path / "camera_0.avi"
+    write_raw_mini(video, raw)
+    crop = FrameCrop.from_lists([0.142857], [320, 240])
+    assert next(read_frames(raw, crop)).shape == (240, 320, 3)
+    recorded, cut, uncut = video_fields(video), video_fields(raw, crop=crop), video_fields(raw)
+    assert (cut.width_px, uncut.width_px) == (320, 448)
+    np.testing.assert_array_equal(cut.fields, recorded.fields)
+    np.testing.assert_array_equal(cut.valid_share, recorded.valid_share)
+    other = FrameCrop.from_lists([0.1], [])
+    assert len({cache_path(tmp_path, raw), cache_path(tmp_path, raw, 1, crop), cache_path(tmp_path, raw, 1, other)}) == 3
+
+
 def test_a_truncated_video_is_named_with_the_frames_it_lost(isd_data: Path, tmp_path: Path,
                                                              caplog: pytest.LogCaptureFixture) -> None:
     whole = isd_data / "train/nylon_thread/exp_num_1/camera_0.avi"  # 49 frames
@@ -252,7 +271,7 @@ def test_eval_trials_command_from_video_to_decision(isd_data: Path, tmp_path: Pa
     config = ModelConfig(arch="lstm", hidden=8)
     model_path = save_checkpoint(tmp_path / "tiny.pt", Checkpoint(config, build_model(config).state_dict()))
     args = argparse.Namespace(model=str(model_path), trials=root, cache=None, workers=1, json=True, online=False,
-                              alarm=None, plot=None)
+                              alarm=None, plot=None, crop=[], size=[])
     assert eval_trials_command(args) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["n_trials"] == 3 and 0.0 <= report["trial_accuracy"] <= 1.0
@@ -286,7 +305,7 @@ def test_eval_trials_command_with_a_trial_level_model(isd_data: Path, tmp_path: 
         net.head.bias.fill_(1.0)
     path = save_trial_model(tmp_path / "trial.pt", net, TrialNetConfig(hidden=4, members=1))
     args = argparse.Namespace(model=str(path), trials=root, cache=tmp_path / "cache", workers=1, json=True,
-                              online=False, alarm=None, plot=None)
+                              online=False, alarm=None, plot=None, crop=[], size=[])
     assert eval_trials_command(args) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["n_trials"] == 3 and report["window_accuracy"] is None

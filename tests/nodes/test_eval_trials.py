@@ -6,6 +6,7 @@ import csv
 import json
 from pathlib import Path
 
+from tests.conftest import write_raw_mini
 from tests.nodes.conftest import run_fv
 
 
@@ -33,3 +34,30 @@ def test_eval_trials_on_two_real_trials(isd_data: Path, tmp_path: Path) -> None:
 def test_eval_without_data_or_trials_is_a_clear_error() -> None:
     result = run_fv("eval", "--json", timeout_s=60)
     assert result.returncode == 2 and "--trials" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_raw_recordings_cut_as_read_are_judged_as_the_recorded_ones(isd_data: Path, tmp_path: Path) -> None:
+    """`fv eval --trials RAW --crop 0.142857 --size 320 240` on a grasp's raw GelSight Mini frames (both
+    cameras, :func:`write_raw_mini`) gives the recorded grasp's score: fields and contact motion alike."""
+    trial = Path("train") / "marker_pen" / "exp_num_2"  # a slip, 53 frames per camera
+    for folder in ("recorded", "raw"):
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "labels.csv").write_text("trial,object,label\nt0,marker_pen,slip\n")
+    (tmp_path / "recorded" / "t0").symlink_to(isd_data / trial)
+    (tmp_path / "raw" / "t0").mkdir()
+    for camera in ("camera_0.avi", "camera_2.avi"):
+        write_raw_mini(isd_data / trial / camera, tmp_path / "raw" / "t0" / camera)
+    reports = {}
+    for folder, cut in (("recorded", []), ("raw", ["--crop", "0.142857", "--size", "320", "240"])):
+        result = run_fv("eval", "--trials", str(tmp_path / folder), "--model", "gelsight_online", "--json", *cut,
+                        timeout_s=240)
+        assert result.returncode == 0, result.stderr[-2000:]
+        reports[folder] = json.loads(result.stdout)
+    assert reports["raw"]["trials"][0]["score"] == reports["recorded"]["trials"][0]["score"]
+    assert reports["raw"]["frames"] == reports["recorded"]["frames"] == 2 * 52
+
+
+def test_a_bad_crop_is_refused_by_name_before_any_video_is_read(tmp_path: Path) -> None:
+    result = run_fv("eval", "--trials", str(tmp_path / "absent"), "--model", "gelsight", "--crop", "0.1", "0.2",
+                    timeout_s=60)
+    assert result.returncode != 0 and "--crop / --size: crop [0.1, 0.2] must be" in result.stderr

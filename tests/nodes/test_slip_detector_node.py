@@ -13,6 +13,7 @@ import pytest
 from msgs import DisplacementField, MarkerArray, SlipState
 from nodes.bus import PublisherSocket, TopicReader
 from nodes.slip_detector import model_path
+from tests.conftest import write_raw_mini
 from tests.nodes.conftest import REPO, wait_status
 
 
@@ -184,24 +185,11 @@ def test_video_launch_with_the_trial_model_judges_the_grasp_as_offline(bus_env, 
 
 def test_raw_gelsight_mini_frames_cropped_in_the_camera_are_judged_as_the_recorded_ones(
         bus_env, spawn, isd_data: Path, tmp_path: Path) -> None:
-    """A GelSight Mini's frames before its software cuts 1/7 off each border: the recorded grasp inside
-    a 448x336 frame with a dark housing and a bright rim around it (lossless, so the inside is the
-    recording's decoded pixels). `crop:=[0.142857]` in the camera gives the recording's P(slip) frame by
-    frame."""
-    import cv2
+    """A GelSight Mini's frames before its software cuts 1/7 off each border (:func:`write_raw_mini`).
+    `crop:=[0.142857]` in the camera gives the recording's P(slip) frame by frame."""
     video = isd_data / "train" / "marker_pen" / "exp_num_2" / "camera_0.avi"
     raw = tmp_path / "raw_mini.avi"
-    cap = cv2.VideoCapture(str(video))
-    writer = cv2.VideoWriter(str(raw), cv2.VideoWriter_fourcc(*"FFV1"), 25.0, (448, 336))
-    while True:
-        ok, frame = cap.read()
-        if not ok:
-            break
-        big = np.full((336, 448, 3), 25, np.uint8)
-        cv2.rectangle(big, (40, 30), (407, 305), (200, 210, 220), 12)  # the rim of the gel's frame
-        big[48:288, 64:384] = frame
-        writer.write(big)
-    writer.release()
+    write_raw_mini(video, raw)
     expected = _offline_running_p_slip(video, "gelsight_online", 1)
     got = _launched_running_p_slip(spawn, len(expected), f"video:={raw}", "crop:=[0.142857]", "size:=[320, 240]")
     np.testing.assert_allclose([m.probability for m in got], expected, atol=1e-4)
