@@ -49,7 +49,8 @@ class BagPlayParams:
     latched message of each latched topic before it is still sent first).
     duration_s: play this much of the bag (0 = to the end). topics: recorded topics to
     play ([] = all); each must be in the bag. optional_topics: topics also played when
-    the bag has them (e.g. /tracker/reset, recorded only where a gripper sent it). fast: as fast as possible, no timing (batch processing).
+    the bag has them (e.g. /tracker/reset, recorded only where a gripper sent it).
+    fast: as fast as possible, no timing (batch processing).
     start_paused: wait for space/enter (terminal) or SIGUSR1 before the first message.
     wait_for_subscribers: before the first message, wait up to subscriber_timeout_s
     until each played volatile topic has a subscriber. start_after: nodes whose first
