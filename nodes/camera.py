@@ -1,12 +1,14 @@
 """The `camera` node: frames from the simulator, a video file, a folder of images or a
 V4L2 device, published as `Image` on `/camera/image` with capture stamps, plus a latched
 `CameraInfo` on `/camera/info`. `crop` and `size` cut a share off each border of every frame
-and resize the rest (after `undistort`; `CameraInfo` describes the frames as published). A lost source is reported in NodeStatus and reopened
-with backoff; a source that cannot be opened at start fails with a clear error.
+and resize the rest (after `undistort`; `CameraInfo` describes the frames as published). A
+lost source is reported in NodeStatus and reopened with backoff; a source that cannot be
+opened at start fails with a clear error.
 
-`start_after` holds the first frame back until the named nodes have reported (their first
-NodeStatus on `/status`, sent once their subscriptions are made), so that a replayed video
-reaches them whole from its first frame; after `start_timeout_s` it starts anyway, warned."""
+`start_after` holds the first frame back until the named nodes have reported
+(`nodes.start_gate.StartGate`: a NodeStatus sent since the camera started, once their
+subscriptions are made), so that a replayed video reaches them whole from its first frame;
+after `start_timeout_s` it starts anyway, warned."""
 from __future__ import annotations
 
 import time

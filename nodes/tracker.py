@@ -89,10 +89,8 @@ class TrackerNode(Node):
             self.first_stamp_ns = msg.stamp_ns
         if self.needs_reference:
             old = self.inherited
-            if old is not None and old.stamp_ns > self.first_stamp_ns:
-                self.log.info("not resumed: the latched reference is stamped after this stream's first frame")
-                self.inherited = old = None
-            if old is not None and (old.width, old.height) == (msg.width, msg.height):
+            if (old is not None and (old.width, old.height) == (msg.width, msg.height)
+                    and old.stamp_ns <= self.first_stamp_ns):  # a reference stamped later is another stream's
                 state = self.perception.resume(msg.data, old.ref_px)
                 self.counters["resumed"] += 1
                 self.log.info("resumed with the previous process's reference (%d markers)", len(old.ref_px))

@@ -4,12 +4,12 @@ replay_pair.yaml. The replay gives every slip state the live run gave, at the sa
 the same grasp starts (the reset replayed) and the same P(slip)."""
 from __future__ import annotations
 
-import signal
 from pathlib import Path
 
 import pytest
 
 from msgs import SlipState
+from nodes.bag.bench import stop_process
 from nodes.bag.reader import read_bag
 from nodes.bus import PublisherSocket, TopicReader
 from tests.nodes.conftest import REPO, wait_status
@@ -32,10 +32,8 @@ def _record_live(spawn, bag: Path, launch_args: list[str], states_before_reset: 
         after = [reader.recv(10.0) for _ in range(states_after)]
         assert all(s is not None for s in after), f"{sum(s is not None for s in after)} states after the reset"
         gripper.close()
-    for process in (launch, recorder):  # the launch stops its nodes before it exits: none is left to talk
-        process.send_signal(signal.SIGINT)
-        process.wait(30.0)
-    assert recorder.returncode == 0
+    stop_process(launch, timeout_s=30.0)  # the launch stops its nodes before it exits: none is left to talk
+    assert stop_process(recorder, timeout_s=30.0) == 0
 
 
 def _replay(spawn, bag: Path, launch_file: str, topics: list[str], last_stamp_ns: dict[str, int]) -> dict[str, list]:
