@@ -39,7 +39,7 @@ def _record_live(spawn, bag: Path, launch_args: list[str], states_before_reset: 
 def _replay(spawn, bag: Path, launch_file: str, topics: list[str], last_stamp_ns: dict[str, int]) -> dict[str, list]:
     """The states on ``topics`` of `fv launch launch_file bag:=BAG` until each topic has given its state at
     ``last_stamp_ns[topic]``. The bag plays at half speed: the pipeline keeps only the latest frame, and
-    a replay at full speed beside other tests on a 2-core machine once dropped one frame of 70."""
+    at full speed, beside other tests on a 2-core machine, a replay dropped a frame of 70."""
     got: dict[str, list] = {t: [] for t in topics}
     with TopicReader(topics) as reader:
         spawn("launch", str(REPO / "launch" / launch_file), f"bag:={bag}", "model:=gelsight_online", "rate:=0.5")
