@@ -58,7 +58,9 @@ class BagPlayParams:
     gets the bag whole), for start_timeout_s at most (then it plays, warned).
     sync_topic: flow control, wait for an answer on this topic after each `sync_on`
     message ("" = off); sync_on: recorded topic that waits ("" = the first Image
-    topic); sync_window: `sync_on` messages allowed in flight unanswered;
+    topic). Several streams (one pipeline per finger): a list of sync topics and a list
+    of as many recorded topics, paired in order (each `sync_on[i]` message waits for
+    `sync_topic[i]`). sync_window: messages of one stream allowed in flight unanswered;
     sync_timeout_s: give up waiting for one answer after this long (counted).
     keyboard: space/enter on the terminal toggles pause (when stdin is a terminal).
     """
@@ -76,8 +78,8 @@ class BagPlayParams:
     subscriber_timeout_s: float = 5.0
     start_after: list[str] = field(default_factory=list)
     start_timeout_s: float = 30.0
-    sync_topic: str = ""
-    sync_on: str = ""
+    sync_topic: str | list[str] = ""
+    sync_on: str | list[str] = ""
     sync_window: int = 1
     sync_timeout_s: float = 2.0
     keyboard: bool = False
@@ -91,6 +93,17 @@ class BagPlayParams:
             raise ValueError("start_offset_s, duration_s, subscriber_timeout_s and start_timeout_s must be >= 0")
         if self.sync_window < 1 or self.sync_timeout_s <= 0:
             raise ValueError("sync_window must be >= 1 and sync_timeout_s > 0")
+        answers, waiting = topic_list(self.sync_topic), topic_list(self.sync_on)
+        if len(answers) > 1 and len(waiting) != len(answers) or len(answers) == 1 and len(waiting) > 1:
+            raise ValueError(f"sync_on {waiting} and sync_topic {answers}: give one recorded topic per sync "
+                             "topic, paired in order (or one sync topic and at most one sync_on)")
+        if len(set(answers)) < len(answers) or len(set(waiting)) < len(waiting):
+            raise ValueError(f"sync_on {waiting} and sync_topic {answers}: a topic is named twice")
+
+
+def topic_list(value: str | list[str]) -> list[str]:
+    """A topic param as a list: "" -> [], "/a" -> ["/a"], a list as it is."""
+    return [value] if isinstance(value, str) and value else [] if isinstance(value, str) else list(value)
 
 
 class BagPlay(Node):
@@ -102,7 +115,7 @@ class BagPlay(Node):
         p = self.params
         self.bag = BagReader(p.path)
         known = self.bag.topics()
-        for topic in p.topics + ([p.sync_on] if p.sync_on else []):
+        for topic in p.topics + topic_list(p.sync_on):
             if topic not in known:
                 raise BagError(p.path, f"has no topic {topic!r}; topics: {sorted(known)}")
         absent = [t for t in p.optional_topics if t not in known]
@@ -112,13 +125,16 @@ class BagPlay(Node):
         self.played_topics = p.topics + present if p.topics else list(known)
         self.out_topic = {t: self.resolve(t) for t in self.played_topics}
         images = [t for t in self.played_topics if known[t].type_name == Image.TYPE]
-        self.sync_on = p.sync_on or (images[0] if images else "")
+        self.sync_on = topic_list(p.sync_on) or images[:1]
+        self.sync_topics = topic_list(p.sync_topic)
         self.clock = PlayClock(p.rate, paused=p.start_paused)
         self.error: str | None = None
         self.counters.update(played=0, frames=0, sync_timeouts=0, loops=0)
-        self._pending: collections.deque[int] = collections.deque()
+        # per synced stream, the stamps of its messages sent and not yet answered
+        self._pending: list[collections.deque[int]] = [collections.deque() for _ in self.sync_topics]
+        self._stream = {topic: k for k, topic in enumerate(self.sync_topics)}
         self._pub = PublisherSocket(self.name, self.address, self.ctx)
-        self._sync = TopicReader([p.sync_topic], self.address, self.ctx) if p.sync_topic else None
+        self._sync = TopicReader(self.sync_topics, self.address, self.ctx) if self.sync_topics else None
         self.start_gate = StartGate(self, p.start_after, p.start_timeout_s)
         if threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGUSR1, lambda *_: self._toggle_pause())
@@ -208,31 +224,42 @@ class BagPlay(Node):
             raise BagError(self.params.path, f"message at log time {m.log_time_ns} ns: {exc}") from None
         self._pub.publish_raw(self.out_topic[m.topic], m.node, m.latched, frames)
         self.counters["played"] += 1
-        if self.sync_on and m.topic != self.sync_on:
+        if self.sync_on and m.topic not in self.sync_on:
             return
         self.counters["frames"] += 1
         if self._sync is not None:
-            self._pending.append(header["stamp_ns"])
+            self._pending[self.sync_on.index(m.topic) if len(self.sync_topics) > 1 else 0].append(header["stamp_ns"])
             self._await_sync(self.params.sync_window)
 
     def _await_sync(self, limit: int) -> None:
-        """Wait until fewer than `limit` sent messages lack an answer on sync_topic."""
+        """Wait until every synced stream has fewer than `limit` sent messages that lack an answer (a message
+        is answered by one on its sync topic stamped at or after it); after sync_timeout_s without one, the
+        oldest of every stream still at `limit` is given up (counted)."""
         if self._sync is None:
             return
-        while len(self._pending) >= limit and not self.stopped:
-            raw = self._sync.recv_raw(self.params.sync_timeout_s)
+        deadline = time.monotonic() + self.params.sync_timeout_s
+        while not self.stopped:
+            full = [k for k, pending in enumerate(self._pending) if len(pending) >= limit]
+            if not full:
+                return
+            raw = self._sync.recv_raw(max(0.0, deadline - time.monotonic()))
             if raw is None:
-                self._pending.popleft()
-                self.counters["sync_timeouts"] += 1
-                self.warn(f"no answer on {self.params.sync_topic} within {self.params.sync_timeout_s} s (counted)")
-                continue
-            stamp = msgs.decode_header(raw[3][0], raw[0])["stamp_ns"]
-            while self._pending and self._pending[0] <= stamp:
-                self._pending.popleft()
+                for k in full:
+                    self._pending[k].popleft()
+                    self.counters["sync_timeouts"] += 1
+                    self.warn(f"no answer on {self.sync_topics[k]} within {self.params.sync_timeout_s} s (counted)")
+            else:
+                pending = self._pending[self._stream[raw[0]]]
+                stamp = msgs.decode_header(raw[3][0], raw[0])["stamp_ns"]
+                if not pending or pending[0] > stamp:
+                    continue
+                while pending and pending[0] <= stamp:
+                    pending.popleft()
+            deadline = time.monotonic() + self.params.sync_timeout_s
 
     def summary_line(self, elapsed_s: float) -> str:
         c = self.counters
-        what = f"on {self.sync_on}" if self.sync_on else "messages"
+        what = f"on {', '.join(self.sync_on)}" if self.sync_on else "messages"
         sync = f", sync timeouts {c['sync_timeouts']}" if self._sync is not None else ""
         return (f"played {c['played']} messages ({c['frames']} {what}) in {elapsed_s:.2f} s: "
                 f"{c['frames'] / max(elapsed_s, 1e-9):.1f} frames/s{sync}")

@@ -31,7 +31,7 @@ from nodes.bag.bench import stop_process
 from nodes.bus import PublisherSocket, TopicReader
 from nodes.endpoints import BUS_ENV, BusAddress, bus_address
 from nodes.forwarder import ensure_forwarder
-from tests.nodes.test_bag import sample_messages, write_bag
+from tests.nodes.test_bag import T0_NS, sample_messages, write_bag
 
 REPO = Path(__file__).resolve().parents[2]
 Spawn = Callable[..., subprocess.Popen]
@@ -144,26 +144,33 @@ def test_record_play_record_round_trip_with_recorded_timing(bus: BusAddress, spa
         assert np.median(np.abs(play_t - rec_t)) < 1.0, f"{topic}: intervals off by {np.abs(play_t - rec_t)}"
 
 
-def test_fast_play_with_sync_never_overruns_a_slow_consumer(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
-    n, work_s = 60, 0.01
-    write_bag(tmp_path / "b", sample_messages(n, np.random.default_rng(1)))
-    seen: list[int] = []
-    done = threading.Event()
-
-    def slow_consumer() -> None:  # a depth-2 subscriber answering each frame on /slip after 10 ms
-        pub = PublisherSocket("slow", bus)
-        with TopicReader(["/camera/image"], bus, hwm=2) as reader:
+def _answer_slowly(bus: BusAddress, image_topic: str, answer_topic: str, work_s: float, seen: list[int],
+                   done: threading.Event) -> threading.Thread:
+    """A started thread: a depth-2 subscriber of ``image_topic`` that appends each frame's seq to ``seen`` and
+    answers it on ``answer_topic`` (a SlipState of the frame's stamp) after ``work_s``, until ``done``."""
+    def answer() -> None:
+        pub = PublisherSocket(f"slow{answer_topic.replace('/', '_')}", bus)
+        with TopicReader([image_topic], bus, hwm=2) as reader:
             while not done.is_set():
                 raw = reader.recv_raw(0.1)
                 if raw is not None:
                     header = msgs.decode_header(raw[3][0])
                     seen.append(header["seq"])
                     time.sleep(work_s)
-                    pub.publish("/slip", SlipState(stamp_ns=header["stamp_ns"]))
+                    pub.publish(answer_topic, SlipState(stamp_ns=header["stamp_ns"]))
         pub.close()
 
-    consumer = threading.Thread(target=slow_consumer, daemon=True)
-    consumer.start()
+    thread = threading.Thread(target=answer, daemon=True)
+    thread.start()
+    return thread
+
+
+def test_fast_play_with_sync_never_overruns_a_slow_consumer(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
+    n, work_s = 60, 0.01
+    write_bag(tmp_path / "b", sample_messages(n, np.random.default_rng(1)))
+    seen: list[int] = []
+    done = threading.Event()
+    consumer = _answer_slowly(bus, "/camera/image", "/slip", work_s, seen, done)
     try:
         play = spawn("bag", "play", str(tmp_path / "b"), "--fast", "--topics", "/camera/image", "--sync-topic",
                      "/slip", "--wait-timeout", "20")
@@ -176,6 +183,39 @@ def test_fast_play_with_sync_never_overruns_a_slow_consumer(bus: BusAddress, spa
     assert "sync timeouts 0" in log
     fps = float(log.split(" frames/s")[0].rsplit(": ", 1)[1])
     assert 10 < fps < 1 / work_s * 1.1  # paced by the consumer, not by the bag's 100 Hz
+
+
+def test_fast_play_syncs_each_finger_on_its_own_answers(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
+    """Two cameras' frames interleaved in one bag (one pipeline per finger): each waits for its own finger's
+    answer, so neither slow consumer loses a frame, the slower one (30 ms) paces the whole."""
+    n, rng = 40, np.random.default_rng(2)
+    sides = ("/left", "/right")
+    messages = [(f"{side}/camera/image", False, Image(stamp_ns=T0_NS + i * 10_000_000 + k,
+                                                      data=rng.integers(0, 255, (24, 32), dtype=np.uint8)),
+                 T0_NS + i * 10_000_000 + k) for i in range(n) for k, side in enumerate(sides)]
+    write_bag(tmp_path / "b", messages)
+    seen: dict[str, list[int]] = {side: [] for side in sides}
+    done = threading.Event()
+    consumers = [_answer_slowly(bus, f"{side}/camera/image", f"{side}/slip", work_s, seen[side], done)
+                 for side, work_s in zip(sides, (0.005, 0.03))]
+    try:
+        play = spawn("bag", "play", str(tmp_path / "b"), "--fast", "--sync-on", "/left/camera/image",
+                     "/right/camera/image", "--sync-topic", "/left/slip", "/right/slip", "--wait-timeout", "20")
+        assert play.wait(60) == 0
+    finally:
+        done.set()
+        for consumer in consumers:
+            consumer.join(5)
+    log = play.stderr.read()
+    assert seen == {side: list(range(n)) for side in sides}, log
+    assert "sync timeouts 0" in log and "(80 on /left/camera/image, /right/camera/image)" in log
+    fps = float(log.split(" frames/s")[0].rsplit(": ", 1)[1])
+    assert fps < 2 / 0.03 * 1.1  # each right frame waited for its 30 ms answer
+
+
+def test_sync_streams_must_pair_up() -> None:
+    with pytest.raises(ValueError, match="one recorded topic per sync topic"):
+        BagPlay("p", {"path": "x", "sync_topic": ["/left/slip", "/right/slip"], "sync_on": "/left/camera/image"})
 
 
 def test_play_offset_duration_topics_remap_and_latched_first(bus: BusAddress, tmp_path: Path) -> None:

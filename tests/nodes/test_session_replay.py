@@ -1,7 +1,8 @@
 """A recorded session replayed: a real grasp played live (video.yaml, video_pair.yaml) with the gripper's
 /tracker/reset in the middle, recorded with `fv bag record -a`, then replayed through replay.yaml /
 replay_pair.yaml. The replay gives every slip state the live run gave, at the same frame stamps, with
-the same grasp starts (the reset replayed) and the same P(slip)."""
+the same grasp starts (the reset replayed) and the same P(slip): one camera at half the recorded speed, two
+fingers as a batch paced by the pipeline's answers."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -36,13 +37,12 @@ def _record_live(spawn, bag: Path, launch_args: list[str], states_before_reset: 
     assert stop_process(recorder, timeout_s=30.0) == 0
 
 
-def _replay(spawn, bag: Path, launch_file: str, topics: list[str], last_stamp_ns: dict[str, int]) -> dict[str, list]:
-    """The states on ``topics`` of `fv launch launch_file bag:=BAG` until each topic has given its state at
-    ``last_stamp_ns[topic]``. The bag plays at half speed: the pipeline keeps only the latest frame, and
-    at full speed, beside other tests on a 2-core machine, a replay dropped a frame of 70."""
+def _replay(spawn, bag: Path, launch_args: list[str], topics: list[str], last_stamp_ns: dict[str, int]) -> dict[str, list]:
+    """The states on ``topics`` of `fv launch LAUNCH_ARGS` until each topic has given its state at
+    ``last_stamp_ns[topic]``."""
     got: dict[str, list] = {t: [] for t in topics}
     with TopicReader(topics) as reader:
-        spawn("launch", str(REPO / "launch" / launch_file), f"bag:={bag}", "model:=gelsight_online", "rate:=0.5")
+        spawn("launch", *launch_args, f"bag:={bag}", "model:=gelsight_online")
         while any(not got[t] or got[t][-1].stamp_ns != last_stamp_ns[t] for t in topics):
             item = reader.recv(90.0 if not any(got.values()) else 10.0)
             assert item is not None, f"replay stopped at {({t: len(v) for t, v in got.items()})} states"
@@ -66,19 +66,24 @@ def test_one_camera_session_with_a_reset_replays_as_live(bus, spawn, isd_data: P
     bag = tmp_path / "session"
     _record_live(spawn, bag, [str(REPO / "launch" / "video.yaml"), f"video:={video}", "loop:=true"], 30, 40)
     recorded = [m for _, m, _ in read_bag(bag, topics=["/slip"])]
-    replayed = _replay(spawn, bag, "replay.yaml", ["/slip"], {"/slip": recorded[-1].stamp_ns})
+    # half speed: the pipeline keeps only the latest frame, and at full speed, beside other tests on a
+    # 2-core machine, a replay dropped a frame of 70
+    replayed = _replay(spawn, bag, [str(REPO / "launch" / "replay.yaml"), "rate:=0.5"], ["/slip"],
+                       {"/slip": recorded[-1].stamp_ns})
     _assert_replayed_as_live(recorded, replayed["/slip"], "/slip")
 
 
 def test_two_finger_session_with_a_reset_replays_as_live(bus, spawn, isd_data: Path, tmp_path: Path) -> None:
-    """replay_pair.yaml: both fingers' states as live, and the fingers' vote on /slip at the end."""
+    """replay_pair.yaml as a batch (`fast`, each finger's frames paced by its /slip answers): both fingers'
+    states as live, none lost, and the fingers' vote on /slip at the end."""
     bag = tmp_path / "session"
     videos = [isd_data / GRASP / "camera_0.avi", isd_data / GRASP / "camera_2.avi"]
     _record_live(spawn, bag, [str(REPO / "launch" / "video_pair.yaml"), f"left:={videos[0]}", f"right:={videos[1]}",
                               "loop:=true"], 60, 80)
     fingers = ["/left/slip", "/right/slip"]
     recorded = {t: [m for _, m, _ in read_bag(bag, topics=[t])] for t in [*fingers, "/slip"]}
-    replayed = _replay(spawn, bag, "replay_pair.yaml", [*fingers, "/slip"],
+    replayed = _replay(spawn, bag, [str(REPO / "launch" / "replay_pair.yaml"), "fast:=true",
+                                    f"sync_topic:=[{','.join(fingers)}]"], [*fingers, "/slip"],
                        {t: recorded[t][-1].stamp_ns for t in [*fingers, "/slip"]})
     for topic in fingers:
         _assert_replayed_as_live(recorded[topic], replayed[topic], topic)
