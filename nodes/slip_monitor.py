@@ -1,18 +1,30 @@
 """The `slip_monitor` node: prints each slip decision on stdout, one line per change
-of state and a heartbeat line every `every_s`, with the capture-to-decision latency."""
+of state and a heartbeat line every `every_s`, with the capture-to-decision latency.
+
+In a replay the frames' capture stamps are the recorded session's, so "now - stamp" is the
+recording's age: with `frames` (the replayed image topics) the latency runs from each frame's
+arrival on the bus instead."""
 from __future__ import annotations
 
+import collections
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-from msgs import SlipState
+from msgs import Image, SlipState
 from nodes.node import Node
+
+ARRIVALS_KEPT = 512  # frames whose arrival times are kept (about 10 s of two cameras at 25 fps)
 
 
 @dataclass
 class SlipMonitorParams:
+    """topic: the slip states printed. every_s: also print while the state does not change (0 =
+    changes only). frames: image topics whose frames' arrival times the latency is measured from
+    ([] = from the capture stamp; a replay's launch file names the topics it plays)."""
+
     topic: str = "/slip"
-    every_s: float = 1.0  # also print while the state does not change (0 = changes only)
+    every_s: float = 1.0
+    frames: list[str] = field(default_factory=list)
 
 
 class SlipMonitor(Node):
@@ -24,7 +36,23 @@ class SlipMonitor(Node):
         self.t0_ns = 0
         self.last_slip: bool | None = None
         self.last_print = 0.0
+        self.arrival_ns: collections.OrderedDict[int, int] = collections.OrderedDict()
+        for topic in self.params.frames:
+            self.subscribe(topic, Image, self.on_frame, depth=None)
         self.subscribe(self.params.topic, SlipState, self.on_slip, depth=None)
+
+    def on_frame(self, msg: Image) -> None:
+        """Note when the frame of capture stamp ``msg.stamp_ns`` came (ns since the epoch)."""
+        self.arrival_ns[msg.stamp_ns] = time.time_ns()
+        while len(self.arrival_ns) > ARRIVALS_KEPT:
+            self.arrival_ns.popitem(last=False)
+
+    def latency_text(self, msg: SlipState) -> str:
+        """The decision's latency in ms, from its frame's capture or, with ``frames``, its arrival."""
+        if not self.params.frames:
+            return f"latency {(msg.pub_ns - msg.stamp_ns) / 1e6:5.1f} ms"
+        arrived = self.arrival_ns.get(msg.stamp_ns)
+        return "latency  n/a (frame not seen)" if arrived is None else f"latency {(msg.pub_ns - arrived) / 1e6:5.1f} ms"
 
     def on_slip(self, msg: SlipState) -> None:
         now = time.monotonic()
@@ -33,8 +61,7 @@ class SlipMonitor(Node):
         if not changed and (self.params.every_s <= 0 or now - self.last_print < self.params.every_s):
             return
         self.last_slip, self.last_print = msg.slip, now
-        latency_ms = (msg.pub_ns - msg.stamp_ns) / 1e6
         state = "SLIP" if msg.slip else "no slip"
         flag = "" if msg.valid else "  (invalid window)"
         print(f"t={(msg.stamp_ns - self.t0_ns) / 1e9:7.2f}s  {state:8s} p={msg.probability:.2f}  "
-              f"latency {latency_ms:5.1f} ms{flag}", flush=True)
+              f"{self.latency_text(msg)}{flag}", flush=True)
