@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from nodes.launch_file import NodeSpec, load_launch, parse_arg_overrides
-from nodes.node import STANDBY_READY
+from nodes.node import LAUNCH_ENV, STANDBY_READY
 
 GRACE_S = 1.2
 FORWARDER_GRACE_S = 0.5
@@ -91,6 +91,7 @@ class Launch:
         self._status_pub = None
         self._status_reader = None
         self._started = time.monotonic()
+        self._started_ns = time.time_ns()  # given to every node (LAUNCH_ENV)
         self._out_lock = threading.Lock()
         self._stop = threading.Event()
         self._done = threading.Event()
@@ -121,7 +122,7 @@ class Launch:
 
     # -- processes -------------------------------------------------------------------
     def _popen(self, spec: NodeSpec, *extra: str) -> subprocess.Popen:
-        env = dict(os.environ, PYTHONUNBUFFERED="1", **spec.env)
+        env = dict(os.environ, PYTHONUNBUFFERED="1", **{LAUNCH_ENV: str(self._started_ns)}, **spec.env)
         return subprocess.Popen([sys.executable, "-m", "nodes.cli", *spec.argv(), *extra], env=env,
                                 stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                 text=True, bufsize=1, start_new_session=True)

@@ -41,6 +41,7 @@ from nodes.params import build_params
 
 STATUS_TOPIC = "/status"
 STANDBY_READY = "fv-standby-ready"  # the line a standby process prints once it waits to take over
+LAUNCH_ENV = "FV_LAUNCH_NS"  # set by `fv launch` for its nodes: when the launch started, ns since the epoch
 KEEP_ALL_CAP = 10_000
 _PAGE = os.sysconf("SC_PAGE_SIZE")
 _SEVERITY = {"ok": 0, "warn": 1, "error": 2}
@@ -480,6 +481,12 @@ class Node:
                 next_status_s, last_kinds = now + self.STATUS_PERIOD_S, kinds
             if self._stop.wait(self.WATCH_PERIOD_S):
                 return
+
+
+def launch_started_ns() -> int:
+    """When the `fv launch` that started this process started (ns since the epoch); 0 for a node started
+    by hand."""
+    return int(os.environ.get(LAUNCH_ENV, "0"))
 
 
 def _name(fn: Callable) -> str:

@@ -7,10 +7,11 @@ reference: its markers are published latched on `/markers/reference`. Any messag
 A tracker that restarts (respawned after a crash) while the skin may be deformed must not
 take a deformed frame as the reference: with `resume`, it first waits up to
 `resume_wait_s` for the latched `/markers/reference` of its previous process (same node
-name, same image size, stamped no later than the first frame this process sees) and goes
-on tracking against it. A reference stamped after that frame belongs to another stream
-(e.g. the live session a bus still holds, when a recording of it is replayed) and is
-not resumed."""
+name, same image size, stamped no later than the first frame this process sees; under `fv
+launch`, published since the launch started) and goes on tracking against it. A reference
+stamped after that frame belongs to another stream (e.g. the live session a bus still holds,
+when a recording of it is replayed), and one from before the launch to an earlier session (a
+forwarder left running keeps it): neither is resumed."""
 from __future__ import annotations
 
 import time
@@ -20,7 +21,7 @@ import numpy as np
 
 from fv_algos.perception import Perception, PerceptionParams
 from msgs import Image, MarkerArray
-from nodes.node import Node
+from nodes.node import Node, launch_started_ns
 
 PRESETS = ("paper", "default", "fastest")
 
@@ -79,8 +80,8 @@ class TrackerNode(Node):
         self.frames_seen = self.params.reference_frame
 
     def on_reference(self, msg: MarkerArray) -> None:
-        """Keep the reference a previous process of this node published (latched)."""
-        if self.needs_reference and msg.node == self.name and msg.pub_ns < self.started_ns:
+        """Keep the reference a previous process of this node published (latched), in this launch."""
+        if self.needs_reference and msg.node == self.name and launch_started_ns() <= msg.pub_ns < self.started_ns:
             self.inherited = msg
 
     def on_image(self, msg: Image) -> None:

@@ -50,36 +50,42 @@ def dots_image(shift_px: float) -> np.ndarray:
     return image
 
 
+def _frames_until(camera, reader: TopicReader, image: np.ndarray, done, stamp_ns=time.time_ns) -> object:
+    """Publish ``image`` on /camera/image from ``camera`` until ``reader`` gets an item ``done`` accepts."""
+    from msgs import Image
+    for _ in range(200):
+        camera.publish("/camera/image", Image(stamp_ns=stamp_ns(), data=image))
+        item = reader.recv(0.05)
+        if item is not None and done(item):
+            return item
+    raise AssertionError("the tracker never answered")
+
+
+def _markers_after(restarted_ns: int):
+    return lambda it: it.topic == "/markers" and it.msg.pub_ns > restarted_ns
+
+
+def _is_reference(item) -> bool:
+    return item.topic == "/markers/reference"
+
+
 def test_restarted_tracker_adopts_the_previous_reference(bus, spawn) -> None:
     """A tracker respawned while the skin is sheared must go on measuring against the
     undeformed reference of its previous process, not take the sheared frame as rest. A tracker
     whose frames are stamped before that latched reference (a recording of the session replayed on
     the same bus) takes its own reference instead."""
-    from msgs import Image
     from nodes.bus import PublisherSocket
     from tests.nodes.conftest import kill_group, wait_status
 
     camera = PublisherSocket("fake_camera", bus.address)
     assert camera.wait_connected(2.0)
-
-    def frames_until(reader: TopicReader, image: np.ndarray, done, stamp_ns=time.time_ns) -> object:
-        for _ in range(200):
-            camera.publish("/camera/image", Image(stamp_ns=stamp_ns(), data=image))
-            item = reader.recv(0.05)
-            if item is not None and done(item):
-                return item
-        raise AssertionError("the tracker never answered")
-
-    def after(restarted_ns: int):
-        return lambda it: it.topic == "/markers" and it.msg.pub_ns > restarted_ns
-
     with TopicReader(["/markers", "/markers/reference"]) as reader:
         first = spawn("node", "tracker")
-        reference = frames_until(reader, dots_image(0.0), lambda it: it.topic == "/markers/reference").msg
+        reference = _frames_until(camera, reader, dots_image(0.0), _is_reference).msg
         kill_group(first)
         restarted_ns = time.time_ns()
         second = spawn("node", "tracker")
-        item = frames_until(reader, dots_image(3.0), after(restarted_ns))
+        item = _frames_until(camera, reader, dots_image(3.0), _markers_after(restarted_ns))
         m = item.msg
         assert np.allclose(m.ref_px, reference.ref_px)
         shift = np.median(m.cur_px[m.valid] - m.ref_px[m.valid], axis=0)
@@ -89,9 +95,32 @@ def test_restarted_tracker_adopts_the_previous_reference(bus, spawn) -> None:
         restarted_ns = time.time_ns()
         spawn("node", "tracker")
         recorded = iter(range(reference.stamp_ns - 10**9, reference.stamp_ns))  # a recording from before it
-        item = frames_until(reader, dots_image(3.0), after(restarted_ns), lambda: next(recorded))
+        item = _frames_until(camera, reader, dots_image(3.0), _markers_after(restarted_ns), lambda: next(recorded))
     m = item.msg
     assert np.abs(m.cur_px[m.valid] - m.ref_px[m.valid]).max() < 0.3  # the replayed frame itself is the reference
+    status = wait_status("tracker", lambda st: st.counters.get("references") == 1)
+    assert status.counters["resumed"] == 0
+    camera.close()
+
+
+def test_tracker_of_a_new_launch_takes_its_own_reference(bus, spawn, monkeypatch) -> None:
+    """The bus (a forwarder left running) still holds an earlier session's latched reference: a tracker
+    started by a later `fv launch` does not resume it, even with the skin at rest or sheared."""
+    from nodes.bus import PublisherSocket
+    from nodes.node import LAUNCH_ENV
+    from tests.nodes.conftest import kill_group, wait_status
+
+    camera = PublisherSocket("fake_camera", bus.address)
+    assert camera.wait_connected(2.0)
+    with TopicReader(["/markers", "/markers/reference"]) as reader:
+        earlier = spawn("node", "tracker")
+        _frames_until(camera, reader, dots_image(0.0), _is_reference)
+        kill_group(earlier)
+        launched_ns = time.time_ns()
+        monkeypatch.setenv(LAUNCH_ENV, str(launched_ns))  # what `fv launch` gives its nodes
+        spawn("node", "tracker")
+        m = _frames_until(camera, reader, dots_image(3.0), _markers_after(launched_ns)).msg
+    assert np.abs(m.cur_px[m.valid] - m.ref_px[m.valid]).max() < 0.3  # its own reference: the sheared frame
     status = wait_status("tracker", lambda st: st.counters.get("references") == 1)
     assert status.counters["resumed"] == 0
     camera.close()
