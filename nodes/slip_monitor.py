@@ -14,6 +14,7 @@ from msgs import Image, SlipState
 from nodes.node import Node
 
 ARRIVALS_KEPT = 512  # frames whose arrival times are kept (about 10 s of two cameras at 25 fps)
+FRAME_DEPTH = 32  # frames queued unread at most (a monitor that far behind prints "n/a", not a wrong latency)
 
 
 @dataclass
@@ -38,7 +39,7 @@ class SlipMonitor(Node):
         self.last_print = 0.0
         self.arrival_ns: collections.OrderedDict[int, int] = collections.OrderedDict()
         for topic in self.params.frames:
-            self.subscribe(topic, Image, self.on_frame, depth=None)
+            self.subscribe(topic, Image, self.on_frame, depth=FRAME_DEPTH)
         self.subscribe(self.params.topic, SlipState, self.on_slip, depth=None)
 
     def on_frame(self, msg: Image) -> None:
