@@ -14,7 +14,7 @@ from msgs import Image, SlipState
 from nodes.node import Node
 
 ARRIVALS_KEPT = 512  # frames whose arrival times are kept (about 10 s of two cameras at 25 fps)
-FRAME_DEPTH = 32  # frames queued unread at most (a monitor that far behind prints "n/a", not a wrong latency)
+FRAME_DEPTH = 32  # frames queued unread at most, a bound on memory (a monitor further behind prints "n/a")
 
 
 @dataclass
