@@ -9,7 +9,8 @@ Latched topics are sent latched. Remaps (launch `remap`, `--remap a:=b`) rename 
 Timing follows the recorded log (receive) times scaled by `rate`; `fast` drops the
 timing for batch processing, and `sync_topic` adds flow control: after each message
 on `sync_on` the player waits until the pipeline answers on `sync_topic` with a
-message stamped at or after it, so a slow consumer never loses a frame. Before the
+message stamped at or after it, so a slow consumer never loses a frame (several streams,
+e.g. one camera per finger: each `sync_on` topic waits for its own answer topic). Before the
 first message the player waits for the nodes of `start_after` to report (a replay
 pipeline's nodes, every subscription made) and until every played volatile topic has
 a subscriber.
