@@ -44,8 +44,12 @@ class Vote:
     """The vote after an answer: probability (None when no camera counts); newest_grasp_ns, the latest
     grasp start of the fresh answers; first_ns, last_ns, the first grasp start and last judged stamp of
     the cameras that count (with none: the newest grasp start and answer); voters; and why each other
-    camera is left out, by name: "no answer yet", "stale" or "earlier grasp" (an invalid answer is
-    left out without a reason)."""
+    camera is left out, by name (an invalid answer is left out without a reason). Faults: "no answer
+    yet" (none ``stale_after_s`` after the first camera's first answer), "stale" or "earlier grasp"
+    (still on one ``same_grasp_s`` after the newest grasp started). Expected, for a frame or so:
+    "starting" (no answer yet, within ``stale_after_s`` of the first camera's first) and "switching
+    grasp" (on an earlier grasp with an answer from before the newest grasp started or within
+    ``same_grasp_s`` of it: after a reset, a camera whose next frame has not come yet)."""
 
     probability: float | None
     newest_grasp_ns: int
@@ -54,12 +58,20 @@ class Vote:
     voters: tuple[str, ...]
     left_out: dict[str, str]
 
+    def faults(self) -> dict[str, str]:
+        """The cameras left out for a fault (``left_out`` but "starting" and "switching grasp")."""
+        return {name: why for name, why in self.left_out.items() if why not in EXPECTED}
+
+
+EXPECTED = ("starting", "switching grasp")  # reasons to leave a camera out that are no fault
+
 
 class CameraVote:
     """The vote of named cameras' latest answers (:func:`camera_vote`). Left out: a camera with no answer
     within ``stale_after_s`` of the newest (a camera that stopped), and one still on an earlier grasp,
     whose grasp started more than ``same_grasp_s`` before the newest (after a reset every camera starts a
-    new grasp with its next frame: a vote never mixes grasps)."""
+    new grasp with its next frame: a vote never mixes grasps). :class:`Vote` tells the faults from what
+    every start and every reset brings for a frame or so."""
 
     def __init__(self, cameras: Sequence[str], stale_after_s: float = 1.0, same_grasp_s: float = 1.0) -> None:
         if len(cameras) < 2 or len(set(cameras)) != len(cameras):
@@ -69,21 +81,24 @@ class CameraVote:
         self.cameras = tuple(cameras)
         self.stale_after_ns, self.same_grasp_ns = stale_after_s * 1e9, same_grasp_s * 1e9
         self.latest: dict[str, CameraAnswer] = {}
+        self.first_ns: int | None = None  # stamp of the first answer of any camera
 
     def update(self, camera: str, answer: CameraAnswer) -> Vote:
         """Take ``camera``'s newest answer; the vote of all the cameras' latest."""
         self.latest[camera] = answer
+        self.first_ns = answer.stamp_ns if self.first_ns is None else min(self.first_ns, answer.stamp_ns)
         now = max(a.stamp_ns for a in self.latest.values())
         fresh = {c: a for c, a in self.latest.items() if now - a.stamp_ns <= self.stale_after_ns}
         grasp = max(a.grasp_start_ns for a in fresh.values())
         left_out, voters = {}, {}
         for name in self.cameras:
             if name not in self.latest:
-                left_out[name] = "no answer yet"
+                left_out[name] = "no answer yet" if now - self.first_ns > self.stale_after_ns else "starting"
             elif name not in fresh:
                 left_out[name] = "stale"
             elif grasp - fresh[name].grasp_start_ns > self.same_grasp_ns:
-                left_out[name] = "earlier grasp"
+                late = fresh[name].stamp_ns - grasp > self.same_grasp_ns
+                left_out[name] = "earlier grasp" if late else "switching grasp"
             elif fresh[name].valid:
                 voters[name] = fresh[name]
         if not voters:

@@ -8,14 +8,16 @@ together, as `fv eval --trials` judges both cameras; slip when it reaches the th
 
 Left out of a vote, and named in the node's warning:
 - an input with no state within `stale_after_s` of the newest state (by capture stamp): a
-  camera that stopped;
+  camera that stopped; or none yet `stale_after_s` after the first input's first state;
 - an input still on an earlier grasp: its grasp (window_stamps_ns[0], the tracker's reference)
-  started more than `same_grasp_s` before the newest grasp of the inputs. After `/tracker/reset`
-  every camera starts a new grasp with its next frame, so the vote is never a mix of grasps;
-  trackers that took their references far apart (cameras started at different times) are brought
-  together by one message on `/tracker/reset`.
-An invalid state (a window model's invalid window) is left out as well; with no input left, the
-state published is invalid (probability 0)."""
+  started more than `same_grasp_s` before the newest grasp of the inputs, and it has given a state
+  `same_grasp_s` after that newest grasp started. Trackers that took their references far apart
+  (cameras started at different times) are brought together by one message on `/tracker/reset`.
+Left out without a warning: an input with no state yet at the start, and, after `/tracker/reset`,
+one whose next frame (which starts its new grasp) has not come yet (counter `switching`): so the
+vote is never a mix of grasps, and every grasp does not raise a warning. An invalid state (a window
+model's invalid window) is left out as well; with no input left, the state published is invalid
+(probability 0)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -52,7 +54,8 @@ def _answer(msg: SlipState) -> CameraAnswer:
 
 class SlipFusion(Node):
     """The cameras' vote on `output` after every input state; counters `voted` (states published),
-    `alone` (of them, votes of one input), `stale` and `earlier_grasp` (inputs left out, by why)."""
+    `alone` (of them, votes of one input), `stale`, `earlier_grasp` and `switching` (inputs left out,
+    by why)."""
 
     Params = SlipFusionParams
 
@@ -60,7 +63,7 @@ class SlipFusion(Node):
         p = self.params
         self.vote = CameraVote(p.inputs, p.stale_after_s, p.same_grasp_s)
         self.pub = self.publisher(p.output, SlipState)
-        self.counters.update(voted=0, alone=0, stale=0, earlier_grasp=0)
+        self.counters.update(voted=0, alone=0, stale=0, earlier_grasp=0, switching=0)
         for topic in p.inputs:
             self.subscribe(topic, SlipState, lambda msg, topic=topic: self.on_state(topic, msg), depth=None)
 
@@ -81,8 +84,9 @@ class SlipFusion(Node):
         """Count the vote and the inputs left out of it, and name them in the node's warning."""
         self.counters["voted"] += 1
         self.counters["alone"] += len(vote.voters) == 1
+        self.counters["switching"] += sum(reason == "switching grasp" for reason in vote.left_out.values())
         why = []
-        for topic, reason in vote.left_out.items():
+        for topic, reason in vote.faults().items():
             if reason == "no answer yet":
                 why.append(f"{topic}: no state yet")
             elif reason == "stale":

@@ -38,12 +38,29 @@ def test_the_running_vote_leaves_out_cameras_stopped_or_on_an_earlier_grasp() ->
     from fv_algos.camera_vote import CameraAnswer, CameraVote
     s = 1_000_000_000
     vote = CameraVote(["left", "right"], stale_after_s=1.0, same_grasp_s=1.0)
-    assert vote.update("left", CameraAnswer(1 * s, 0, 1 * s, 0.9)).left_out == {"right": "no answer yet"}
+    first = vote.update("left", CameraAnswer(1 * s, 0, 1 * s, 0.9))
+    assert first.left_out == {"right": "starting"} and first.faults() == {}  # the other camera's first frame is due
     both = vote.update("right", CameraAnswer(1 * s, 0, 1 * s, 0.2))
     assert both.voters == ("left", "right") and both.probability == pytest.approx(camera_vote([0.9, 0.2]))
     reset = vote.update("left", CameraAnswer(3 * s, 3 * s, 3 * s, 0.1))
     assert reset.left_out == {"right": "stale"} and reset.probability == pytest.approx(0.1)
-    later = vote.update("right", CameraAnswer(int(3.1 * s), 0, int(3.1 * s), 0.8))
-    assert later.left_out == {"right": "earlier grasp"} and (later.first_ns, later.last_ns) == (3 * s, 3 * s)
+    switching = vote.update("right", CameraAnswer(int(3.1 * s), 0, int(3.1 * s), 0.8))  # its reset frame is due
+    assert switching.left_out == {"right": "switching grasp"} and switching.faults() == {}
+    assert (switching.first_ns, switching.last_ns) == (3 * s, 3 * s)
+    vote.update("left", CameraAnswer(int(4.1 * s), 3 * s, int(4.1 * s), 0.1))
+    later = vote.update("right", CameraAnswer(int(4.2 * s), 0, int(4.2 * s), 0.8))  # 1.2 s on, still the old grasp
+    assert later.faults() == {"right": "earlier grasp"} and later.probability == pytest.approx(0.1)
+
+
+def test_a_camera_that_never_answers_is_a_fault_after_stale_after_s() -> None:
+    from fv_algos.camera_vote import CameraAnswer, CameraVote
+    s = 1_000_000_000
+    vote = CameraVote(["left", "right"], stale_after_s=1.0, same_grasp_s=1.0)
+    assert vote.update("left", CameraAnswer(1 * s, 0, 1 * s, 0.9)).faults() == {}
+    assert vote.update("left", CameraAnswer(int(2.1 * s), 0, int(2.1 * s), 0.9)).faults() == {"right": "no answer yet"}
+
+
+def test_a_vote_needs_two_different_cameras() -> None:
+    from fv_algos.camera_vote import CameraVote
     with pytest.raises(ValueError, match="two or more different names"):
         CameraVote(["left", "left"])
