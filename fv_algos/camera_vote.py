@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import expit, logit
 
+EXPECTED = ("starting", "switching grasp")  # reasons to leave a camera out of a vote that are no fault
 LOGIT_LIMIT = 36.0  # |logit| a float64 P(slip) holds (1 - P rounds to 0 beyond it); beyond counts as this
 
 
@@ -61,9 +62,6 @@ class Vote:
     def faults(self) -> dict[str, str]:
         """The cameras left out for a fault (``left_out`` but "starting" and "switching grasp")."""
         return {name: why for name, why in self.left_out.items() if why not in EXPECTED}
-
-
-EXPECTED = ("starting", "switching grasp")  # reasons to leave a camera out that are no fault
 
 
 class CameraVote:
