@@ -104,7 +104,9 @@ class BagPlayParams:
 
 def topic_list(value: str | list[str]) -> list[str]:
     """A topic param as a list: "" -> [], "/a" -> ["/a"], a list as it is."""
-    return [value] if isinstance(value, str) and value else [] if isinstance(value, str) else list(value)
+    if isinstance(value, str):
+        return [value] if value else []
+    return list(value)
 
 
 class BagPlay(Node):
