@@ -55,11 +55,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-wait-for-subscribers", action="store_true",
                    help="start at once instead of waiting for a subscriber on each topic")
     p.add_argument("--wait-timeout", type=float, default=5.0, metavar="S", help="longest wait for subscribers")
-    p.add_argument("--sync-topic", nargs="+", default=[],
-                   help="flow control: wait for this topic to answer each frame (several: one per --sync-on topic)")
-    p.add_argument("--sync-on", nargs="+", default=[],
-                   help="recorded topic(s) whose messages wait, paired in order with --sync-topic "
-                        "(default the first Image)")
+    p.add_argument("--sync-topic", action="append", default=[],
+                   help="flow control: wait for this topic to answer each frame (repeat for several streams, "
+                        "one per --sync-on)")
+    p.add_argument("--sync-on", action="append", default=[],
+                   help="recorded topic whose messages wait (default the first Image); repeated, paired in "
+                        "order with --sync-topic")
     p.add_argument("--sync-window", type=int, default=1, help="frames of one stream in flight before waiting")
     p.add_argument("--sync-timeout", type=float, default=2.0, metavar="S", help="give up on one answer after S")
     p.add_argument("--name", default="bag_play", help="node name")

@@ -199,8 +199,9 @@ def test_fast_play_syncs_each_finger_on_its_own_answers(bus: BusAddress, spawn: 
     consumers = [_answer_slowly(bus, f"{side}/camera/image", f"{side}/slip", work_s, seen[side], done)
                  for side, work_s in zip(sides, (0.005, 0.03))]
     try:
-        play = spawn("bag", "play", str(tmp_path / "b"), "--fast", "--sync-on", "/left/camera/image",
-                     "/right/camera/image", "--sync-topic", "/left/slip", "/right/slip", "--wait-timeout", "20")
+        play = spawn("bag", "play", "--fast", "--sync-on", "/left/camera/image", "--sync-on", "/right/camera/image",
+                     "--sync-topic", "/left/slip", "--sync-topic", "/right/slip", "--wait-timeout", "20",
+                     str(tmp_path / "b"))
         assert play.wait(60) == 0
     finally:
         done.set()
