@@ -31,6 +31,7 @@ from nodes.bag.bench import stop_process
 from nodes.bus import PublisherSocket, TopicReader
 from nodes.endpoints import BUS_ENV, BusAddress, bus_address
 from nodes.forwarder import ensure_forwarder
+from nodes.launch_file import load_launch
 from tests.nodes.test_bag import T0_NS, sample_messages, write_bag
 
 REPO = Path(__file__).resolve().parents[2]
@@ -310,9 +311,10 @@ def test_record_node_selection_split_attachments(bus: BusAddress, tmp_path: Path
 def test_replay_launch_plays_the_camera_topics(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
     """The bag part of launch/replay.yaml alone, waiting for no pipeline node (test_session_replay.py
     replays whole sessions through it)."""
+    kinds = {s.kind for s in load_launch(REPO / "launch" / "replay.yaml", {"bag": "run1"})}
+    assert {"bag_play", "tracker", "interpolator", "slip_detector"} <= kinds  # the pipeline from camera_pipeline.yaml
     doc = yaml.safe_load((REPO / "launch" / "replay.yaml").read_text())
-    kinds = [n["kind"] for n in doc["nodes"]]
-    assert kinds[0] == "bag_play" and {"tracker", "interpolator", "slip_detector"} <= set(kinds)
+    assert doc["nodes"][0]["kind"] == "bag_play"
     assert set(doc["nodes"][0]["params"].pop("start_after")) == {"tracker", "interpolator", "slip_detector"}
     only_bag = tmp_path / "replay_bag.yaml"
     only_bag.write_text(yaml.safe_dump({"args": doc["args"], "nodes": doc["nodes"][:1]}))

@@ -93,6 +93,20 @@ def test_the_cameras_of_the_shipped_pipelines_wait_for_the_nodes_that_take_a_ref
     assert set(source.params["start_after"]) == {"tracker", "interpolator", "slip_detector"}
 
 
+@pytest.mark.parametrize("name, args", [("pipeline.yaml", {}), ("video.yaml", {"video": "clip.avi"}),
+                                        ("gelsight_mini.yaml", {}), ("replay.yaml", {"bag": "run1"}),
+                                        ("video_pair.yaml", {"left": "a.avi", "right": "b.avi"}),
+                                        ("gelsight_mini_pair.yaml", {"left": "2BKR", "right": "28G8"}),
+                                        ("replay_pair.yaml", {"bag": "session"})])
+def test_every_shipped_pipeline_respawns_its_nodes_from_a_standby_spare(name: str, args: dict) -> None:
+    """A tracker, interpolator or slip detector that dies on the robot is replaced at once, on a real sensor
+    as on the simulated one (the real-sensor files had no respawn: /slip stopped for good)."""
+    specs = [s for s in load_launch(REPO / "launch" / name, args)
+             if s.kind in ("tracker", "interpolator", "slip_detector")]
+    assert len(specs) == (6 if "pair" in name else 3)
+    assert all(s.respawn and s.standby and s.respawn_delay_s <= 0.2 for s in specs), [s.name for s in specs]
+
+
 def test_the_live_gelsight_mini_launch_gives_the_default_model_frames_as_it_was_trained() -> None:
     """320x240 frames (1/7 off each border, as GelSight's software records them), at the model's
     rate, in colour, with the tracker's reference at the model's reference frame."""
