@@ -122,7 +122,7 @@ class Launch:
 
     # -- processes -------------------------------------------------------------------
     def _popen(self, spec: NodeSpec, *extra: str) -> subprocess.Popen:
-        env = dict(os.environ, PYTHONUNBUFFERED="1", **{LAUNCH_ENV: str(self._started_ns)}, **spec.env)
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", LAUNCH_ENV: str(self._started_ns), **spec.env}
         return subprocess.Popen([sys.executable, "-m", "nodes.cli", *spec.argv(), *extra], env=env,
                                 stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                 text=True, bufsize=1, start_new_session=True)

@@ -62,6 +62,7 @@ class TrackerNode(Node):
         self.frames_seen = 0
         self.needs_reference = True
         self.started_ns = time.time_ns()
+        self.launch_ns = launch_started_ns()  # references published before it are an earlier session's
         self.resume_until = time.monotonic() + (p.resume_wait_s if p.resume else 0.0)
         self.inherited: MarkerArray | None = None
         self.first_stamp_ns: int | None = None  # stamp of the first frame this process sees
@@ -81,7 +82,7 @@ class TrackerNode(Node):
 
     def on_reference(self, msg: MarkerArray) -> None:
         """Keep the reference a previous process of this node published (latched), in this launch."""
-        if self.needs_reference and msg.node == self.name and launch_started_ns() <= msg.pub_ns < self.started_ns:
+        if self.needs_reference and msg.node == self.name and self.launch_ns <= msg.pub_ns < self.started_ns:
             self.inherited = msg
 
     def on_image(self, msg: Image) -> None:

@@ -118,7 +118,8 @@ class BagPlay(Node):
         p = self.params
         self.bag = BagReader(p.path)
         known = self.bag.topics()
-        for topic in p.topics + topic_list(p.sync_on):
+        waiting = topic_list(p.sync_on)
+        for topic in p.topics + waiting:
             if topic not in known:
                 raise BagError(p.path, f"has no topic {topic!r}; topics: {sorted(known)}")
         absent = [t for t in p.optional_topics if t not in known]
@@ -128,14 +129,16 @@ class BagPlay(Node):
         self.played_topics = p.topics + present if p.topics else list(known)
         self.out_topic = {t: self.resolve(t) for t in self.played_topics}
         images = [t for t in self.played_topics if known[t].type_name == Image.TYPE]
-        self.sync_on = topic_list(p.sync_on) or images[:1]
+        self.sync_on = waiting or images[:1]
         self.sync_topics = topic_list(p.sync_topic)
         self.clock = PlayClock(p.rate, paused=p.start_paused)
         self.error: str | None = None
         self.counters.update(played=0, frames=0, sync_timeouts=0, loops=0)
-        # per synced stream, the stamps of its messages sent and not yet answered
+        # stream k: the messages on sync_on[k] (with one stream, every message counted), answered on
+        # sync_topics[k]; per stream, the stamps of its messages sent and not yet answered
         self._pending: list[collections.deque[int]] = [collections.deque() for _ in self.sync_topics]
-        self._stream = {topic: k for k, topic in enumerate(self.sync_topics)}
+        self._sent_stream = {topic: k for k, topic in enumerate(self.sync_on)} if len(self.sync_topics) > 1 else {}
+        self._answer_stream = {topic: k for k, topic in enumerate(self.sync_topics)}
         self._pub = PublisherSocket(self.name, self.address, self.ctx)
         self._sync = TopicReader(self.sync_topics, self.address, self.ctx) if self.sync_topics else None
         self.start_gate = StartGate(self, p.start_after, p.start_timeout_s)
@@ -231,7 +234,7 @@ class BagPlay(Node):
             return
         self.counters["frames"] += 1
         if self._sync is not None:
-            self._pending[self.sync_on.index(m.topic) if len(self.sync_topics) > 1 else 0].append(header["stamp_ns"])
+            self._pending[self._sent_stream.get(m.topic, 0)].append(header["stamp_ns"])
             self._await_sync(self.params.sync_window)
 
     def _await_sync(self, limit: int) -> None:
@@ -252,7 +255,7 @@ class BagPlay(Node):
                     self.counters["sync_timeouts"] += 1
                     self.warn(f"no answer on {self.sync_topics[k]} within {self.params.sync_timeout_s} s (counted)")
             else:
-                pending = self._pending[self._stream[raw[0]]]
+                pending = self._pending[self._answer_stream[raw[0]]]
                 stamp = msgs.decode_header(raw[3][0], raw[0])["stamp_ns"]
                 if not pending or pending[0] > stamp:
                     continue
