@@ -61,6 +61,15 @@ def validate_topic(topic: str) -> str:
     return topic
 
 
+def resolve_topic(topic: str, namespace: str = "", remap: dict[str, str] | None = None) -> str:
+    """The absolute topic a node in `namespace` ("/left", "" for none) with `remap` means by
+    `topic`: a relative name ("camera/image") gets the namespace (/left/camera/image), an absolute
+    one is kept; then a remap of the full name, else of the name as written, replaces it."""
+    full = topic if topic.startswith("/") else f"{namespace}/{topic}"
+    remap = remap or {}
+    return validate_topic(remap.get(full, remap.get(topic, full)))
+
+
 def new_context() -> zmq.Context:
     return zmq.Context.instance()
 

@@ -89,8 +89,8 @@ class CameraNode(Node):
         p = self.params
         self.source = make_source(p)
         self.source.open()  # SourceError at start is fatal, with the source named
-        self.image_pub = self.publisher("/camera/image", Image)
-        self.info_pub = self.publisher("/camera/info", CameraInfo, latched=True)
+        self.image_pub = self.publisher("camera/image", Image)
+        self.info_pub = self.publisher("camera/info", CameraInfo, latched=True)
         self.fisheye = self._load_calibration()
         self.maps = self.fisheye.undistort_maps() if (p.undistort and self.fisheye) else None
         self.crop = FrameCrop.from_lists(p.crop, p.size)

@@ -44,9 +44,9 @@ class InterpolatorNode(Node):
         self.contact_params = ContactParams(p.contact_threshold_px)
         self.interpolator = None
         self.reference_key = b""
-        self.field_pub = self.publisher("/field", DisplacementField)
-        self.contact_pub = self.publisher("/contact", ContactSummary) if p.contact else None
-        self.subscribe("/markers", MarkerArray, self.on_markers, depth=5,
+        self.field_pub = self.publisher("field", DisplacementField)
+        self.contact_pub = self.publisher("contact", ContactSummary) if p.contact else None
+        self.subscribe("markers", MarkerArray, self.on_markers, depth=5,
                        stale_after_s=p.input_timeout_s or None)
         self.counters.update(invalid_fields=0)
 

@@ -10,10 +10,12 @@ Format (every key but `nodes[].kind` optional)::
     include:                     # other launch files, relative to this one
       - file: sensors.yaml
         args: {rate_hz: $(arg rate_hz)}
+      - file: finger.yaml
+        namespace: left          # its nodes' relative topics under /left, their names left_<name>
     nodes:
       - kind: talker             # a kind known to `nodes/registry.py`
         name: talker             # default: the kind; unique in the launch
-        namespace: /left         # for relative topic names
+        namespace: /left         # for relative topic names (`chatter` -> /left/chatter)
         params: {rate_hz: $(arg rate_hz)}
         remap: {/chatter: /left/chatter}
         env: {OMP_NUM_THREADS: 1}
@@ -32,7 +34,7 @@ from __future__ import annotations
 import json
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -43,10 +45,11 @@ from nodes.params import ParamError, build_params, parse_text
 TOP_KEYS = {"args", "include", "nodes"}
 NODE_KEYS = {"kind", "name", "namespace", "params", "remap", "env", "respawn", "respawn_delay", "max_retries",
              "standby", "required"}
-INCLUDE_KEYS = {"file", "args"}
+INCLUDE_KEYS = {"file", "args", "namespace"}
 ARG_KEYS = {"default", "description"}
 DEFAULT_RESPAWN_DELAY_S = 1.0
 _ARG_RE = re.compile(r"\$\(arg ([A-Za-z_][A-Za-z0-9_]*)\)")
+_NAMESPACE_RE = re.compile(r"/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
 _NO_DEFAULT = object()
 
 
@@ -213,7 +216,8 @@ def load_launch(path: Path | str, args: dict[str, Any] | None = None, _stack: tu
     for i, inc in enumerate(_section(f, doc, "include")):
         key = f"include[{i}]"
         line = _line(doc["include"], i, 1)
-        inc = _substitute(f, f.expect(inc, _Dict, line, key, "a mapping with keys file, args"), values, key)
+        inc = _substitute(f, f.expect(inc, _Dict, line, key, "a mapping with keys file, args, namespace"), values,
+                          key)
         f.check_keys(inc, INCLUDE_KEYS, key)
         if "file" not in inc:
             raise f.error(line, f"{key}.file", "missing")
@@ -222,7 +226,9 @@ def load_launch(path: Path | str, args: dict[str, Any] | None = None, _stack: tu
         f.expect(inc_args, dict, _line(inc, "args", line), f"{key}.args", "a mapping of argument values")
         if not target.is_file():
             raise f.error(inc.lines["file"], f"{key}.file", f"{target} does not exist")
-        specs += load_launch(target, inc_args, _stack + (path,))
+        included = load_launch(target, inc_args, _stack + (path,))
+        namespace = _namespace(f, inc, f"{key}.namespace", line)
+        specs += [_in_namespace(spec, namespace) for spec in included] if namespace else included
     for i, entry in enumerate(_section(f, doc, "nodes")):
         key = f"nodes[{i}]"
         line = _line(doc["nodes"], i, 1)
@@ -230,6 +236,21 @@ def load_launch(path: Path | str, args: dict[str, Any] | None = None, _stack: tu
         specs.append(_node_spec(f, entry, line, key, node_class))
     _check_unique(specs)
     return specs
+
+
+def _namespace(f: _File, entry: _Dict, key: str, line: int) -> str:
+    """The `namespace` of a node or include entry, absolute ("left" -> "/left"; "" when none)."""
+    value = f.expect(entry.get("namespace", ""), str, entry.lines.get("namespace", line), key, "a namespace")
+    if value and not _NAMESPACE_RE.fullmatch(value):
+        raise f.error(entry.lines.get("namespace", line), key,
+                      f"{value!r} is not a namespace (names of letters, digits and _ joined by /)")
+    return "/" + value.lstrip("/") if value else ""
+
+
+def _in_namespace(spec: NodeSpec, namespace: str) -> NodeSpec:
+    """`spec` included under absolute `namespace` (/left): its namespace goes after it (its
+    relative topics move under /left) and its name gets the prefix left_ (nested: left_arm_)."""
+    return replace(spec, namespace=namespace + spec.namespace, name=namespace[1:].replace("/", "_") + "_" + spec.name)
 
 
 def _section(f: _File, doc: _Dict, name: str) -> _List:
@@ -336,8 +357,7 @@ def _node_spec(f: _File, entry: _Dict, line: int, key: str, node_class: Any) -> 
         raise f.error(lines["standby"], f"{key}.standby", "a standby process needs respawn: true")
     return NodeSpec(
         kind=kind, name=name, params=dict(params), remap=dict(remap),
-        namespace=f.expect(entry.get("namespace", ""), str, lines.get("namespace", line), f"{key}.namespace",
-                           "a namespace"),
+        namespace=_namespace(f, entry, f"{key}.namespace", line),
         env={var: str(val) for var, val in env.items()},
         respawn=respawn, respawn_delay_s=float(delay), max_retries=retries, standby=standby,
         required=f.expect(entry.get("required", False), bool, lines.get("required", line), f"{key}.required",

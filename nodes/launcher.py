@@ -423,6 +423,8 @@ def _launch(args: argparse.Namespace) -> int:
     launch = Launch.from_file(args.file, parse_arg_overrides(args.args))  # LaunchError: `fv` prints it, exit 2
     if args.check:
         for spec in launch.specs:
-            print(f"{spec.name}: {spec.kind} params={spec.params} ({spec.source})")
+            where = (f" namespace={spec.namespace}" if spec.namespace else "") + (
+                f" remap={spec.remap}" if spec.remap else "")
+            print(f"{spec.name}: {spec.kind}{where} params={spec.params} ({spec.source})")
         return 0
     return launch.run()

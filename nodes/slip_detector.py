@@ -94,7 +94,7 @@ class SlipDetectorNode(Node):
         p = self.params
         path = model_path(p.model)
         self.slip = False
-        self.slip_pub = self.publisher("/slip", SlipState)
+        self.slip_pub = self.publisher("slip", SlipState)
         self.counters.update(decisions=0, invalid_windows=0, skipped=0)
         trial_model = read_trial_model(path)
         if trial_model is not None:
@@ -111,8 +111,8 @@ class SlipDetectorNode(Node):
         self.frame_width_px: int | None = None  # of the tracker's reference frame
         self.counters.update(no_width=0)
         if cfg.field_width_px:
-            self.subscribe("/markers/reference", MarkerArray, self.on_window_reference, depth=1)
-        self.field_sub = self.subscribe("/field", DisplacementField, self.on_field, depth=cfg.window,
+            self.subscribe("markers/reference", MarkerArray, self.on_window_reference, depth=1)
+        self.field_sub = self.subscribe("field", DisplacementField, self.on_field, depth=cfg.window,
                                         stale_after_s=p.input_timeout_s or None)
         self.log.info("model %s: window %d, grid %d, fields read at %s px wide frames", p.model, cfg.window,
                       cfg.grid, cfg.field_width_px or "any")
@@ -130,9 +130,9 @@ class SlipDetectorNode(Node):
         self.images: collections.OrderedDict[int, Image] = collections.OrderedDict()  # by stamp, oldest first
         self.grasp_start_ns: int | None = None
         self.reference_markers = 0
-        self.subscribe("/camera/image", Image, self.on_image, depth=IMAGE_BUFFER)
-        self.subscribe("/markers/reference", MarkerArray, self.on_reference, depth=1)
-        self.subscribe("/field", DisplacementField, self.on_grasp_field, depth=IMAGE_BUFFER,
+        self.subscribe("camera/image", Image, self.on_image, depth=IMAGE_BUFFER)
+        self.subscribe("markers/reference", MarkerArray, self.on_reference, depth=1)
+        self.subscribe("field", DisplacementField, self.on_grasp_field, depth=IMAGE_BUFFER,
                        stale_after_s=p.input_timeout_s or None)
         self.counters.update(grasps=0, unmatched_fields=0, rate_skipped=0, slow_gaps=0)
         self.log.info("model %s: trial model, judges each grasp from the tracker's reference on (trained with "

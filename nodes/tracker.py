@@ -66,12 +66,12 @@ class TrackerNode(Node):
         self.resume_until = time.monotonic() + (p.resume_wait_s if p.resume else 0.0)
         self.inherited: MarkerArray | None = None
         self.first_stamp_ns: int | None = None  # stamp of the first frame this process sees
-        self.markers_pub = self.publisher("/markers", MarkerArray)
-        self.reference_pub = self.publisher("/markers/reference", MarkerArray, latched=True)
-        self.subscribe("/camera/image", Image, self.on_image, depth=1, stale_after_s=p.input_timeout_s or None)
+        self.markers_pub = self.publisher("markers", MarkerArray)
+        self.reference_pub = self.publisher("markers/reference", MarkerArray, latched=True)
+        self.subscribe("camera/image", Image, self.on_image, depth=1, stale_after_s=p.input_timeout_s or None)
         self.subscribe("/tracker/reset", None, self.on_reset, depth=1)
         if p.resume:
-            self.subscribe("/markers/reference", MarkerArray, self.on_reference, depth=1)
+            self.subscribe("markers/reference", MarkerArray, self.on_reference, depth=1)
         self.counters.update(references=0, resumed=0)
 
     def on_reset(self, _msg) -> None:

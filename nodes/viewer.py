@@ -134,11 +134,11 @@ class ViewerNode(Node):
         self._frame_jpeg = _Encoded()
         self._field_jpeg = _Encoded()
         self.counters.update(port=0, requests=0, frames_encoded=0, fields_encoded=0, client_errors=0)
-        self.subscribe("/camera/image", Image, self.on_image, depth=1)
-        self.subscribe("/markers", MarkerArray, self.on_markers, depth=1)
-        self.subscribe("/field", DisplacementField, self.on_field, depth=1)
-        self.subscribe("/contact", ContactSummary, self.on_contact, depth=1)
-        self.subscribe("/slip", SlipState, self.on_slip, depth=1)
+        self.subscribe("camera/image", Image, self.on_image, depth=1)
+        self.subscribe("markers", MarkerArray, self.on_markers, depth=1)
+        self.subscribe("field", DisplacementField, self.on_field, depth=1)
+        self.subscribe("contact", ContactSummary, self.on_contact, depth=1)
+        self.subscribe("slip", SlipState, self.on_slip, depth=1)
         self.subscribe("/status", NodeStatus, self.on_status, depth=STATUS_QUEUE)
         self.server = self._serve()
 
@@ -345,7 +345,7 @@ class _Handler(BaseHTTPRequestHandler):
             elif path in ("/frame.jpg", "/field.jpg"):
                 data = viewer.frame_jpeg() if path == "/frame.jpg" else viewer.field_jpeg()
                 if data is None:
-                    topic = "/camera/image" if path == "/frame.jpg" else "/field"
+                    topic = viewer.resolve("camera/image" if path == "/frame.jpg" else "field")
                     self._send(HTTPStatus.NOT_FOUND, "text/plain", f"no {topic} message yet\n".encode())
                 else:
                     self._send(HTTPStatus.OK, "image/jpeg", data)

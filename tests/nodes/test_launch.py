@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from nodes.bus import resolve_topic
 from nodes.forwarder import ping
 from nodes.launch_file import LaunchError, load_launch
 from nodes.launcher import Launch
@@ -40,6 +41,7 @@ def _write(folder: Path, name: str, text: str) -> Path:
     ("nodes:\n  - kind: talker\n    kind: listener\n", 3, "duplicate key"),
     ("nodez: []\n", 1, "nodez"),
     ("include:\n  - file: missing.yaml\n", 2, "include[0].file"),
+    ("nodes:\n  - kind: talker\n    namespace: left arm\n", 3, "nodes[0] (talker).namespace"),
 ])
 def test_bad_launch_file_names_file_line_and_key(tmp_path: Path, text: str, line: int, key: str) -> None:
     path = _write(tmp_path, "bad.yaml", text)
@@ -76,6 +78,28 @@ def test_args_includes_and_overrides(tmp_path: Path) -> None:
     assert talker.argv()[:4] == ["node", "talker", "--name", "inner_talker"]
     with pytest.raises(LaunchError, match="'speed' given but not declared"):
         load_launch(outer, {"speed": 1})
+
+
+def test_an_include_in_a_namespace_moves_its_nodes_topics_and_names_there(tmp_path: Path) -> None:
+    """`namespace: left` on an include: each node's namespace gets /left before it (nested includes
+    compose), its name the prefix left_; names must stay unique, and a bad namespace names its line."""
+    _write(tmp_path, "inner.yaml", "nodes:\n  - kind: talker\n  - kind: listener\n    namespace: ears\n")
+    _write(tmp_path, "finger.yaml", "args: {side: left}\ninclude:\n  - file: inner.yaml\n    namespace: $(arg side)\n")
+    outer = _write(tmp_path, "hand.yaml", "include:\n  - {file: finger.yaml, namespace: /hand, args: {side: left}}\n"
+                                          "  - {file: finger.yaml, namespace: hand, args: {side: right}}\n"
+                                          "nodes:\n  - kind: talker\n")
+    specs = {s.name: s for s in load_launch(outer)}
+    assert {name: s.namespace for name, s in specs.items()} == {
+        "hand_left_talker": "/hand/left", "hand_left_listener": "/hand/left/ears",
+        "hand_right_talker": "/hand/right", "hand_right_listener": "/hand/right/ears", "talker": ""}
+    assert resolve_topic("chatter", specs["hand_right_listener"].namespace) == "/hand/right/ears/chatter"
+    twice = _write(tmp_path, "twice.yaml", "include:\n  - {file: inner.yaml, namespace: a}\n"
+                                           "  - {file: inner.yaml, namespace: a}\n")
+    with pytest.raises(LaunchError, match="'a_talker' is already used"):
+        load_launch(twice)
+    bad = _write(tmp_path, "bad.yaml", "include:\n  - file: inner.yaml\n    namespace: left/\n")
+    with pytest.raises(LaunchError, match=rf"{bad}:3: include\[0\].namespace: 'left/' is not a namespace"):
+        load_launch(bad)
 
 
 def test_demo_launch_file_is_valid() -> None:
@@ -128,19 +152,28 @@ def test_the_live_gelsight_mini_launch_gives_the_default_model_frames_as_it_was_
                                         ("replay_pair.yaml", {"bag": "session"})])
 def test_both_fingers_start_together_and_their_slips_are_the_fusion_inputs(name: str, args: dict) -> None:
     specs = {s.name: s for s in load_launch(REPO / "launch" / name, args)}
+
+    def topic(node: str, written: str) -> str:  # what the node's `written` topic name resolves to
+        return resolve_topic(written, specs[node].namespace, specs[node].remap)
+
     waited = {n for n in specs if not n.endswith("_camera") and n not in ("slip_monitor", "bag_play")}
     assert waited == {f"{side}_{kind}" for side in ("left", "right") for kind in ("tracker", "interpolator", "slip_detector")} | {"slip_fusion"}
     for side in ("left", "right"):
         if name == "replay_pair.yaml":  # the bag plays both fingers' frames
-            source, topic = specs["bag_play"], f"/{side}/camera/image"
-            assert topic in source.params["topics"] and set(source.params["start_after"]) == waited
+            source, image = specs["bag_play"], f"/{side}/camera/image"
+            assert image in source.params["topics"] and set(source.params["start_after"]) == waited
         else:
             source = specs[f"{side}_camera"]
-            topic = source.remap["/camera/image"]
+            image = topic(f"{side}_camera", "camera/image")
             assert set(source.params["start_after"]) == waited and source.params["path"] == args[side]
-        assert topic == specs[f"{side}_tracker"].remap["/camera/image"] == f"/{side}/camera/image"
-        assert specs[f"{side}_interpolator"].remap["/field"] == specs[f"{side}_slip_detector"].remap["/field"] == f"/{side}/field"
-    assert specs["slip_fusion"].params["inputs"] == [specs[f"{side}_slip_detector"].remap["/slip"] for side in ("left", "right")]
+        assert image == topic(f"{side}_tracker", "camera/image") == topic(f"{side}_slip_detector", "camera/image") \
+            == f"/{side}/camera/image"
+        assert topic(f"{side}_tracker", "markers") == topic(f"{side}_interpolator", "markers") == f"/{side}/markers"
+        assert topic(f"{side}_tracker", "markers/reference") == topic(f"{side}_slip_detector", "markers/reference") \
+            == f"/{side}/markers/reference"
+        assert topic(f"{side}_interpolator", "field") == topic(f"{side}_slip_detector", "field") == f"/{side}/field"
+        assert topic(f"{side}_tracker", "/tracker/reset") == "/tracker/reset"  # one message starts both grasps
+    assert specs["slip_fusion"].params["inputs"] == [topic(f"{side}_slip_detector", "slip") for side in ("left", "right")]
 
 
 def test_bad_file_from_the_command_line_starts_nothing(bus_env: Bus, tmp_path: Path) -> None:
@@ -206,3 +239,21 @@ def test_ctrl_c_stops_everything_within_2s(bus_env: Bus, spawn) -> None:
     output = proc.stdout.read()
     assert "[listener] INFO: SlipState seq=" in output and "[listener] [listener]" not in output
     assert ping(bus_env.address) is None
+
+
+@pytest.mark.parametrize("kind, params", [("camera", {"source": "sim"}), ("tracker", {}), ("interpolator", {}),
+                                          ("slip_detector", {"model": "gelsight_online"}), ("slip_detector", {}),
+                                          ("viewer", {"port": 0})])
+def test_a_pipeline_node_in_a_namespace_uses_its_topics_there(bus_env: Bus, kind: str, params: dict) -> None:
+    """What `namespace: left` on an include relies on: every topic a pipeline node publishes or
+    subscribes moves under /left, but the grasp-wide /tracker/reset and the launch-wide /status."""
+    from nodes.registry import node_class
+    node = node_class(kind)(f"left_{kind}", params, namespace="left")
+    try:
+        node.setup()
+        status = node.status()
+    finally:
+        node.close()
+    topics = {topic for topic, _ in status.publishes + status.subscribes}
+    assert topics - {"/tracker/reset", "/status"} and all(
+        t.startswith("/left/") for t in topics - {"/tracker/reset", "/status"}), topics
