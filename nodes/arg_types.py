@@ -3,15 +3,24 @@ value when one of these refuses it."""
 from __future__ import annotations
 
 import argparse
+import math
 import os
 from pathlib import Path
 
 
 def positive_float(text: str) -> float:
-    """A number > 0 (seconds, rates)."""
+    """A finite number > 0 (seconds, rates)."""
     value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"{text} is not > 0")
+    if not 0 < value < math.inf:
+        raise argparse.ArgumentTypeError(f"{text} is not a finite number > 0")
+    return value
+
+
+def non_negative_float(text: str) -> float:
+    """A finite number >= 0 (0 often meaning "the default" or "off")."""
+    value = float(text)
+    if not 0 <= value < math.inf:
+        raise argparse.ArgumentTypeError(f"{text} is not a finite number >= 0")
     return value
 
 

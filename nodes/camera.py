@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -59,6 +60,10 @@ class CameraParams:
             raise ValueError(f"fps {self.fps} must be > 0 (0 only for a video's own rate)")
         if self.source in ("video", "folder", "v4l2") and not self.path:
             raise ValueError(f"source {self.source!r} needs a path")
+        if self.source in ("video", "folder"):  # refused before a launch starts (fv launch --check)
+            self.path = str(Path(self.path).expanduser())  # a shell leaves the ~ of video:=~/clip.avi as it is
+            if not (Path(self.path).is_file() if self.source == "video" else Path(self.path).is_dir()):
+                raise ValueError(f"{self.source} {self.path}: no such {'file' if self.source == 'video' else 'folder'}")
         if self.undistort and not self.calibration and self.source != "sim":
             raise ValueError("undistort needs a calibration file")
         if self.start_timeout_s < 0:

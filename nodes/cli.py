@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 
 from fv_algos.allocator import steady_malloc
@@ -32,8 +33,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The parsed command line. A command that sets the default `intermixed` (the name of its list of
+    positionals) also takes them after its options: `fv launch FILE --check name:=value`."""
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    field = getattr(args, "intermixed", None)
+    if extra and field and not any(item.startswith("-") for item in extra):
+        getattr(args, field).extend(extra)
+    elif extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    return args
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = parse_args(argv)
     steady_malloc()  # every fv process: nodes, training, benchmarks
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="[%(name)s] %(levelname)s: %(message)s", stream=sys.stderr)
@@ -41,6 +55,9 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # `fv bag info x | head`: the reader has gone, nothing to say to it
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+        return 1
     except (ValueError, KeyError, OSError, RuntimeError) as exc:  # OSError: a disk full, a folder gone mid-run, ...
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         logging.getLogger("fv").debug("the error's traceback", exc_info=True)

@@ -40,7 +40,7 @@ from typing import Any
 
 import yaml
 
-from nodes.params import ParamError, build_params, parse_text
+from nodes.params import ParamError, YamlLoader, build_params, parse_text
 
 TOP_KEYS = {"args", "include", "nodes"}
 NODE_KEYS = {"kind", "name", "namespace", "params", "remap", "env", "respawn", "respawn_delay", "max_retries",
@@ -71,7 +71,7 @@ class _List(list):
     lines: list
 
 
-class _Loader(yaml.SafeLoader):
+class _Loader(YamlLoader):
     """SafeLoader whose mappings and sequences carry line numbers; duplicate keys fail."""
 
 

@@ -7,7 +7,9 @@ launcher, which then stops the nodes in order: SIGTERM to each group, SIGKILL af
 `GRACE_S`, then the forwarder it started.
 
 The launcher supervises the forwarder it started (restarted when it dies; nodes
-reconnect by themselves and re-send their latched messages) and publishes its own
+reconnect by themselves and re-send their latched messages). A launch that found another's
+forwarder running on its IPC bus pings it every `FORWARDER_CHECK_S` and starts its own when it is
+gone (the other launch stopped): its nodes would otherwise wait for a forwarder for good. It publishes its own
 `NodeStatus` on `/status` as `launch_<file stem>`: counters `respawns`,
 `<node>.respawns`, `forwarder_restarts`, `running`, and state "error" naming a node
 whose process is stopped (SIGSTOP) or whose NodeStatus has been missing for
@@ -37,6 +39,7 @@ from nodes.node import LAUNCH_ENV, STANDBY_READY
 GRACE_S = 1.2
 FORWARDER_GRACE_S = 0.5
 FORWARDER_RETRY_S = 1.0  # wait between failed forwarder restarts
+FORWARDER_CHECK_S = 1.0  # period of the pings to a forwarder this launch shares (did not start)
 SPARE_RETRY_S = 1.0  # at least this long before replacing a spare that died (a spare that cannot start loops slowly)
 POLL_S = 0.05
 STATUS_PERIOD_S = 1.0  # the launcher's own NodeStatus period
@@ -87,6 +90,7 @@ class Launch:
         self.forwarder_restarts = 0
         self._forwarder: subprocess.Popen | None = None
         self._forwarder_retry_at: float | None = None  # when to (re)try starting the forwarder; None = not needed
+        self._forwarder_check_at = 0.0  # next ping of a shared forwarder
         self._address = None
         self._status_pub = None
         self._status_reader = None
@@ -261,15 +265,21 @@ class Launch:
             self._done.set()
 
     def _watch_forwarder(self, now: float) -> None:
-        """Restart the forwarder this launch started when it has died (retrying every
-        FORWARDER_RETRY_S while it fails to start)."""
-        from nodes.forwarder import ensure_forwarder
+        """Restart the forwarder this launch started when it has died, start one when the shared
+        IPC forwarder no longer answers (retrying every FORWARDER_RETRY_S while it fails to start)."""
+        from nodes.forwarder import ensure_forwarder, ping
 
         if self._forwarder is not None and self._forwarder.poll() is not None:
             dead = self._forwarder
             self.say(f"forwarder pid {dead.pid} exited with code {dead.returncode}; restarting it")
             self._forwarder = None
             self._forwarder_retry_at = now
+        elif (self._forwarder is None and self._forwarder_retry_at is None and not self._address.is_tcp
+              and now >= self._forwarder_check_at):
+            self._forwarder_check_at = now + FORWARDER_CHECK_S
+            if ping(self._address, 0.5) is None:  # a busy forwarder answers in well under 0.5 s
+                self.say(f"the forwarder this launch shared on {self._address.url} is gone; starting one")
+                self._forwarder_retry_at = now
         if self._forwarder_retry_at is None or now < self._forwarder_retry_at or self._stop.is_set():
             return
         try:
@@ -350,7 +360,7 @@ class Launch:
         self.say(f"{spec.name} exited with code {code}" + ("" if not spec.respawn else " (no retries left)"))
         if spec.required:
             self.say(f"{spec.name} is required: stopping the launch")
-            self.exit_code = 1
+            self.exit_code = 0 if code == 0 else 1  # a replay's player that has played its bag ends it well
             self._stop.set()
 
     def _shutdown(self) -> None:
@@ -416,7 +426,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("file", type=Path, help="launch file (YAML), e.g. launch/demo.yaml")
     p.add_argument("args", nargs="*", metavar="name:=value", help="launch argument overrides")
     p.add_argument("--check", action="store_true", help="validate the file and list its nodes; start nothing")
-    p.set_defaults(func=_launch)
+    p.set_defaults(func=_launch, intermixed="args")
 
 
 def _launch(args: argparse.Namespace) -> int:

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import math
+import re
 import types
 import typing
 from typing import Any
@@ -53,10 +55,19 @@ def _coerce(tp: Any, value: Any) -> Any:
     return value
 
 
+class YamlLoader(yaml.SafeLoader):
+    """SafeLoader that also reads YAML 1.2's floats without a dot (1e9, -2E-3) as numbers: YAML 1.1,
+    PyYAML's, reads them as text, so `fps:=1e9` was refused as "not of type float"."""
+
+
+YamlLoader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9]+[eE][-+]?[0-9]+$"),
+                                 list("-+0123456789"))
+
+
 def parse_text(text: str) -> Any:
-    """A command-line value as YAML would read it ("0.5" -> 0.5, "[1, 2]" -> list)."""
+    """A command-line value as YAML would read it ("0.5" -> 0.5, "1e-3" -> 0.001, "[1, 2]" -> list)."""
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=YamlLoader)
     except yaml.YAMLError:
         return text
 
@@ -78,6 +89,8 @@ def build_params(cls: type, overrides: dict[str, Any], where: str = "params") ->
             value = parse_text(value)
         if not _accepts(hints[key], value):
             raise ParamError(f"{where}: param {key!r} = {value!r} is not of type {_type_name(hints[key])}", key)
+        if hints[key] is float and not math.isfinite(value):  # nan / inf: no rate, period or time means that
+            raise ParamError(f"{where}: param {key!r} = {value!r} is not a finite number", key)
         values[key] = _coerce(hints[key], value)
     try:
         return cls(**values)

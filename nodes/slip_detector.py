@@ -78,6 +78,12 @@ class SlipDetectorParams:
             raise ValueError(f"threshold {self.threshold} must be in (0, 1)")
         if not 0.0 <= self.hysteresis < min(self.threshold, 1.0 - self.threshold):
             raise ValueError(f"hysteresis {self.hysteresis} must be >= 0 and keep threshold +/- h inside (0, 1)")
+        if self.threads < 1:
+            raise ValueError(f"threads {self.threads} must be >= 1")
+        try:  # a misspelt model is refused before a launch starts (fv launch --check), not respawned for good
+            model_path(self.model)
+        except FileNotFoundError as exc:
+            raise ValueError(str(exc)) from None
 
 
 class SlipDetectorNode(Node):

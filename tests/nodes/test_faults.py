@@ -401,3 +401,23 @@ def test_standby_needs_respawn(tmp_path: Path) -> None:
     path.write_text("nodes:\n  - {kind: talker, standby: true}\n")
     with pytest.raises(LaunchError, match="standby.*needs respawn"):
         Launch.from_file(path)
+
+
+def test_a_launch_takes_over_when_the_forwarder_it_shared_is_gone(bus: Bus, tmp_path: Path) -> None:
+    """A second launch on one bus uses the first's forwarder; when the first launch stops, it
+    starts its own, and its nodes talk again (they used to wait for a forwarder for good)."""
+    run, out = launch(tmp_path, "nodes:\n  - {kind: talker, params: {rate_hz: 20}}\n  - {kind: listener}\n")
+    run.start()
+    try:
+        assert run.forwarder_pid is None  # the test's forwarder serves the bus
+        before = wait_status("listener", lambda st: st.counters.get("received", 0) > 0, 10.0)
+        bus.stop_forwarder()
+        t0 = time.monotonic()
+        wait_for(lambda: run.forwarder_pid is not None, 10.0, "the launch starting its own forwarder")
+        wait_status("listener", lambda st: st.counters["received"] > before.counters["received"] + 5, 5.0)
+        recovered_s = time.monotonic() - t0
+    finally:
+        run.stop()
+    assert "is gone; starting one" in out.getvalue()
+    print(f"listener receiving again {recovered_s:.2f} s after the shared forwarder stopped")
+    assert ping(bus.address) is None, "the launch's forwarder outlived it"

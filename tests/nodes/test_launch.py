@@ -19,6 +19,14 @@ from tests.nodes.conftest import REPO, Bus, children_of, pid_alive, run_fv, wait
 GOOD_NODE = "  - kind: talker\n    name: t\n"
 
 
+@pytest.fixture
+def video_files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """clip.avi, a.avi and b.avi in the working folder: a video camera's params need the file."""
+    monkeypatch.chdir(tmp_path)
+    for name in ("clip.avi", "a.avi", "b.avi"):
+        (tmp_path / name).write_bytes(b"")
+
+
 def _write(folder: Path, name: str, text: str) -> Path:
     path = folder / name
     path.write_text(text)
@@ -108,6 +116,7 @@ def test_demo_launch_file_is_valid() -> None:
 
 
 @pytest.mark.parametrize("name", ["pipeline.yaml", "view.yaml", "video.yaml", "gelsight_mini.yaml", "replay.yaml"])
+@pytest.mark.usefixtures("video_files")
 def test_the_cameras_of_the_shipped_pipelines_wait_for_the_nodes_that_take_a_reference(name: str) -> None:
     """The tracker takes its reference from the first frame it gets: a camera (or a bag player) that starts
     before it hands it a deformed skin (on the simulated main job, every held frame was then called slip)."""
@@ -122,6 +131,7 @@ def test_the_cameras_of_the_shipped_pipelines_wait_for_the_nodes_that_take_a_ref
                                         ("video_pair.yaml", {"left": "a.avi", "right": "b.avi"}),
                                         ("gelsight_mini_pair.yaml", {"left": "2BKR", "right": "28G8"}),
                                         ("replay_pair.yaml", {"bag": "session"})])
+@pytest.mark.usefixtures("video_files")
 def test_every_shipped_pipeline_respawns_its_nodes_from_a_standby_spare(name: str, args: dict) -> None:
     """A tracker, interpolator or slip detector that dies on the robot is replaced at once, on a real sensor
     as on the simulated one (the real-sensor files had no respawn: /slip stopped for good)."""
@@ -150,6 +160,7 @@ def test_the_live_gelsight_mini_launch_gives_the_default_model_frames_as_it_was_
 @pytest.mark.parametrize("name, args", [("video_pair.yaml", {"left": "a.avi", "right": "b.avi"}),
                                         ("gelsight_mini_pair.yaml", {"left": "2BKR", "right": "28G8"}),
                                         ("replay_pair.yaml", {"bag": "session"})])
+@pytest.mark.usefixtures("video_files")
 def test_both_fingers_start_together_and_their_slips_are_the_fusion_inputs(name: str, args: dict) -> None:
     specs = {s.name: s for s in load_launch(REPO / "launch" / name, args)}
 
@@ -174,6 +185,39 @@ def test_both_fingers_start_together_and_their_slips_are_the_fusion_inputs(name:
         assert topic(f"{side}_interpolator", "field") == topic(f"{side}_slip_detector", "field") == f"/{side}/field"
         assert topic(f"{side}_tracker", "/tracker/reset") == "/tracker/reset"  # one message starts both grasps
     assert specs["slip_fusion"].params["inputs"] == [topic(f"{side}_slip_detector", "slip") for side in ("left", "right")]
+
+
+@pytest.mark.parametrize("name, args, error", [
+    ("video.yaml", {"video": "nope.avi"}, "video nope.avi: no such file"),
+    ("video_pair.yaml", {"left": "a.avi", "right": "b.av"}, "video b.av: no such file"),
+    ("video.yaml", {"video": "clip.avi", "model": "gelsite_online"}, "model 'gelsite_online' is neither a shipped"),
+    ("pipeline.yaml", {"threads": 0}, "threads 0 must be >= 1"),
+])
+@pytest.mark.usefixtures("video_files")
+def test_a_misspelt_video_or_model_is_refused_before_anything_starts(name: str, args: dict, error: str) -> None:
+    """`fv launch --check` passed these; the launch then sat with no camera (the video) or respawned a
+    slip detector that could never start, importing torch again every 3 s (the model)."""
+    with pytest.raises(LaunchError, match=error):
+        load_launch(REPO / "launch" / name, args)
+
+
+@pytest.mark.parametrize("name, args", [("video.yaml", {"video": "clip.avi"}),
+                                        ("video_pair.yaml", {"left": "a.avi", "right": "b.avi"}),
+                                        ("gelsight_mini_pair.yaml", {"left": "2BKR", "right": "28G8"})])
+@pytest.mark.usefixtures("video_files")
+def test_a_camera_that_exits_for_good_ends_the_launch(name: str, args: dict) -> None:
+    """A video OpenCV cannot decode: the camera exits and the launch ends (it used to wait for frames)."""
+    cameras = [s for s in load_launch(REPO / "launch" / name, args) if s.kind == "camera"]
+    assert cameras and all(s.required for s in cameras)
+
+
+def test_check_takes_the_launch_arguments_before_or_after_it() -> None:
+    demo = str(REPO / "launch" / "demo.yaml")
+    for argv in (["--check", demo, "rate_hz:=3"], [demo, "--check", "rate_hz:=3"], [demo, "rate_hz:=3", "--check"]):
+        result = run_fv("launch", *argv)
+        assert result.returncode == 0 and "'rate_hz': 3}" in result.stdout, (argv, result.stderr)
+    result = run_fv("launch", demo, "--chek", "rate_hz:=3")
+    assert result.returncode == 2 and "unrecognized arguments: --chek" in result.stderr
 
 
 def test_bad_file_from_the_command_line_starts_nothing(bus_env: Bus, tmp_path: Path) -> None:
@@ -211,17 +255,21 @@ def test_killed_respawn_node_is_back_within_delay_plus_1s(bus_env: Bus, tmp_path
     assert not pid_alive(first) and not pid_alive(pid)
 
 
-def test_required_node_death_stops_the_launch(bus_env: Bus, tmp_path: Path) -> None:
+@pytest.mark.parametrize("sig, launch_code", [("-KILL", 1), ("-TERM", 0)])
+def test_required_node_death_stops_the_launch(bus_env: Bus, tmp_path: Path, sig: str, launch_code: int) -> None:
+    """The launch ends with its required node, failed if that node failed: a replay whose player has
+    played its bag (exit 0) ends well (it used to end with 1 whatever the node's code)."""
     launch, out = _launch(tmp_path, "nodes:\n  - kind: talker\n    required: true\n  - kind: listener\n")
     launch.start()
     try:
         wait_status("listener", timeout_s=8.0)
+        wait_status("talker", timeout_s=8.0)  # spinning: SIGTERM now stops it cleanly (exit 0)
         pids = [launch.pid("talker"), launch.pid("listener"), launch._forwarder.pid]
-        subprocess.run(["kill", "-9", str(pids[0])], check=True)
+        subprocess.run(["kill", sig, str(pids[0])], check=True)
         assert launch.wait(3.0), "the launch went on without its required node"
     finally:
         code = launch.stop()
-    assert code == 1 and "talker is required" in out.getvalue()
+    assert code == launch_code and "talker is required" in out.getvalue()
     assert not any(pid_alive(p) for p in pids)
 
 
