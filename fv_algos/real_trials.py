@@ -76,38 +76,53 @@ class Trial:
 
 def read_trials(root: str | Path) -> list[Trial]:
     """Trials listed in ``root/labels.csv`` (UTF-8, with or without the byte-order mark spreadsheets
-    write), in file order.
+    write), in file order. Header cells are read trimmed and in lower case (" Label" is "label"), rows
+    of empty cells are skipped, and a trial's name is normalised (``./t1/`` is ``t1``).
 
     Raises FileNotFoundError naming the missing ``labels.csv`` or ``camera_0`` video, ValueError
-    naming the file and line for a missing column, a row short of fields, an empty object, an
-    unknown label, a duplicate trial or a camera with two videos (``camera_0.avi`` and ``camera_0.mp4``).
+    naming the file (and the line) for text that is not UTF-8, a missing or doubled column, a row short of
+    fields (or with more that are not empty), an empty object, an unknown label, a trial listed twice
+    (two names of one folder) or a camera with two videos (``camera_0.avi`` and ``camera_0.mp4``) or a
+    video that is not a readable file (a broken link).
     """
     root = Path(root)
     table = root / LABELS_FILE
     if not table.is_file():
         raise FileNotFoundError(f"trial table not found: {table} (needs columns {', '.join(REQUIRED_COLUMNS)})")
-    trials, seen = [], set()
     with table.open(newline="", encoding="utf-8-sig") as handle:
-        reader = csv.DictReader(handle)
-        missing = [c for c in REQUIRED_COLUMNS if c not in (reader.fieldnames or [])]
-        if missing:
-            raise ValueError(f"{table}: missing columns {missing} (has {reader.fieldnames})")
-        for row in reader:
-            where = f"{table} line {reader.line_num}"
-            if None in row.values():
-                raise ValueError(f"{where}: {sum(v is not None for v in row.values())} fields, the header has "
-                                 f"{len(reader.fieldnames)}")
-            name, label, obj = row["trial"].strip(), row["label"].strip().lower(), row["object"].strip()
-            if label not in LABEL_VALUES:
-                raise ValueError(f"{where}: label {row['label']!r} is not slip / no_slip (or 1 / 0)")
-            if not name or name in seen:
-                raise ValueError(f"{where}: trial {name!r} is empty or listed twice")
-            if not obj:
-                raise ValueError(f"{where}: trial {name!r} has no object (object-held-out folds need one)")
-            seen.add(name)
-            folder = root / name
-            extra = {k: v for k, v in row.items() if k not in REQUIRED_COLUMNS and k is not None}
-            trials.append(Trial(name, obj, LABEL_VALUES[label], folder, _camera_videos(folder, where), extra))
+        reader = csv.reader(handle)
+        try:
+            lines = [(reader.line_num, cells) for cells in reader]
+        except UnicodeDecodeError as exc:
+            raise ValueError(f"{table}: not UTF-8 text ({exc.reason} after line {reader.line_num}): save it as "
+                             "UTF-8 (a spreadsheet's \"CSV UTF-8\")") from None
+    header = [name.strip().lower() for name in lines[0][1]] if lines else []  # as a spreadsheet may write it: " Label"
+    missing = [c for c in REQUIRED_COLUMNS if c not in header]
+    if missing or len(set(header)) < len(header):
+        raise ValueError(f"{table}: missing columns {missing} (has {header})" if missing
+                         else f"{table}: a column is named twice ({header})")
+    trials, seen = [], {}
+    for line, cells in lines[1:]:
+        where = f"{table} line {line}"
+        if not any(cell.strip() for cell in cells):
+            continue  # an empty line, or the empty rows (,,) a spreadsheet leaves below its table
+        if len(cells) < len(header) or any(cell.strip() for cell in cells[len(header):]):
+            raise ValueError(f"{where}: {len(cells)} fields, the header has {len(header)}")
+        row = dict(zip(header, cells))
+        name, label, obj = row["trial"].strip(), row["label"].strip().lower(), row["object"].strip()
+        if label not in LABEL_VALUES:
+            raise ValueError(f"{where}: label {row['label']!r} is not slip / no_slip (or 1 / 0)")
+        if not name:
+            raise ValueError(f"{where}: no trial")
+        name = os.path.normpath(name)
+        folder = root / name
+        if folder.resolve() in seen:  # t1, ./t1 and t1/ are one folder
+            raise ValueError(f"{where}: trial {name!r} is listed twice (also on line {seen[folder.resolve()]})")
+        if not obj:
+            raise ValueError(f"{where}: trial {name!r} has no object (object-held-out folds need one)")
+        seen[folder.resolve()] = line
+        extra = {k: v for k, v in row.items() if k not in REQUIRED_COLUMNS}
+        trials.append(Trial(name, obj, LABEL_VALUES[label], folder, _camera_videos(folder, where), extra))
     if not trials:
         raise ValueError(f"{table} lists no trials")
     return trials
@@ -119,12 +134,21 @@ def _camera_videos(folder: Path, where: str) -> dict[str, Path]:
     both start with ``where`` (the table's line)."""
     videos = {}
     for camera in CAMERAS:
-        found = [folder / f"{camera}{suffix}" for suffix in VIDEO_SUFFIXES if (folder / f"{camera}{suffix}").is_file()]
+        named = [folder / f"{camera}{suffix}" for suffix in VIDEO_SUFFIXES]
+        broken = [path for path in named if path.is_symlink() and not path.is_file() or path.is_dir()]
+        if broken:
+            raise ValueError(f"{where}: {broken[0]} is not a video file (a broken link or a folder)")
+        found = [path for path in named if path.is_file()]
         if len(found) > 1:
             raise ValueError(f"{where}: {len(found)} videos for {camera}, keep one: {', '.join(map(str, found))}")
         videos.update({camera: path for path in found})
     if CAMERAS[0] not in videos:
         raise FileNotFoundError(f"{where}: video not found: {folder / CAMERAS[0]}{{{','.join(VIDEO_SUFFIXES)}}}")
+    stray = sorted(path.name for path in folder.glob("camera_*") if path.suffix.lower() in VIDEO_SUFFIXES
+                   and path.stem not in CAMERAS)
+    if stray:
+        log.warning("%s: %s left out: the cameras read are %s (one video each)", where, ", ".join(stray),
+                    " and ".join(CAMERAS))
     return videos
 
 

@@ -18,22 +18,46 @@ Callback form (a background thread calls the function)::
 
 `timeout_s` makes silence an error (`TimeoutError`): a gripper that stops hearing the
 slip detector should know. The bus is the one `FV_BUS` names (default: this host's).
+
+Publishing (the gripper closed: every tracker takes a new reference, a new grasp starts)::
+
+    from nodes.client import reset_grasp
+
+    gripper.close()
+    reset_grasp()
+
+or, for any topic, ``with advertise("/my/topic") as pub: pub.publish(msg)``.
 """
 from __future__ import annotations
 
 import logging
 import threading
-from typing import Callable, Iterator
+import time
+from typing import Callable, Iterator, TypeVar
 
-from msgs import Message
-from nodes.bus import TopicReader
+from msgs import Message, SlipState
+from nodes.bus import PublisherSocket, TopicReader
 from nodes.endpoints import BusAddress
 
 log = logging.getLogger("fv.client")
 POLL_S = 0.1
+_C = TypeVar("_C", bound="_Closing")
 
 
-class Subscription:
+class _Closing:
+    """A context manager that calls `self.close()` on exit."""
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self: _C) -> _C:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class Subscription(_Closing):
     """Messages of one topic, read on demand; iterate it, or call `recv()`.
 
     msg_type: the expected class (TypeError for another), None for any.
@@ -82,12 +106,6 @@ class Subscription:
     def close(self) -> None:
         self._reader.close()
 
-    def __enter__(self) -> "Subscription":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
 
 def subscribe(topic: str, msg_type: type[Message] | None = None, *, timeout_s: float | None = None,
               latest: bool = False, address: BusAddress | None = None) -> Subscription:
@@ -105,7 +123,7 @@ def wait_for_message(topic: str, msg_type: type[Message] | None = None, timeout_
     return msg
 
 
-class Listener:
+class Listener(_Closing):
     """Calls `callback(msg)` for each message of `topic` from a background thread until
     `close()`. A callback that raises is logged and counted in `errors`; the thread goes on."""
 
@@ -141,14 +159,49 @@ class Listener:
         self._stop.set()
         self._thread.join(timeout_s)
 
-    def __enter__(self) -> "Listener":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
 
 def listen(topic: str, callback: Callable[[Message], object], msg_type: type[Message] | None = None, *,
            latest: bool = False, address: BusAddress | None = None) -> Listener:
     """Call `callback(msg)` for each message on `topic` in a background thread (see `Listener`)."""
     return Listener(topic, callback, msg_type, latest=latest, address=address)
+
+
+RESET_TOPIC = "/tracker/reset"  # any message on it starts a new grasp on every tracker
+
+
+class Publisher(_Closing):
+    """Publishes robot-code messages on `topic` (close() it, or use it as a context manager).
+
+    It waits up to `connect_timeout_s` for the bus to take its messages (TimeoutError naming the
+    bus when none answers): a message sent before that would be lost without a word.
+    """
+
+    def __init__(self, topic: str, *, name: str = "robot", latched: bool = False, connect_timeout_s: float = 2.0,
+                 address: BusAddress | None = None) -> None:
+        self.topic = topic
+        self.latched = latched
+        self._sock = PublisherSocket(name, address)
+        if not self._sock.wait_connected(connect_timeout_s):
+            url = self._sock.address.url
+            self._sock.close()
+            raise TimeoutError(f"no forwarder took {topic} on {url} within {connect_timeout_s} s "
+                               "(is a launch running on this FV_BUS?)")
+
+    def publish(self, msg: Message) -> None:
+        self._sock.publish(self.topic, msg, self.latched)
+
+    def close(self) -> None:
+        self._sock.close()
+
+
+def advertise(topic: str, *, name: str = "robot", latched: bool = False, connect_timeout_s: float = 2.0,
+              address: BusAddress | None = None) -> Publisher:
+    """A `Publisher` on `topic`: ``with advertise("/my/topic") as pub: pub.publish(msg)``."""
+    return Publisher(topic, name=name, latched=latched, connect_timeout_s=connect_timeout_s, address=address)
+
+
+def reset_grasp(*, connect_timeout_s: float = 2.0, address: BusAddress | None = None) -> None:
+    """Start a new grasp: one message on /tracker/reset (call it when the gripper closes). Every
+    tracker takes its next frame as the reference; the slip detectors judge the grasp from there."""
+    with advertise(RESET_TOPIC, name="robot_reset", connect_timeout_s=connect_timeout_s, address=address) as pub:
+        pub.publish(SlipState(stamp_ns=time.time_ns()))

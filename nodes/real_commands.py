@@ -71,6 +71,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     crop_flags(p)
     online_flags(p)
     p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=eval_trials_command)
 
 
@@ -135,6 +136,7 @@ def _data_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help=f"field cache folder (default {DEFAULT_CACHE})")
     p.add_argument("--workers", type=positive_int, default=1,
                    help="processes for the fields, the contact motion and the folds of `cv` (default 1)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
 def _fit_args(p: argparse.ArgumentParser, window_steps: int) -> None:
@@ -190,7 +192,8 @@ def _load(args: argparse.Namespace, reference_frame: int = 1):
     crop = frame_crop(args)
     trials = read_trials(args.trials)
     started = time.perf_counter()
-    fields = trial_fields(trials, args.cache, workers=args.workers, reference_frame=reference_frame, crop=crop)
+    fields = trial_fields(trials, args.cache, workers=args.workers, reference_frame=reference_frame, crop=crop,
+                          progress=not args.no_progress)
     return trials, fields, time.perf_counter() - started
 
 
@@ -254,7 +257,8 @@ def _trial_inputs(args: argparse.Namespace, reference_frame: int, params: Contac
     fps, faster = judged_rates(trials, fps, stretch)
     paths = {(t.name, camera): path for t in trials for camera, path in t.videos.items()}
     series = trial_series(trials, args.cache, reference_frame, params or ContactMotionParams(), workers=args.workers,
-                          rates={paths[key]: (rate, fps) for key, rate in faster.items()}, crop=frame_crop(args))
+                          rates={paths[key]: (rate, fps) for key, rate in faster.items()}, crop=frame_crop(args),
+                          progress=not args.no_progress)
     picked = {key: value if key not in faster else value.at(picked_frames(len(value.fields), faster[key], fps))
               for key, value in fields.items()}
     inputs = trial_inputs(trials, series, picked)
@@ -270,7 +274,7 @@ def _cv(args: argparse.Namespace) -> int:
         trials, _, _, inputs, labels, fps = _trial_inputs(args, config.reference_frame, stretch=config.stretch)
         config = replace(config, fps=fps)
         report = cross_validate_trials(inputs, labels, [t.object for t in trials], args.folds, args.seed, config,
-                                       args.workers, progress=True, online=args.online)
+                                       args.workers, progress=not args.no_progress, online=args.online)
         report["config"] = {"method": "trial", **asdict(config), "folds": args.folds}
         if args.online:
             report["online"] = _online_report(report["running"], labels, args, fps)

@@ -94,6 +94,9 @@ def test_a_missing_table_is_named(tmp_path: Path) -> None:
     ("trial,object,label\nt1,cup\n", ValueError, r"labels.csv line 2: 2 fields, the header has 3"),
     ("trial,object,label\nt1, ,slip\n", ValueError, r"labels.csv line 2: trial 't1' has no object"),
     ("trial,object,label\n\nt1,cup,maybe\n", ValueError, r"labels.csv line 3: label 'maybe'"),  # after a blank line
+    ("trial,object,label\nt1,cup,slip,extra\n", ValueError, r"labels.csv line 2: 4 fields, the header has 3"),
+    ("trial,object,label,Label\nt1,cup,slip,slip\n", ValueError, r"labels.csv: a column is named twice"),
+    ("trial,object,label\n,cup,slip\n", ValueError, r"labels.csv line 2: no trial"),
 ])
 def test_bad_tables_name_the_file_and_line(tmp_path: Path, table: str, error: type, message: str) -> None:
     (tmp_path / "labels.csv").write_text(table)
@@ -107,6 +110,38 @@ def test_a_spreadsheet_table_with_byte_order_mark_and_crlf_reads(tmp_path: Path)
     (tmp_path / "labels.csv").write_bytes("\ufefftrial,object,label\r\nt1,cup,slip\r\n".encode())
     [trial] = read_trials(tmp_path)
     assert (trial.name, trial.object, trial.label) == ("t1", "cup", 1)
+
+
+def test_a_spreadsheet_table_reads_as_the_user_meant_it(tmp_path: Path) -> None:
+    """Header cells with spaces or capitals, rows of empty cells below the table and trailing empty
+    cells read; two names of one trial folder are refused, naming both lines."""
+    for name in ("t1", "t2"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "camera_0.avi").write_bytes(b"")
+    (tmp_path / "labels.csv").write_text("Trial, Object ,LABEL\nt1/,cup,slip,\n./t2,mug,No_Slip\n,,\n,,\n")
+    assert [(t.name, t.object, t.label) for t in read_trials(tmp_path)] == [("t1", "cup", 1), ("t2", "mug", 0)]
+    (tmp_path / "labels.csv").write_text("trial,object,label\nt1/,cup,slip\nt2,mug,no_slip\n./t1,cup,slip\n")
+    with pytest.raises(ValueError, match=r"line 4: trial 't1' is listed twice \(also on line 2\)"):
+        read_trials(tmp_path)
+    (tmp_path / "labels.csv").write_bytes("trial,object,label\nt1,tasse \xe0 caf\xe9,slip\n".encode("latin-1"))
+    with pytest.raises(ValueError, match=r"labels.csv: not UTF-8 text .*save it as UTF-8"):
+        read_trials(tmp_path)
+
+
+def test_a_second_camera_that_is_not_read_is_named(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A broken link where camera_2's video should be is refused; a video under another camera's
+    name (camera_1.avi) is named in a warning: either used to leave the grasp to one camera unsaid."""
+    (tmp_path / "t1").mkdir()
+    (tmp_path / "t1" / "camera_0.avi").write_bytes(b"")
+    (tmp_path / "t1" / "camera_1.avi").write_bytes(b"")
+    (tmp_path / "labels.csv").write_text("trial,object,label\nt1,cup,slip\n")
+    with caplog.at_level("WARNING"):
+        [trial] = read_trials(tmp_path)
+    assert set(trial.videos) == {"camera_0"}
+    assert "labels.csv line 2: camera_1.avi left out: the cameras read are camera_0 and camera_2" in caplog.text
+    (tmp_path / "t1" / "camera_2.avi").symlink_to(tmp_path / "gone.avi")
+    with pytest.raises(ValueError, match=r"line 2: .*t1/camera_2.avi is not a video file \(a broken link"):
+        read_trials(tmp_path)
 
 
 def test_a_camera_video_may_be_any_common_container_but_only_one(tmp_path: Path) -> None:
@@ -271,9 +306,11 @@ def test_eval_trials_command_from_video_to_decision(isd_data: Path, tmp_path: Pa
     config = ModelConfig(arch="lstm", hidden=8)
     model_path = save_checkpoint(tmp_path / "tiny.pt", Checkpoint(config, build_model(config).state_dict()))
     args = argparse.Namespace(model=str(model_path), trials=root, cache=None, workers=1, json=True, online=False,
-                              alarm=None, plot=None, crop=[], size=[])
+                              alarm=None, plot=None, crop=[], size=[], no_progress=True)
     assert eval_trials_command(args) == 0
-    report = json.loads(capsys.readouterr().out)
+    printed = capsys.readouterr()
+    report = json.loads(printed.out)
+    assert "frame" not in printed.err, printed.err  # --no-progress: no bar (there were two)
     assert report["n_trials"] == 3 and 0.0 <= report["trial_accuracy"] <= 1.0
     assert 0.0 <= report["window_accuracy"] <= 1.0
     assert np.sum(report["confusion"]) == 3
@@ -305,7 +342,7 @@ def test_eval_trials_command_with_a_trial_level_model(isd_data: Path, tmp_path: 
         net.head.bias.fill_(1.0)
     path = save_trial_model(tmp_path / "trial.pt", net, TrialNetConfig(hidden=4, members=1))
     args = argparse.Namespace(model=str(path), trials=root, cache=tmp_path / "cache", workers=1, json=True,
-                              online=False, alarm=None, plot=None, crop=[], size=[])
+                              online=False, alarm=None, plot=None, crop=[], size=[], no_progress=True)
     assert eval_trials_command(args) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["n_trials"] == 3 and report["window_accuracy"] is None

@@ -192,6 +192,27 @@ def test_client_timeout_callback_and_type_check(bus: Bus) -> None:
     assert len(got) >= 3 and all(s.slip for s in got)
 
 
+def test_client_reset_grasp_reaches_the_trackers_and_needs_a_bus(bus: Bus, bus_env: Bus) -> None:
+    """Robot code's first message is not lost: a bare PublisherSocket's, sent before the forwarder
+    took it, was dropped without a word (the README told users to publish on /tracker/reset)."""
+    from nodes.client import advertise, reset_grasp
+
+    with TopicReader(["/tracker/reset", "/my/topic"]) as reader:
+        with advertise("/my/topic") as pub:  # until the reader's subscriptions have reached the forwarder
+            for _ in range(40):
+                pub.publish(SlipState(probability=0.25))
+                if (got := reader.recv(0.05)) is not None:
+                    break
+            assert got is not None and got.msg.probability == 0.25
+        for k in range(5):  # a fresh connection each time, the message sent at once
+            reset_grasp()
+            got = reader.recv(2.0)
+            assert got is not None and got.topic == "/tracker/reset", f"reset {k} lost"
+    bus.stop_forwarder()
+    with pytest.raises(TimeoutError, match="no forwarder took /tracker/reset on ipc://"):
+        reset_grasp(connect_timeout_s=0.3)
+
+
 def test_malformed_frames_are_counted_by_a_reader(bus: Bus) -> None:
     raw = zmq.Context.instance().socket(zmq.PUB)
     raw.linger = 0
