@@ -178,8 +178,8 @@ def _measure(args: argparse.Namespace, on_msg: Callable[[list, dict, int], None]
             if raw is not None:
                 recv_ns = time.time_ns()
                 header = decode_header(raw[3][0], args.topic)
-                if header["pub_ns"] >= start_ns:  # latched replays predate the measurement
-                    on_msg(raw[3], header, recv_ns)
+                if not (raw[2] and header["pub_ns"] < start_ns):  # a latched replay predates the measurement
+                    on_msg(raw[3], header, recv_ns)  # (a bag played keeps its recorded pub_ns: not a replay)
             if end is None and time.monotonic() >= next_print:
                 next_print += 1.0
                 print(text(report()), flush=True)

@@ -6,7 +6,7 @@ import json
 import re
 from pathlib import Path
 
-from nodes.arg_types import output_file
+from nodes.arg_types import non_negative_float, output_file
 
 SIZE_UNITS = {"": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30}
 
@@ -86,7 +86,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="output: x.mp4 / x.avi (Image), a folder for PNG (Image), x.csv or x.npz (any type)")
     p.add_argument("--format", choices=["mp4", "avi", "png", "csv", "npz"],
                    help="default: from the output's suffix (no suffix: png)")
-    p.add_argument("--fps", type=float, default=0.0, help="video frame rate (default: the recorded rate)")
+    p.add_argument("--fps", type=non_negative_float, default=0.0,
+                   help="video frame rate (default, 0: the recorded rate)")
+    p.add_argument("--force", action="store_true", help="replace an output that exists")
     p.set_defaults(func=_export)
 
 
@@ -143,6 +145,9 @@ def _recover(args: argparse.Namespace) -> int:
 
 def _export(args: argparse.Namespace) -> int:
     from nodes.bag.export import export
+    if (args.output.is_file() or args.output.is_dir() and any(args.output.iterdir())) and not args.force:
+        raise ValueError(f"{args.output} exists and is not empty: pass --force to replace what it holds, or "
+                         "choose another output")
     count, out = export(args.bag, args.topic, args.output, args.format, args.fps)
     print(f"exported {count} messages of {args.topic} to {out}")
     return 0

@@ -50,8 +50,8 @@ def format_info(info: dict[str, Any]) -> str:
     lines = [f"Files:        {', '.join(info['files'])}",
              f"Bag size:     {info['size_b'] / 1e6:.2f} MB",
              f"Duration:     {info['duration_s']:.3f} s",
-             f"Start:        {_when(info['start_ns'])}",
-             f"End:          {_when(info['end_ns'])}",
+             f"Start:        {_when(info['start_ns']) if info['messages'] else '- (no messages)'}",
+             f"End:          {_when(info['end_ns']) if info['messages'] else '-'}",
              f"Messages:     {info['messages']}",
              f"Chunks:       {info['chunks']} ({'/'.join(info['compression']) or '-'}, ratio {ratio:.2f})",
              "Topics:"]

@@ -177,8 +177,7 @@ class BagPlay(Node):
                 self.log.info("paused before the first message: space/enter or `kill -USR1 %d` starts", os.getpid())
             started = time.monotonic()
             while not self.stopped:
-                self._play_once()
-                if not self.params.loop:
+                if not self._play_once() or not self.params.loop:  # nothing to play: no loop over nothing
                     break
                 self.counters["loops"] += 1
             self._await_sync(1)
@@ -200,8 +199,8 @@ class BagPlay(Node):
         if missing:
             self.warn(f"no subscriber on {sorted(missing)} after {self.params.subscriber_timeout_s} s; playing anyway")
 
-    def _play_once(self) -> None:
-        """One pass over the selected stretch of the bag."""
+    def _play_once(self) -> bool:
+        """One pass over the selected stretch of the bag; False when it holds nothing to play."""
         p = self.params
         start_ns = self.bag.start_ns + int(p.start_offset_s * 1e9)
         end_ns = start_ns + int(p.duration_s * 1e9) if p.duration_s else None
@@ -218,10 +217,11 @@ class BagPlay(Node):
                 self.clock.start(m.log_time_ns)
                 first = False
             if not self.clock.wait(None if p.fast else m.log_time_ns, lambda: self.stopped):
-                return
+                return True
             self._send(m)
         if first:
             self.warn(f"nothing to play in {p.path} from {p.start_offset_s} s for topics {self.played_topics}")
+        return not first
 
     def _send(self, m: BagMessage) -> None:
         try:

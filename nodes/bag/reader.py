@@ -28,8 +28,10 @@ from nodes.bag.codec import MESSAGE_ENCODING, META_LATCHED, META_NODE, split_pay
 from nodes.bag.writer import bag_file_index
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
-# what the mcap package, zstandard, lz4 (RuntimeError) and struct raise on damaged bytes
-READ_ERRORS = (McapError, CRCValidationError, ZstdError, struct.error, OSError, ValueError, RuntimeError)
+# what the mcap package, zstandard, lz4 (RuntimeError) and struct raise on damaged bytes (OverflowError: a
+# length field of garbage)
+READ_ERRORS = (McapError, CRCValidationError, ZstdError, struct.error, OSError, ValueError, RuntimeError, OverflowError,
+               IndexError, EOFError)
 
 
 class BagError(ValueError):

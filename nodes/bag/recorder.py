@@ -5,8 +5,8 @@ header) and hands them to `BagWriter` with log_time = receive time. Every
 `flush_period_s` the open chunk is closed and synced, so a crash or `kill -9` loses at
 most that period of data. Latched `CameraInfo` messages are also stored as a YAML
 attachment ``calibration/<topic>.yaml``; files named in `attach` (the launch file...)
-are attached at the start of every split file. On stop the receive queue is drained,
-totals go into a ``fv_recording_end`` metadata record and one summary line is logged.
+are attached at the start of every split file. On stop the receive queue is drained of the
+messages published before the stop, totals go into a ``fv_recording_end`` metadata record and one summary line is logged.
 """
 from __future__ import annotations
 
@@ -31,8 +31,8 @@ from nodes.bag.writer import COMPRESSIONS, DEFAULT_CHUNK_B, BagWriter
 from nodes.bus import ALL_TOPICS, SeqTracker, TopicReader
 from nodes.node import Node
 
-DRAIN_IDLE_S = 0.1  # on stop, keep receiving until the queue stays empty this long...
-DRAIN_MAX_S = 2.0   # ...or this long at most
+DRAIN_IDLE_S = 0.1  # on stop, keep receiving until the queue stays empty this long, a message published
+DRAIN_MAX_S = 2.0   # after the stop comes (a live bus is never quiet), or this long at most
 RECORDING_META = "fv_recording"
 RECORDING_END_META = "fv_recording_end"
 
@@ -145,14 +145,20 @@ class BagRecord(Node):
         return (self.params.all_topics or topic in self._only
                 or bool(self._include is not None and self._include.search(topic)))
 
-    def _record(self, topic: str, node: str, latched: bool, frames: list[Any], log_time_ns: int) -> None:
+    def _record(self, topic: str, node: str, latched: bool, frames: list[Any], log_time_ns: int,
+                published_by_ns: int | None = None) -> bool:
+        """Write one received message; False (not written) when it was published after
+        `published_by_ns` (a wall time in ns: the stop, while draining)."""
         if not self._selected(topic):
-            return
+            return True
         header = msgs.decode_header(frames[0], topic)
+        if published_by_ns is not None and header["pub_ns"] > published_by_ns:
+            return False
         self.writer.write(topic, node, latched, frames, log_time_ns, header)
         self._gaps.setdefault(topic, SeqTracker()).accept(topic, node, header["seq"], latched)
         if header["type"] == CameraInfo.TYPE:
             self._attach_calibration(topic, frames)
+        return True
 
     def _attach_calibration(self, topic: str, frames: list[Any]) -> None:
         try:
@@ -177,9 +183,10 @@ class BagRecord(Node):
                     self.writer.flush()
                     self._update_counters()
                     next_flush = time.monotonic() + period
-            drain_until = time.monotonic() + DRAIN_MAX_S
+            stopped_ns, drain_until = time.time_ns(), time.monotonic() + DRAIN_MAX_S
             while time.monotonic() < drain_until and (raw := self._reader.recv_raw(DRAIN_IDLE_S)) is not None:
-                self._record(*raw, time.time_ns())
+                if not self._record(*raw, time.time_ns(), published_by_ns=stopped_ns):
+                    break
         except Exception as exc:  # disk full, permissions...: stop the node, keep what was written
             self.state, self.message = "error", f"recording failed: {type(exc).__name__}: {exc}"
             self.log.error("%s", self.message)
@@ -197,13 +204,22 @@ class BagRecord(Node):
         return sum(t.gaps for t in self._gaps.values())
 
     def _finish(self) -> None:
+        """Close the bag with its totals; a bag that cannot be finished (the disk full) is named, with
+        the command that indexes what reached it."""
         self._reader.close()
         stats = self.writer.stats
-        self.writer.add_metadata(RECORDING_END_META, {
-            "end_time_ns": str(time.time_ns()), "messages": str(sum(s.count for s in stats.values())),
-            "gaps": str(self.total_gaps), "malformed": str(self._reader.malformed),
-            "per_topic": json.dumps({t: {"count": s.count, "gaps": self._gaps[t].gaps} for t, s in stats.items()})})
-        self.writer.close()
+        try:
+            self.writer.add_metadata(RECORDING_END_META, {
+                "end_time_ns": str(time.time_ns()), "messages": str(sum(s.count for s in stats.values())),
+                "gaps": str(self.total_gaps), "malformed": str(self._reader.malformed),
+                "per_topic": json.dumps({t: {"count": s.count, "gaps": self._gaps[t].gaps}
+                                         for t, s in stats.items()})})
+            self.writer.close()
+        except OSError as exc:
+            unfinished = self.writer.files[-1] if self.writer.files else self.writer.output
+            self.state, self.message = "error", f"could not finish {unfinished}: {exc.strerror or exc}"
+            self.log.error("%s; what was flushed is kept: run `fv bag recover %s` to index it", self.message,
+                           unfinished)
         self._update_counters()
         self.log.info("%s", self.summary_line())
 

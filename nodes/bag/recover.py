@@ -1,32 +1,42 @@
-"""`fv bag recover`: a bag file cut off by a crash, `kill -9` or a power cut becomes a
-valid, indexed MCAP again.
+"""`fv bag recover`: a bag file cut off by a crash, `kill -9` or a power cut, or damaged
+inside, becomes a valid, indexed MCAP again.
 
 The default MCAP reader needs the summary at the end of the file, which a cut file
-lacks. Recovery reads the file front to back with a non-seeking `StreamReader`, one
-record at a time (chunks whole, checked against their CRC), and copies every complete
-record (schemas, channels, messages, attachments, metadata) into a new file. It stops
-at the first record that is cut or damaged: everything after it is the loss.
+lacks. Recovery reads the file front to back, one record at a time (chunks whole, checked
+against their CRC), and copies every readable record (schemas, channels, messages,
+attachments, metadata) into a new file. A damaged stretch (a chunk that fails its CRC, bytes
+that are no record) is skipped up to the next chunk that reads whole, so one bad chunk costs
+that chunk, not the rest of the file; the cut at the end of a crashed recording is the last
+stretch. The report names every stretch lost.
 """
 from __future__ import annotations
 
+import io
+import mmap
 import os
-from dataclasses import asdict, dataclass
+import struct
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import IO, Iterator
 
+from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, Chunk, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import Writer
 
-from nodes.bag.reader import READ_ERRORS, check_magic
+from nodes.bag.reader import MCAP_MAGIC, READ_ERRORS, check_magic
 from nodes.bag.writer import open_mcap
 
 BROKEN_SUFFIX = ".broken"
+_FRAME = struct.Struct("<BQ")  # a record's opcode and content length (bytes)
+_OPCODES = {int(op) for op in Opcode}
 
 
 @dataclass
 class RecoverReport:
-    """What a recovery kept and lost (sizes in bytes, times in ns of log time)."""
+    """What a recovery kept and lost (sizes in bytes, times in ns of log time). damaged: the
+    [start, end) byte ranges of the source that were skipped, in file order. in_place: recovered
+    into the source itself (a complete one is left as it is)."""
 
     source: str
     output: str
@@ -34,42 +44,57 @@ class RecoverReport:
     chunks: int = 0
     attachments: int = 0
     metadata: int = 0
-    kept_b: int = 0
     lost_b: int = 0
     last_log_time_ns: int = 0
     complete: bool = False
-    stopped_at: str = ""
+    damaged: list[tuple[int, int]] = field(default_factory=list)
+    unplaced_messages: int = 0  # read, but their channel's definition was in a damaged stretch
 
     def as_dict(self) -> dict:
         return asdict(self)
 
     def summary_line(self) -> str:
         if self.complete:
-            return f"{self.source} was complete: {self.messages} messages copied to {self.output}"
+            return f"{self.source} was complete ({self.messages} messages): " + (
+                "left as it is" if self.source == self.output else f"copied to {self.output}")
+        stretches = ", ".join(f"{a}-{b}" for a, b in self.damaged[:5]) + (" ..." if len(self.damaged) > 5 else "")
+        unplaced = (f"; {self.unplaced_messages} messages read but left out, their topic's definition lost"
+                    if self.unplaced_messages else "")
         return (f"recovered {self.messages} messages in {self.chunks} chunks, {self.attachments} attachments, "
-                f"{self.metadata} metadata into {self.output}; lost the last {self.lost_b} bytes "
-                f"(at most one chunk) after log time {self.last_log_time_ns} ns ({self.stopped_at})")
+                f"{self.metadata} metadata into {self.output} (last log time {self.last_log_time_ns} ns); lost "
+                f"{self.lost_b} bytes in {len(self.damaged)} damaged or cut stretch(es) at bytes {stretches}"
+                + unplaced)
 
 
 class _Copier:
-    """Copies records into a new writer, renumbering schemas and channels."""
+    """Copies records into a new writer, renumbering schemas and channels. A channel whose schema,
+    or a message whose channel, was in a damaged stretch waits for it (a complete file's summary
+    repeats every schema and channel); what still waits at the end is counted as lost."""
 
     def __init__(self, writer: Writer, report: RecoverReport) -> None:
         self.writer = writer
         self.report = report
         self.schemas: dict[int, int] = {0: 0}
         self.channels: dict[int, int] = {}
+        self.waiting: dict[tuple[type, int], list] = {}  # (Schema or Channel, its id) -> records that need it
 
     def copy(self, record: object) -> None:
         w, r = self.writer, self.report
         if isinstance(record, Schema):
             if record.id not in self.schemas:
                 self.schemas[record.id] = w.register_schema(record.name, record.encoding, record.data)
+                self._release(Schema, record.id)
         elif isinstance(record, Channel):
-            if record.id not in self.channels:
+            if record.schema_id not in self.schemas:
+                self.waiting.setdefault((Schema, record.schema_id), []).append(record)
+            elif record.id not in self.channels:
                 self.channels[record.id] = w.register_channel(record.topic, record.message_encoding,
                                                               self.schemas[record.schema_id], record.metadata)
+                self._release(Channel, record.id)
         elif isinstance(record, Message):
+            if record.channel_id not in self.channels:
+                self.waiting.setdefault((Channel, record.channel_id), []).append(record)
+                return
             w.add_message(self.channels[record.channel_id], record.log_time, record.data, record.publish_time,
                           record.sequence)
             r.messages += 1
@@ -81,27 +106,64 @@ class _Copier:
             w.add_metadata(record.name, record.metadata)
             r.metadata += 1
 
+    def _release(self, kind: type, record_id: int) -> None:
+        for record in self.waiting.pop((kind, record_id), []):
+            self.copy(record)
 
-def _complete_records(source: Path, report: RecoverReport) -> Iterator[tuple[object, list]]:
-    """(record, the records it holds) for each record of `source` up to the cut; a chunk
-    holds its schemas, channels and messages (checked against its CRC), any other record
-    just itself. Sets report.kept_b / complete / stopped_at as it goes."""
-    with open(source, "rb") as f:
-        records = StreamReader(f, emit_chunks=True, record_size_limit=source.stat().st_size).records
-        while True:
-            try:
-                record = next(records)
-                contents = breakup_chunk(record, validate_crc=True) if isinstance(record, Chunk) else [record]
-            except StopIteration:
-                return
-            except READ_ERRORS as exc:  # the cut: a record that ends early or fails its CRC
-                report.stopped_at = f"{type(exc).__name__}: {exc}" if str(exc) else f"{type(exc).__name__} (cut)"
-                return
+    def unplaced(self) -> int:
+        """Messages whose channel (or its schema) was never read: lost with a damaged stretch."""
+        return sum(isinstance(r, Message) for records in self.waiting.values() for r in records)
+
+
+def _record_at(data: mmap.mmap, pos: int) -> tuple[object, list, int] | None:
+    """(record, the records it holds, its end offset) of the record that starts at byte `pos` of
+    `data`, or None when none reads whole there. A chunk holds its schemas, channels and messages
+    and must pass its CRC; any other record holds itself."""
+    if pos + _FRAME.size > len(data):
+        return None
+    opcode, length = _FRAME.unpack_from(data, pos)
+    end = pos + _FRAME.size + length
+    if opcode not in _OPCODES or end > len(data):
+        return None
+    try:
+        record = next(StreamReader(io.BytesIO(data[pos:end]), skip_magic=True, emit_chunks=True,
+                                   record_size_limit=None).records)
+        contents = breakup_chunk(record, validate_crc=True) if isinstance(record, Chunk) else [record]
+    except (StopIteration, *READ_ERRORS):
+        return None
+    return record, contents, end
+
+
+def _next_chunk(data: mmap.mmap, pos: int) -> int:
+    """Offset of the first chunk at or after byte `pos` that reads whole (len(data) when none).
+    A false start needs a length that fits the file and a chunk that passes its CRC."""
+    chunk = bytes([int(Opcode.CHUNK)])
+    while (pos := data.find(chunk, pos)) != -1:
+        found = _record_at(data, pos)
+        if found is not None and isinstance(found[0], Chunk):
+            return pos
+        pos += 1
+    return len(data)
+
+
+def _readable_records(source: Path, report: RecoverReport) -> Iterator[tuple[object, list]]:
+    """(record, the records it holds) for each readable record of `source` up to its footer,
+    skipping each damaged stretch to the next chunk that reads whole. Sets report.damaged and
+    report.complete (a footer reached with nothing skipped)."""
+    with open(source, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
+        pos = len(MCAP_MAGIC)
+        while pos < len(data):
+            found = _record_at(data, pos)
+            if found is None:
+                resume = _next_chunk(data, pos + 1)
+                report.damaged.append((pos, resume))
+                pos = resume
+                continue
+            record, contents, pos = found
             if isinstance(record, Footer):
-                report.complete = True
+                report.complete = not report.damaged
                 return
             yield record, contents
-            report.kept_b = f.tell()
 
 
 def _start(output: Path, compression: str, report: RecoverReport, early: list) -> tuple[IO[bytes], _Copier]:
@@ -121,7 +183,7 @@ def recover(source: Path, output: Path) -> RecoverReport:
     early: list = []  # attachments and metadata before the first chunk, which sets the compression
     stream = copier = None
     try:
-        for record, contents in _complete_records(source, report):
+        for record, contents in _readable_records(source, report):
             if copier is None:
                 if not isinstance(record, Chunk):
                     early += contents
@@ -136,12 +198,14 @@ def recover(source: Path, output: Path) -> RecoverReport:
         if copier is not None:
             copier.writer.finish()
             stream.close()
-    report.lost_b = 0 if report.complete else source.stat().st_size - report.kept_b
+    report.lost_b = sum(b - a for a, b in report.damaged)
+    report.unplaced_messages = copier.unplaced()
     return report
 
 
 def recover_in_place(path: Path) -> RecoverReport:
-    """Recover `path` into itself; the original is kept as ``path.broken``."""
+    """Recover `path` into itself; the original is kept as ``path.broken``. A complete file is left
+    as it is (no copy kept)."""
     path = Path(path)
     broken = path.with_name(path.name + BROKEN_SUFFIX)
     if broken.exists():
@@ -149,7 +213,10 @@ def recover_in_place(path: Path) -> RecoverReport:
     tmp = path.with_name(path.name + ".recovering")
     tmp.unlink(missing_ok=True)
     report = recover(path, tmp)
+    report.output = str(path)
+    if report.complete:
+        tmp.unlink()
+        return report
     os.replace(path, broken)
     os.replace(tmp, path)
-    report.output = str(path)
     return report

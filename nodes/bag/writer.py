@@ -115,12 +115,14 @@ class BagWriter:
 
     def _finish_file(self) -> None:
         assert self._writer is not None and self._stream is not None
-        self._writer.finish()
-        self._stream.flush()
-        if self.fsync:
-            os.fsync(self._stream.fileno())
-        self._stream.close()
-        self._writer = self._stream = None
+        try:
+            self._writer.finish()
+            self._stream.flush()
+            if self.fsync:
+                os.fsync(self._stream.fileno())
+        finally:  # a full disk: the file stays as flushed, closed
+            stream, self._writer, self._stream = self._stream, None, None
+            stream.close()
 
     def _maybe_split(self, log_time_ns: int) -> None:
         assert self._stream is not None

@@ -167,6 +167,32 @@ def test_recover_keeps_every_complete_chunk(bag: tuple[Path, list], tmp_path: Pa
     assert whole.complete and whole.messages == len(messages) and whole.lost_b == 0
 
 
+@pytest.mark.parametrize("where", ["inside the first chunk", "inside a middle chunk", "a middle chunk's header"])
+def test_recover_skips_a_damaged_chunk_and_keeps_every_other(bag: tuple[Path, list], tmp_path: Path,
+                                                             where: str) -> None:
+    """64 bytes overwritten in a finished bag: recovery loses that chunk alone (it used to stop there and
+    lose every later chunk, saying "at most one chunk"). The first chunk defines the topics: their
+    messages in later chunks wait for the summary's definitions."""
+    path, messages = bag
+    file = BagReader(path).files[0]
+    data = bytearray(file.read_bytes())
+    chunks = bag_chunks(file)
+    k = 0 if where == "inside the first chunk" else len(chunks) // 2
+    hit = chunks[k].chunk_start_offset + (0 if "header" in where else chunks[k].chunk_length // 2)
+    data[hit:hit + 64] = bytes(range(64))
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+    report = recover(damaged, tmp_path / "fixed.mcap")
+    lost = chunks[k]
+    expected = [lt for _, _, _, lt in messages if not lost.message_start_time <= lt <= lost.message_end_time]
+    got = [m.log_time_ns for m in BagReader(tmp_path / "fixed.mcap").messages()]
+    assert got == expected and report.messages == len(expected) and report.unplaced_messages == 0
+    assert report.chunks == len(chunks) - 1 and not report.complete
+    start = lost.chunk_start_offset
+    assert [a for a, _ in report.damaged] == [start] and report.damaged[0][1] >= start + lost.chunk_length
+    assert "1 damaged or cut stretch(es)" in report.summary_line()
+
+
 def test_recover_in_place_keeps_the_original(bag: tuple[Path, list], capsys: pytest.CaptureFixture) -> None:
     path, messages = bag
     file = BagReader(path).files[0]
@@ -179,6 +205,11 @@ def test_recover_in_place_keeps_the_original(bag: tuple[Path, list], capsys: pyt
     assert BagReader(path).message_count == report["messages"]
     with pytest.raises(ValueError, match="already exists"):
         recover_in_place(file)
+    file.with_name(file.name + ".broken").unlink()
+    recovered = file.read_bytes()
+    report = recover_in_place(file)  # now complete: left as it is, no copy kept
+    assert report.complete and "left as it is" in report.summary_line() and file.read_bytes() == recovered
+    assert not file.with_name(file.name + ".broken").exists()
 
 
 @pytest.mark.parametrize("content", [b"", b"not a bag at all" * 10, b"\x89MCAP0\r\n" + b"\x00" * 40])
@@ -194,6 +225,40 @@ def test_bad_files_give_one_line_errors(tmp_path: Path, content: bytes, capsys: 
         assert err.count("\n") == 1 and str(path) in err and "Traceback" not in err
     assert main(["bag", "info", str(tmp_path / "missing")]) == 2
     assert "no such file" in capsys.readouterr().err
+
+
+def test_export_keeps_a_file_that_exists_and_refuses_rates_that_mean_nothing(
+        bag: tuple[Path, list], tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """An export used to replace any file at its output without a word; --fps inf never ended, nan and
+    negative rates left empty files."""
+    path, _ = bag
+    keep = tmp_path / "keep.csv"
+    keep.write_text("important\n")
+    assert main(["bag", "export", str(path), "--topic", "/slip", "-o", str(keep)]) == 2
+    assert "exists and is not empty: pass --force" in capsys.readouterr().err and keep.read_text() == "important\n"
+    assert main(["bag", "export", str(path), "--topic", "/slip", "-o", str(keep), "--force"]) == 0
+    assert len(keep.read_text().splitlines()) == 41
+    for fps in ("inf", "nan", "-5"):
+        with pytest.raises(SystemExit):
+            main(["bag", "export", str(path), "--topic", "/camera/image", "-o", str(tmp_path / f"{fps}.avi"),
+                  "--fps", fps])
+        assert "is not a finite number >= 0" in capsys.readouterr().err
+        assert not (tmp_path / f"{fps}.avi").exists()
+
+
+def test_info_into_a_reader_that_stops_early_ends_quietly(bag: tuple[Path, list]) -> None:
+    """`fv bag info BAG | head`: the reader goes away mid-output; the command ends with status 1 and
+    says nothing (it printed `fv bag: error: [Errno 32] Broken pipe`)."""
+    import subprocess
+    import sys
+    path, _ = bag
+    long_info = ("import sys, nodes.bag.info as info\n"
+                 "info.format_info = lambda _: 'x' * 10_000_000  # more than a pipe holds\n"
+                 f"from nodes.cli import main\nsys.exit(main(['bag', 'info', {str(path)!r}]))\n")
+    proc = subprocess.Popen([sys.executable, "-c", long_info], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdout.read(10) == b"x" * 10
+    proc.stdout.close()
+    assert proc.wait(30) == 1 and proc.stderr.read() == b""
 
 
 def test_damaged_chunk_is_a_bag_error_when_reading(bag: tuple[Path, list], tmp_path: Path) -> None:

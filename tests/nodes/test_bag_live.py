@@ -56,12 +56,12 @@ def bus(monkeypatch: pytest.MonkeyPatch) -> Iterator[BusAddress]:
 
 @pytest.fixture
 def spawn(bus: BusAddress) -> Iterator[Spawn]:
-    """spawn(*fv_args) starts `python -m nodes.cli ...` on the test's bus (stderr kept)."""
+    """spawn(*fv_args, **popen_kwargs) starts `python -m nodes.cli ...` on the test's bus (stderr kept)."""
     procs: list[subprocess.Popen] = []
 
-    def start(*args: str) -> subprocess.Popen:
+    def start(*args: str, **popen_kwargs: object) -> subprocess.Popen:
         proc = subprocess.Popen([sys.executable, "-m", "nodes.cli", *args], cwd=REPO, stdin=subprocess.DEVNULL,
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen_kwargs)
         procs.append(proc)
         return proc
 
@@ -122,6 +122,36 @@ def test_kill_9_then_recover_keeps_every_completed_chunk(bus: BusAddress, spawn:
     assert report.messages == bag.message_count and not report.complete  # lost_b may be 0: a cut between chunks
     for m in images[::25]:
         np.testing.assert_array_equal(m.decode().data, sent[m.sequence][1])
+
+
+def test_a_full_disk_ends_the_recording_with_the_command_that_keeps_it(bus: BusAddress, spawn: Spawn,
+                                                                       tmp_path: Path) -> None:
+    """A file size limit (what a full disk does to the recorder): one error naming the file and
+    `fv bag recover`, no traceback, and the recovered bag holds what was flushed. It used to end in a
+    thread's traceback with no summary and no advice."""
+    import resource
+
+    def limit_file_size() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (300_000, 300_000))
+
+    rec = spawn("bag", "record", "/camera/image", "-o", str(tmp_path / "full"), "--chunk-size", "32K",
+                "--flush-period", "0.1", "--compression", "none", preexec_fn=limit_file_size)
+    pub = PublisherSocket("cam", bus)
+    rng = np.random.default_rng(4)
+    try:
+        wait_subscribed(pub, ["/camera/image"])
+        deadline = time.monotonic() + 20.0
+        while rec.poll() is None and time.monotonic() < deadline:
+            pub.publish("/camera/image", Image(stamp_ns=time.time_ns(), data=rng.integers(0, 255, (120, 160), np.uint8)))
+            time.sleep(0.01)
+    finally:
+        pub.close()
+    assert rec.wait(10) == 1
+    err = rec.stderr.read()
+    file = tmp_path / "full" / "full_0.mcap"
+    assert f"run `fv bag recover {file}`" in err and "Traceback" not in err, err
+    report = recover(file, tmp_path / "kept.mcap")
+    assert report.messages > 5 and BagReader(tmp_path / "kept.mcap").message_count == report.messages
 
 
 def test_record_play_record_round_trip_with_recorded_timing(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
@@ -239,6 +269,25 @@ def test_play_offset_duration_topics_remap_and_latched_first(bus: BusAddress, tm
     assert len(want) == 10 and node.counters["played"] == 11
 
 
+def test_a_loop_over_nothing_ends_and_numbers_that_mean_nothing_are_refused(bus: BusAddress, tmp_path: Path) -> None:
+    """--loop from past the end spun a core forever, re-sending the latched messages; NaN and
+    infinity hung the player (rate) or ended it in a traceback (offsets, durations)."""
+    write_bag(tmp_path / "b", sample_messages(5, np.random.default_rng(3)))
+    node = BagPlay("play", {"path": str(tmp_path / "b"), "fast": True, "loop": True, "start_offset_s": 100.0},
+                   address=bus)
+    thread = in_thread(node)
+    thread.join(10)
+    assert not thread.is_alive() and node.counters["loops"] == 0
+    for param in ("rate", "start_offset_s", "duration_s", "sync_timeout_s"):
+        for value in (float("nan"), float("inf")):
+            with pytest.raises(ValueError, match=f"param '{param}' = {value} is not a finite number"):
+                BagPlay("play", {"path": str(tmp_path / "b"), param: value}, address=bus)
+    with pytest.raises(ValueError, match="'max_bag_duration_s' = inf is not a finite number"):
+        BagRecord("rec", {"output": str(tmp_path / "r"), "topics": ["/a"], "max_bag_duration_s": float("inf")},
+                  address=bus)
+    assert not (tmp_path / "r").exists()
+
+
 def test_optional_topics_are_played_when_recorded_and_skipped_when_not(bus: BusAddress, tmp_path: Path) -> None:
     """`optional_topics` (replay.yaml's /tracker/reset) play in their recorded order among the frames
     when the bag holds them; a bag without them plays its required topics, where a required topic
@@ -274,6 +323,29 @@ def test_start_paused_until_sigusr1(bus: BusAddress, spawn: Spawn, tmp_path: Pat
         got = [reader.recv(2.0) for _ in range(20)]
     assert [r.msg.seq for r in got] == list(range(20))
     assert play.wait(10) == 0
+
+
+def test_recording_stops_at_the_stop_on_a_live_bus(bus: BusAddress, tmp_path: Path) -> None:
+    """A bus that never goes quiet (a 100 Hz topic): the recording ends with the messages published
+    before the stop. The drain used to wait for 0.1 s of silence and so recorded 2 s more."""
+    node = BagRecord("rec", {"output": str(tmp_path / "live"), "topics": ["/a"]}, address=bus)
+    thread = in_thread(node)
+    pub = PublisherSocket("src", bus)
+    stop_ns = None
+    try:
+        wait_subscribed(pub, ["/a"])
+        started = time.monotonic()
+        while time.monotonic() - started < 3.0:
+            pub.publish("/a", SlipState(stamp_ns=time.time_ns()))
+            if stop_ns is None and time.monotonic() - started > 0.5:
+                stop_ns = time.time_ns()
+                node.stop()
+            time.sleep(0.01)
+    finally:
+        pub.close()
+    thread.join(10)
+    last_ns = max(m.publish_time_ns for m in BagReader(tmp_path / "live").messages(["/a"]))
+    assert last_ns <= stop_ns, f"recorded {(last_ns - stop_ns) / 1e6:.0f} ms of messages published after the stop"
 
 
 def test_record_node_selection_split_attachments(bus: BusAddress, tmp_path: Path) -> None:

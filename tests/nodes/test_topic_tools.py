@@ -107,3 +107,36 @@ def test_pub_fields_errors_name_the_field(type_name: str, text: str, match: str)
 def test_pub_builds_arrays_in_the_field_dtype() -> None:
     msg = build_message("SlipState", "{window_stamps_ns: [1, 2, 3], model: m}")
     assert isinstance(msg, SlipState) and msg.window_stamps_ns.dtype.kind == "i" and msg.model == "m"
+
+
+def test_hz_counts_a_played_bag_whose_messages_keep_their_recorded_pub_ns(bus: Bus) -> None:
+    """A bag played keeps every message's recorded pub_ns: `fv topic hz` took them all for latched
+    replays older than its start and printed 0 Hz."""
+    import threading
+    import time
+
+    import msgs
+    from nodes.bus import PublisherSocket
+
+    pub = PublisherSocket("bag_play", bus.address)
+    assert pub.wait_connected(2.0)
+    stop = threading.Event()
+
+    def play() -> None:  # 50 Hz of messages recorded an hour ago
+        seq = 0
+        while not stop.is_set():
+            msg = SlipState(stamp_ns=time.time_ns() - 3_600_000_000_000)
+            msg.seq, msg.node, msg.pub_ns = seq, "slip_detector", msg.stamp_ns + 1000
+            pub.publish_raw("/slip", "slip_detector", False, msgs.encode(msg))
+            seq += 1
+            time.sleep(0.02)
+
+    thread = threading.Thread(target=play)
+    thread.start()
+    try:
+        hz = json.loads(_finish(_start("topic", "hz", "/slip", "--duration", "2", "--json")))
+    finally:
+        stop.set()
+        thread.join()
+        pub.close()
+    assert 50 * 0.7 <= hz["rate_hz"] <= 50 * 1.2, hz
