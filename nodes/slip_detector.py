@@ -57,7 +57,7 @@ def model_path(name: str) -> Path:
     shipped = WEIGHTS_DIR / f"slip_{ALIASES.get(name, name)}.pt"
     if shipped.is_file():
         return shipped
-    path = Path(name)
+    path = Path(name).expanduser()  # a shell leaves the ~ of model:=~/m.pt as it is
     if path.is_file():
         return path
     names = sorted([*(p.stem.removeprefix("slip_") for p in WEIGHTS_DIR.glob("slip_*.pt")), *ALIASES])

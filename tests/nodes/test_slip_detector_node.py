@@ -31,6 +31,13 @@ def test_unknown_model_name_lists_the_shipped_ones() -> None:
     assert "'gelsight'" in str(error.value) and "'gelsight_windows'" in str(error.value)
 
 
+def test_a_model_path_under_home_is_found(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`model:=~/mine.pt`: a shell leaves the ~ after := as it is."""
+    monkeypatch.setenv("HOME", str(tmp_path))
+    (tmp_path / "mine.pt").write_bytes(model_path("gelsight").read_bytes())
+    assert model_path("~/mine.pt") == tmp_path / "mine.pt"
+
+
 def test_gelsight_names_one_model_for_the_node_and_fv_eval() -> None:
     """`model:=gelsight` in a launch file runs the model `fv eval --trials --model gelsight` judges (the
     whole-grasp trial model), not the window ConvLSTM, which is at chance on unseen objects."""
