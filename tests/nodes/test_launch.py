@@ -126,7 +126,7 @@ def test_the_cameras_of_the_shipped_pipelines_wait_for_the_nodes_that_take_a_ref
     assert set(source.params["start_after"]) == {"tracker", "interpolator", "slip_detector"}
 
 
-@pytest.mark.parametrize("name, args", [("pipeline.yaml", {}), ("video.yaml", {"video": "clip.avi"}),
+@pytest.mark.parametrize("name, args", [("pipeline.yaml", {}), ("view.yaml", {}), ("video.yaml", {"video": "clip.avi"}),
                                         ("gelsight_mini.yaml", {}), ("replay.yaml", {"bag": "run1"}),
                                         ("video_pair.yaml", {"left": "a.avi", "right": "b.avi"}),
                                         ("gelsight_mini_pair.yaml", {"left": "2BKR", "right": "28G8"}),
@@ -139,6 +139,8 @@ def test_every_shipped_pipeline_respawns_its_nodes_from_a_standby_spare(name: st
              if s.kind in ("tracker", "interpolator", "slip_detector")]
     assert len(specs) == (6 if "pair" in name else 3)
     assert all(s.respawn and s.standby and s.respawn_delay_s <= 0.2 for s in specs), [s.name for s in specs]
+    lean = load_launch(REPO / "launch" / name, {**args, "standby": False})  # a small robot PC: no spares
+    assert not any(s.standby for s in lean) and all(s.respawn for s in lean if s.kind in ("tracker", "slip_detector"))
 
 
 def test_the_live_gelsight_mini_launch_gives_the_default_model_frames_as_it_was_trained() -> None:
