@@ -40,8 +40,8 @@ import numpy as np
 
 from fv_algos.frame_rate import pick
 from fv_algos.frame_crop import FrameCrop
-from fv_algos.real_trials import (Trial, VideoKey, cache_folder, cache_stem, map_videos, read_frames, video_key,
-                                   write_atomically)
+from fv_algos.real_trials import (Trial, VideoKey, cache_folder, cache_stem, map_videos, read_cached, read_frames,
+                                   video_key, write_atomically)
 
 SERIES = ("relative_px", "marker_px", "contact_above_min", "imprint_change", "imprint_step_rms")
 SERIES_CACHE_VERSION = 5
@@ -156,8 +156,8 @@ def _cached_series(video: Path, cache_dir: str | Path | None, reference_frame: i
     rate = rates.get(video)
     cached = (None if cache_dir is None
               else _series_cache_path(Path(cache_dir), video, reference_frame, params, rate, crop))
-    if cached is not None and cached.is_file():
-        return np.load(cached)
+    if cached is not None and (series := read_cached(cached, np.load)) is not None:
+        return series
     try:
         series = contact_series(read_frames(video, crop), params, reference_frame, rate)
     except ValueError as exc:

@@ -26,6 +26,7 @@ import json
 import logging
 import os
 import time
+import zipfile
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import nullcontext
@@ -331,6 +332,18 @@ def write_atomically(path: Path, write: Callable[[Path], None]) -> None:
         tmp.unlink(missing_ok=True)
 
 
+def read_cached(path: Path, load: Callable[[Path], T]) -> T | None:
+    """``load(path)`` of a cache file, or None when there is none or it cannot be read (damaged on the
+    disk, cut short by a copy): that one is named in a warning, and the caller computes it again."""
+    if not path.is_file():
+        return None
+    try:
+        return load(path)
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        log.warning("cache file %s cannot be read (%s: %s): computing it again", path, type(exc).__name__, exc)
+        return None
+
+
 def save_video_fields(path: Path, value: VideoFields) -> None:
     """Write ``value`` to ``path`` (.npz, atomically)."""
     write_atomically(path, lambda tmp: np.savez_compressed(
@@ -351,8 +364,8 @@ def _cached_fields(video: Path, cache_dir: str | Path | None, reference_frame: i
                    crop: FrameCrop | None) -> VideoFields:
     """Fields of one video, read from / written to the cache when there is a cache folder."""
     cached = None if cache_dir is None else cache_path(cache_dir, video, reference_frame, crop)
-    if cached is not None and cached.is_file():
-        return load_video_fields(cached)
+    if cached is not None and (value := read_cached(cached, load_video_fields)) is not None:
+        return value
     value = video_fields(video, reference_frame=reference_frame, crop=crop)
     if cached is not None:
         save_video_fields(cached, value)

@@ -204,7 +204,8 @@ def to_sequence_set(sequences: Sequence[SimSequence], config: SimDatasetConfig,
                     extra: dict[str, object] | None = None) -> SequenceSet:
     """Stack generated sequences into a :class:`SequenceSet` with the metadata of :func:`generate`."""
     if not sequences:
-        raise ValueError("no sequences to stack")
+        raise ValueError(f"no sequences of {config.n_frames} frames: every grasp was shorter (--frames)" if config.grasps
+                         else "no sequences to stack")
     widths = sorted({s.width_px for s in sequences})
     if len(widths) > 1:
         raise ValueError(f"sequences of cameras {widths} px wide: one set holds the fields of one frame width")

@@ -96,6 +96,9 @@ def trial_inputs(trials: Sequence[Trial], series: TrialSeries, fields: TrialFiel
             for t in trials]
 
 
+MAX_LAYERS = 12  # a frame's features then see 8,190 frames on each side (5.5 min at 25 fps)
+
+
 @dataclass(frozen=True)
 class TrialNetConfig:
     """hidden: channels of the temporal convolutions; layers: their number (dilations 1, 2, 4, ...:
@@ -135,15 +138,22 @@ class TrialNetConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        even_batch = self.batch >= 2 and self.batch % 2 == 0
-        sizes = (self.hidden, self.layers, self.members, self.steps)
-        ranges = (0 < self.gain[0] <= self.gain[1] and self.stretch >= 1 and 0 <= self.clip < 0.5
-                  and 0 <= self.held_prefix <= 1 and 0 <= self.start_swap <= 1 and self.reference_frame >= 0
-                  and 0 < self.fps < float("inf"))
-        if min(sizes) < 1 or not even_batch or not ranges:
-            raise ValueError("TrialNetConfig needs hidden, layers, members, steps >= 1, an even batch >= 2, "
-                             "0 < gain[0] <= gain[1], stretch >= 1, 0 <= clip < 0.5, 0 <= held_prefix <= 1, "
-                             f"0 <= start_swap <= 1, reference_frame >= 0 and a finite fps > 0, got {self}")
+        rules = {  # each rule broken is named with its value (not the whole config)
+            f"hidden, members and steps >= 1 (got {self.hidden}, {self.members}, {self.steps})":
+                min(self.hidden, self.members, self.steps) >= 1,
+            f"1 <= layers <= {MAX_LAYERS} (got {self.layers}; 2**layers frames of context)": 1 <= self.layers <= MAX_LAYERS,
+            f"an even batch >= 2 (got {self.batch})": self.batch >= 2 and self.batch % 2 == 0,
+            f"0 < gain[0] <= gain[1] (got {self.gain})": 0 < self.gain[0] <= self.gain[1],
+            f"stretch >= 1 (got {self.stretch})": self.stretch >= 1,
+            f"0 <= clip < 0.5 (got {self.clip})": 0 <= self.clip < 0.5,
+            f"0 <= held_prefix <= 1 (got {self.held_prefix})": 0 <= self.held_prefix <= 1,
+            f"0 <= start_swap <= 1 (got {self.start_swap})": 0 <= self.start_swap <= 1,
+            f"reference_frame >= 0 (got {self.reference_frame})": self.reference_frame >= 0,
+            f"a finite fps > 0 (got {self.fps})": 0 < self.fps < float("inf"),
+        }
+        broken = [rule for rule, ok in rules.items() if not ok]
+        if broken:
+            raise ValueError("trial network: " + "; ".join(broken))
 
 
 class TrialNet(nn.Module):

@@ -56,6 +56,16 @@ def output_file(text: str) -> Path:
     return path
 
 
+def output_with_suffix(*suffixes: str):
+    """An argparse type: an :func:`output_file` whose name ends in one of ``suffixes`` (".png"), checked
+    before the work whose result it is to hold."""
+    def check(text: str) -> Path:
+        if Path(text).suffix.lower() not in suffixes:
+            raise argparse.ArgumentTypeError(f"{text} must end in {' or '.join(suffixes)}")
+        return output_file(text)
+    return check
+
+
 def output_folder(text: str) -> Path:
     """A folder to write into: not an existing file, and it can be created and written."""
     path = Path(text)

@@ -25,6 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from nodes.arg_types import positive_float, positive_int
+
 TOPIC = "/bench"
 GOAL_ADDED_P50_MS = 0.3
 GOAL_THROUGHPUT_FPS = 2000.0
@@ -176,12 +178,12 @@ def run_bench(opts: argparse.Namespace) -> dict[str, Any]:
 def add_parser(kinds: argparse._SubParsersAction, name: str) -> None:
     """Add `fv bench NAME` (an entry of nodes.bench_commands.BENCHMARKS)."""
     p = kinds.add_parser(name, help="Image latency and throughput through the forwarder vs raw pyzmq")
-    p.add_argument("--width", type=int, default=640, help="frame width in px")
-    p.add_argument("--height", type=int, default=480, help="frame height in px")
-    p.add_argument("--frames", type=int, default=300, help="frames for the latency measurement")
-    p.add_argument("--rate", type=float, default=200.0, help="frames per second during the latency measurement")
-    p.add_argument("--throughput-frames", type=int, default=6000, help="frames offered for the throughput measurement")
-    p.add_argument("--offered-rate", type=float, default=3000.0, help="frames per second offered for throughput")
+    p.add_argument("--width", type=positive_int, default=640, help="frame width in px")
+    p.add_argument("--height", type=positive_int, default=480, help="frame height in px")
+    p.add_argument("--frames", type=positive_int, default=300, help="frames for the latency measurement")
+    p.add_argument("--rate", type=positive_float, default=200.0, help="frames per second during the latency measurement")
+    p.add_argument("--throughput-frames", type=positive_int, default=6000, help="frames offered for the throughput measurement")
+    p.add_argument("--offered-rate", type=positive_float, default=3000.0, help="frames per second offered for throughput")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.set_defaults(func=_bench_bus)
 

@@ -13,15 +13,17 @@ import argparse
 import json
 import time
 
+from nodes.arg_types import positive_int
+
 
 def add_parser(kinds: argparse._SubParsersAction, name: str) -> None:
     """Add `fv bench NAME` (an entry of nodes.bench_commands.BENCHMARKS)."""
     p = kinds.add_parser(name, help="online trial model (grasp judge): time per frame per network shape")
-    p.add_argument("--layers", type=int, nargs="+", default=[3, 4], help="temporal convolutions (default 3 4)")
-    p.add_argument("--members", type=int, nargs="+", default=[1, 5], help="ensemble members (default 1 5)")
-    p.add_argument("--hidden", type=int, default=16, help="channels per member (default 16)")
-    p.add_argument("--frames", type=int, default=300, help="frames of one timed grasp (default 300)")
-    p.add_argument("--repeats", type=int, default=5, help="timed grasps per shape (default 5)")
+    p.add_argument("--layers", type=positive_int, nargs="+", default=[3, 4], help="temporal convolutions (default 3 4)")
+    p.add_argument("--members", type=positive_int, nargs="+", default=[1, 5], help="ensemble members (default 1 5)")
+    p.add_argument("--hidden", type=positive_int, default=16, help="channels per member (default 16)")
+    p.add_argument("--frames", type=positive_int, default=300, help="frames of one timed grasp (default 300)")
+    p.add_argument("--repeats", type=positive_int, default=5, help="timed grasps per shape (default 5)")
     p.add_argument("--json", action="store_true", help="print the rows as JSON")
     p.set_defaults(func=_bench_judge)
 
@@ -32,10 +34,10 @@ def _bench_judge(args: argparse.Namespace) -> int:
 
     from fv_algos.grasp_judge import GraspJudge
     from fv_algos.slip.models import count_parameters
-    from fv_algos.trial_net import TrialNet
+    from fv_algos.trial_net import MAX_LAYERS, TrialNet
     from nodes.plots import markdown_table
-    if min(args.frames, args.repeats, args.hidden, *args.layers, *args.members) < 1:
-        raise ValueError("--frames, --repeats, --hidden, --layers and --members must be >= 1")
+    if max(args.layers) > MAX_LAYERS:
+        raise ValueError(f"--layers {max(args.layers)}: at most {MAX_LAYERS} (2**layers frames of context)")
     torch.set_num_threads(1)
     rng = np.random.default_rng(0)
     series, field_rows = rng.normal(size=(args.frames, 5)), rng.normal(size=(args.frames, 6))

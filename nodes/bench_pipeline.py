@@ -37,7 +37,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from nodes.arg_types import output_folder
+from nodes.arg_types import non_negative_float, output_folder, positive_float, positive_int
 
 REPO = Path(__file__).resolve().parent.parent
 PIPELINE = REPO / "launch" / "pipeline.yaml"
@@ -215,9 +215,9 @@ def add_parser(kinds: argparse._SubParsersAction, name: str) -> None:
     p = kinds.add_parser(name, help="the four-process pipeline at several camera rates, paper vs default")
     p.add_argument("--fps", default="30,60,120", help="comma-separated camera rates in Hz (default 30,60,120)")
     p.add_argument("--configs", default="paper,default", help=f"comma-separated among {sorted(CONFIGS)}")
-    p.add_argument("--duration", type=float, default=20.0, help="measured seconds per run (default 20)")
-    p.add_argument("--warmup", type=float, default=3.0, help="seconds after the first /slip before measuring")
-    p.add_argument("--threads", type=int, default=1, help="torch threads of the slip detector (default 1)")
+    p.add_argument("--duration", type=positive_float, default=20.0, help="measured seconds per run (default 20)")
+    p.add_argument("--warmup", type=non_negative_float, default=3.0, help="seconds after the first /slip before measuring")
+    p.add_argument("--threads", type=positive_int, default=1, help="torch threads of the slip detector (default 1)")
     p.add_argument("--log", type=Path, default=None, help="write the nodes' output here (default: discarded)")
     p.add_argument("--out", type=output_folder, default=None,
                    help="also write report.json, table.md and pipeline.png here")

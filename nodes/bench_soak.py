@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from nodes.arg_types import non_negative_float, positive_float, positive_int
 from nodes.bench_pipeline import pipeline_args, pipeline_launch, process_ids
 
 VICTIMS = ("tracker", "interpolator", "slip_detector")
@@ -128,12 +129,12 @@ def run_soak(minutes: float, fps: float, kill_every_s: float, sample_s: float, t
 
 def add_parser(kinds: argparse._SubParsersAction, name: str) -> None:
     p = kinds.add_parser(name, help="the default pipeline for a long run: memory, /slip rate, drops, kill + respawn")
-    p.add_argument("--minutes", type=float, default=30.0, help="run length (default 30)")
-    p.add_argument("--fps", type=float, default=60.0, help="camera rate in Hz (default 60)")
-    p.add_argument("--kill-every", type=float, default=600.0,
+    p.add_argument("--minutes", type=positive_float, default=30.0, help="run length (default 30)")
+    p.add_argument("--fps", type=positive_float, default=60.0, help="camera rate in Hz (default 60)")
+    p.add_argument("--kill-every", type=non_negative_float, default=600.0,
                    help="seconds between SIGKILLs of a node, in turn tracker, interpolator, slip_detector (0 = none)")
-    p.add_argument("--sample", type=float, default=5.0, help="seconds between memory samples (default 5)")
-    p.add_argument("--threads", type=int, default=1, help="torch threads of the slip detector (default 1)")
+    p.add_argument("--sample", type=positive_float, default=5.0, help="seconds between memory samples (default 5)")
+    p.add_argument("--threads", type=positive_int, default=1, help="torch threads of the slip detector (default 1)")
     p.add_argument("--model", default=None, help="slip model instead of the default configuration's")
     p.add_argument("--log", default=os.devnull, help="write the nodes' output here (default: discarded)")
     p.add_argument("--json", action="store_true", help="print the report as JSON (default: a summary)")
@@ -141,8 +142,8 @@ def add_parser(kinds: argparse._SubParsersAction, name: str) -> None:
 
 
 def _bench_soak(args: argparse.Namespace) -> int:
-    if args.minutes <= 0 or args.fps <= 0 or args.sample <= 0 or args.kill_every < 0:
-        raise ValueError("--minutes, --fps and --sample must be > 0 and --kill-every >= 0")
+    if 2 * args.sample > 60 * args.minutes:  # the memory check compares samples: no pair, no check
+        raise ValueError(f"--sample {args.sample} s: a run of --minutes {args.minutes} needs two samples at least")
     with open(args.log, "w") as log:
         report = run_soak(args.minutes, args.fps, args.kill_every, args.sample, args.threads, log, args.model)
     if args.json:

@@ -97,11 +97,24 @@ def secure_server(sock: zmq.Socket, keys: Path) -> None:
 
 
 def make_keys(folder: Path) -> list[Path]:
-    """Create server and client key pairs and authorise the client; returns the files."""
+    """Create server and client key pairs and authorise the client; returns the files. The secret
+    keys are readable by their owner alone (0600); a folder that holds keys already is refused, so
+    that the keys copied to the other hosts stay valid."""
+    folder = Path(folder)
+    existing = sorted(p.name for p in folder.glob("*.key*")) if folder.is_dir() else []
+    if existing:
+        raise ValueError(f"{folder} holds keys already ({', '.join(existing)}): remove them to make new ones "
+                         "(the other hosts then need the new client keys)")
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "authorized").mkdir(exist_ok=True)
-    server_pub, server_sec = zmq.auth.create_certificates(str(folder), "server")
-    client_pub, client_sec = zmq.auth.create_certificates(str(folder), "client")
+    umask = os.umask(0o077)  # the secret keys are never readable by others, not even for a moment
+    try:
+        server_pub, server_sec = zmq.auth.create_certificates(str(folder), "server")
+        client_pub, client_sec = zmq.auth.create_certificates(str(folder), "client")
+    finally:
+        os.umask(umask)
+    for public in (server_pub, client_pub):
+        os.chmod(public, 0o644)
     authorized = folder / "authorized" / "client.key"
     authorized.write_bytes(Path(client_pub).read_bytes())
     return [Path(p) for p in (server_pub, server_sec, client_pub, client_sec)] + [authorized]

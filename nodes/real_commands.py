@@ -21,7 +21,7 @@ from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from nodes.arg_types import output_file, positive_int
+from nodes.arg_types import output_file, output_with_suffix, positive_int
 
 if TYPE_CHECKING:  # torch is imported only where a model is used
     from fv_algos.contact_motion import ContactMotionParams
@@ -107,7 +107,7 @@ def online_flags(p: argparse.ArgumentParser) -> None:
                    help="--online: an alarm rule, raised when P(slip) >= P for ROW frames in a row from frame "
                         "FROM on (frames judged, at the model's frame rate; repeat the flag for several; default a "
                         "set from 0.5:0:1 to 0.99:100:10)")
-    p.add_argument("--plot", type=output_file, default=None,
+    p.add_argument("--plot", type=output_with_suffix(".png"), default=None,
                    help="--online: PNG of the share of held and slip cameras at P(slip) >= 0.5 over time")
 
 

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from nodes.arg_types import output_file, output_folder
+from nodes.arg_types import output_file, output_folder, output_with_suffix
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -14,7 +14,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", default="", help="scene file (YAML/JSON); default: random scenarios")
     p.add_argument("--out", type=output_folder, help="folder for PNG frames, previews and truth.npz/json")
     p.add_argument("--frames", type=int, default=60, help="frames to write (default 60)")
-    p.add_argument("--preview", type=output_file, help="write one preview PNG (frame, true markers, true field)")
+    p.add_argument("--preview", type=output_with_suffix(".png"), help="write one preview PNG (frame, true markers, true field)")
     p.add_argument("--frame", type=int, default=-1, help="which frame to preview (default: the last of --frames)")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_sim)
@@ -39,6 +39,9 @@ def _sim(args: argparse.Namespace) -> int:
         raise ValueError("give --out DIR and/or --preview FILE.png")
     if args.frames < 1:
         raise ValueError(f"--frames {args.frames} must be >= 1")
+    if args.out is not None and args.out.is_dir() and any(args.out.iterdir()):
+        raise ValueError(f"--out {args.out} holds files already: an earlier sequence's frames would stay among "
+                         "these; choose an empty or new folder")
     scene = load_scene(args.scene) if args.scene else None
     if args.out is not None:
         out = write_sequence(SimSensor(scene, seed=args.seed), args.out, args.frames)

@@ -8,7 +8,7 @@ import shlex
 import time
 from pathlib import Path
 
-from nodes.arg_types import output_file, output_folder, positive_float, positive_int
+from nodes.arg_types import output_file, output_folder, output_with_suffix, positive_float, positive_int
 from nodes.real_commands import crop_flags, online_flags
 
 SPLITS = {"sequence": "sequence", "paper": "random", "object": "object"}
@@ -43,8 +43,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=int, default=None, help="optimizer steps (default: TrainConfig's)")
     p.add_argument("--resume", type=Path, default=None, help="checkpoint to continue from")
     p.add_argument("--eval-every", type=int, default=None, help="steps between evaluations (default: TrainConfig's)")
-    p.add_argument("--export", type=Path, default=None,
+    p.add_argument("--export", type=output_with_suffix(".pt"), default=None,
                    help="also write an inference-only checkpoint here (no optimizer state) and its .json record")
+    p.add_argument("--force", action="store_true", help="train afresh into an --out that holds a trained run")
     p.set_defaults(func=_train)
 
     p = sub.add_parser("eval", help="Table 1 (every split and model) and the speed/accuracy variants; or, with "
@@ -74,8 +75,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     _model_flags(p, single_run=False)
     p.add_argument("--steps", type=int, default=None, help="steps for models that must be trained (default: TrainConfig's)")
     p.add_argument("--no-variants", action="store_true", help="skip the variants table and Pareto plot")
-    p.add_argument("--timing-threads", type=int, default=2, help="torch threads for the ms/window timing (default 2)")
-    p.add_argument("--repeats", type=int, default=50, help="timed calls per ms/window figure (default 50)")
+    p.add_argument("--timing-threads", type=positive_int, default=2, help="torch threads for the ms/window timing (default 2)")
+    p.add_argument("--repeats", type=positive_int, default=50, help="timed calls per ms/window figure (default 50)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=_eval)
 
@@ -171,8 +172,9 @@ CURVE_PNG = "curve.png"
 
 def _write_run(out: Path, *, command: str, data: Path, fingerprint: str, split: str, seed: int, test_fraction: float,
                model_config: dict, params: int, history: list[dict], wall_s: float, windows_per_s: float,
-               dataset_metadata: dict, resumed_from: Path | None = None, windows_per_cpu_s: float | None = None,
-               autocast: str | None = None, extra: tuple[Path, str] | None = None) -> dict:
+               dataset_metadata: dict, lr: float, batch_size: int, resumed_from: Path | None = None,
+               windows_per_cpu_s: float | None = None, autocast: str | None = None,
+               extra: tuple[Path, str] | None = None) -> dict:
     """Write run.json (provenance and final metrics) and curve.png (accuracy and loss vs step,
     like the paper's Fig. 7) into ``out``; returns the record. wall_s is this invocation's time;
     wall_s_total adds the wall_s_total of the run resumed from (its folder's run.json).
@@ -187,7 +189,7 @@ def _write_run(out: Path, *, command: str, data: Path, fingerprint: str, split: 
         "command": command, "data": str(data), "data_fingerprint": fingerprint,
         "dataset_seed": dataset_metadata.get("config", {}).get("seed", dataset_metadata.get("seed")),
         "split": split, "split_kind": SPLITS[split], "split_seed": seed, "test_fraction": test_fraction,
-        "model_config": model_config, "params": params, "steps": int(final["step"]),
+        "model_config": model_config, "params": params, "steps": int(final["step"]), "lr": lr, "batch_size": batch_size,
         "test_accuracy": final["test_accuracy"], "test_windows": final["test_windows"],
         "train_accuracy": final["train_accuracy"], "wall_s": round(wall_s, 1),
         "wall_s_total": round(wall_s + _previous_wall_s(resumed_from), 1), "windows_per_s": round(windows_per_s, 2),
@@ -239,10 +241,15 @@ def _train(args: argparse.Namespace) -> int:
     from fv_algos.slip.models import ModelConfig, build_model, count_parameters
     from fv_algos.slip.windows import load_sequences
     from fv_algos.slip_study import dataset_fingerprint
+    if (args.out / slip_train.CHECKPOINT_NAME).is_file() and args.resume is None and not args.force:
+        raise ValueError(f"{args.out} holds a trained run: --resume {args.out / slip_train.CHECKPOINT_NAME} to go "
+                         "on with it, --force to replace it, or choose another --out")
     sequences = load_sequences(args.data)
     # validate here: train.main's own parser would exit instead of raising a clear ValueError
     ModelConfig(arch=args.model, hidden=args.hidden, kernel=args.kernel, window=args.window, grid=sequences.grid)
     extra = None if args.extra is None else load_sequences(args.extra)
+    if extra is not None and dataset_fingerprint(extra) == dataset_fingerprint(sequences):
+        raise ValueError(f"--extra {args.extra} holds --data's own sequences: its test windows would be trained on")
     optional = {"--steps": args.steps, "--lr": args.lr, "--batch-size": args.batch, "--eval-every": args.eval_every,
                 "--threads": args.threads, "--resume": args.resume, "--precision": args.precision,
                 "--extra": args.extra}
@@ -264,6 +271,8 @@ def _train(args: argparse.Namespace) -> int:
         split=args.split, seed=args.seed, test_fraction=args.test_fraction, model_config=checkpoint.model_config.to_dict(),
         params=count_parameters(build_model(checkpoint.model_config)), history=checkpoint.history, wall_s=wall_s,
         windows_per_s=result["windows_per_s"], dataset_metadata=sequences.metadata, resumed_from=args.resume,
+        lr=slip_train.TrainConfig.lr if args.lr is None else args.lr,
+        batch_size=slip_train.TrainConfig.batch_size if args.batch is None else args.batch,
         windows_per_cpu_s=result.get("windows_per_cpu_s"), autocast=result.get("autocast"),
         extra=None if extra is None else (args.extra, dataset_fingerprint(extra)))
     print(f"{record['model_config']['arch']} on the {args.split} split: test accuracy "
@@ -279,8 +288,6 @@ def _export(checkpoint, record: dict, path: Path) -> None:
     from dataclasses import replace
 
     from fv_algos.slip.classifier import save_checkpoint
-    if path.suffix != ".pt":
-        raise ValueError(f"--export {path} must end in .pt")
     save_checkpoint(path, replace(checkpoint, optimizer_state=None))
     path.with_suffix(".json").write_text(json.dumps(record, indent=1))
     print(f"exported inference-only checkpoint {path} ({path.stat().st_size / 1e6:.2f} MB) "
@@ -313,20 +320,24 @@ class _ModelStore:
             return self.models[key]
         a, run_dir = self.args, self.folder / key
         fingerprint = self.fingerprint if sequences is None else dataset_fingerprint(sequences)
-        if (run_dir / CHECKPOINT_NAME).is_file():
-            record = json.loads((run_dir / RUN_RECORD).read_text()) if (run_dir / RUN_RECORD).is_file() else {}
-            wanted = {"data_fingerprint": fingerprint, "split": split_name, "split_seed": a.seed,
-                      "test_fraction": a.test_fraction}
-            wrong = {k: (record.get(k), v) for k, v in wanted.items() if record.get(k) != v}
-            if wrong:
-                raise ValueError(f"{run_dir} was not trained on this data/split ({RUN_RECORD} has, vs wanted: {wrong}); "
-                                 "remove it or point --models elsewhere")
-            self.sources[key] = f"checkpoint {run_dir / CHECKPOINT_NAME}"
-            self.models[key] = model_from_checkpoint(load_checkpoint(run_dir / CHECKPOINT_NAME, expected=config))
-            return self.models[key]
         given = {"steps": a.steps, "batch_size": a.batch, "lr": a.lr, "threads": a.threads, "precision": a.precision}
         train_config = TrainConfig(model=config, seed=a.seed, out_dir=str(run_dir), progress=not a.no_progress,
                                    **{k: v for k, v in given.items() if v is not None})
+        if (run_dir / CHECKPOINT_NAME).is_file():
+            if not (run_dir / RUN_RECORD).is_file():
+                raise ValueError(f"{run_dir}: its training did not finish (no {RUN_RECORD}): remove it or point "
+                                 "--models elsewhere")
+            record = json.loads((run_dir / RUN_RECORD).read_text())
+            wanted = {"data_fingerprint": fingerprint, "split": split_name, "split_seed": a.seed,
+                      "test_fraction": a.test_fraction, "steps": train_config.steps, "lr": train_config.lr,
+                      "batch_size": train_config.batch_size}  # --steps 20 must not reuse a 2-step model
+            wrong = {k: (record.get(k), v) for k, v in wanted.items() if record.get(k) != v}
+            if wrong:
+                raise ValueError(f"{run_dir} was not trained on this data, split and settings ({RUN_RECORD} has, vs "
+                                 f"wanted: {wrong}); remove it or point --models elsewhere")
+            self.sources[key] = f"checkpoint {run_dir / CHECKPOINT_NAME}"
+            self.models[key] = model_from_checkpoint(load_checkpoint(run_dir / CHECKPOINT_NAME, expected=config))
+            return self.models[key]
         started = time.perf_counter()
         result = train(train_config, split)
         _write_run(run_dir, command=command_line(a), data=self.data, fingerprint=fingerprint, split=split_name,
@@ -334,7 +345,7 @@ class _ModelStore:
                    params=count_parameters(result.model),
                    history=result.history, wall_s=time.perf_counter() - started, windows_per_s=result.windows_per_s,
                    dataset_metadata=self.sequences.metadata, windows_per_cpu_s=result.windows_per_cpu_s,
-                   autocast=result.autocast)
+                   autocast=result.autocast, lr=train_config.lr, batch_size=train_config.batch_size)
         self.sources[key] = f"trained {train_config.steps} steps -> {run_dir}"
         self.models[key] = result.model
         return result.model
@@ -381,7 +392,10 @@ def _eval(args: argparse.Namespace) -> int:
               "paper_split_inflation": split_inflation(table, "paper", "sequence")}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "table1.json").write_text(json.dumps(report, indent=1))
-    if not args.no_variants:
+    if args.no_variants:  # an earlier run's, which this report would otherwise seem to include
+        for stale in ("variants.json", "pareto.png"):
+            (args.out / stale).unlink(missing_ok=True)
+    else:
         report["variants"] = _variants(args, sequences, store, splits_done, base)
         (args.out / "variants.json").write_text(json.dumps(report["variants"], indent=1))
         pareto_plot(report["variants"], "ms_per_window", "accuracy", "label", args.out / "pareto.png",
@@ -436,7 +450,7 @@ def add_bench_parser(kinds: argparse._SubParsersAction, name: str) -> None:
     p.add_argument("--model", default="sim", help="shipped model name or checkpoint path (default sim)")
     p.add_argument("--variants", default="fp32,bf16,int8", help="comma-separated variants (fp32,bf16,int8,compile)")
     p.add_argument("--threads", default="1,2", help="comma-separated torch thread counts (default 1,2)")
-    p.add_argument("--repeats", type=int, default=50, help="timed calls per measurement (default 50)")
+    p.add_argument("--repeats", type=positive_int, default=50, help="timed calls per measurement (default 50)")
     p.add_argument("--json", action="store_true", help="print the rows as JSON")
     p.set_defaults(func=_bench_slip)
 

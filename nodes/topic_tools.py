@@ -31,6 +31,12 @@ def discover(wait_s: float = DISCOVERY_S) -> dict[str, Any]:
     """{node name: its latest NodeStatus} of the nodes alive now (status not stale)."""
     from nodes.bus import TopicReader
 
+    from nodes.endpoints import bus_address
+    from nodes.forwarder import ping
+
+    address = bus_address()
+    if ping(address, max(wait_s, 0.3)) is None:  # else an empty list would read "nothing runs"
+        raise RuntimeError(f"no forwarder answers on {address.url}: no launch runs on this bus (FV_BUS)")
     found: dict[str, Any] = {}
     deadline = time.monotonic() + wait_s
     with TopicReader([STATUS_TOPIC]) as reader:
@@ -71,7 +77,18 @@ def topic_graph(statuses: dict[str, Any]) -> dict[str, TopicInfo]:
 
 
 def _print_json(obj: Any) -> None:
-    print(json.dumps(obj), flush=True)
+    """`obj` as JSON, a figure that could not be measured (NaN: fewer than 2 messages) as null."""
+    print(json.dumps(_measured(obj), allow_nan=False), flush=True)
+
+
+def _measured(obj: Any) -> Any:
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, dict):
+        return {k: _measured(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_measured(v) for v in obj]
+    return obj
 
 
 def _topic_list(args: argparse.Namespace) -> int:

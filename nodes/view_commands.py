@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator
 
-from nodes.arg_types import output_file
+from nodes.arg_types import non_negative_float, output_file, positive_float, positive_int
 
 if TYPE_CHECKING:
     import numpy as np
@@ -65,16 +65,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--bag", required=True, help="bag folder or .mcap file")
     p.add_argument("--out", "-o", type=output_file, required=True,
                    help="output: x.mp4 (mp4v) or x.avi (MJPG) video, or x.png / x.jpg still")
-    p.add_argument("--fps", type=float, default=0.0, help="video frame rate (default: the camera's capture rate)")
-    p.add_argument("--start", type=float, default=None, metavar="S", help="video: skip the first S seconds of the bag")
-    p.add_argument("--duration", type=float, default=None, metavar="S",
+    p.add_argument("--fps", type=non_negative_float, default=0.0, help="video frame rate (default: the camera's capture rate)")
+    p.add_argument("--start", type=non_negative_float, default=None, metavar="S", help="video: skip the first S seconds of the bag")
+    p.add_argument("--duration", type=positive_float, default=None, metavar="S",
                    help="video: S seconds of the bag (default: to the end)")
-    p.add_argument("--at", type=float, default=None, metavar="S", help="still: the frame S seconds into the bag")
-    p.add_argument("--height", type=int, default=ViewStyle.height_px, help="height in px of the frame and field panels")
-    p.add_argument("--history", type=float, default=ViewStyle.history_s, metavar="S", help="slip chart span in s")
-    p.add_argument("--arrow-scale", type=float, default=ViewStyle.arrow_scale,
+    p.add_argument("--at", type=non_negative_float, default=None, metavar="S", help="still: the frame S seconds into the bag")
+    p.add_argument("--height", type=positive_int, default=ViewStyle.height_px, help="height in px of the frame and field panels")
+    p.add_argument("--history", type=positive_float, default=ViewStyle.history_s, metavar="S", help="slip chart span in s")
+    p.add_argument("--arrow-scale", type=positive_float, default=ViewStyle.arrow_scale,
                    help="marker arrow length per px of displacement")
-    p.add_argument("--field-range", type=float, default=ViewStyle.field_range_px, metavar="PX",
+    p.add_argument("--field-range", type=non_negative_float, default=ViewStyle.field_range_px, metavar="PX",
                    help="top of the field colour scale in px (0 = auto per frame, at least 1 px)")
     for name, default in vars(ViewTopics()).items():
         p.add_argument(f"--{name}-topic", default=default, help=f"recorded topic of the {name} (default {default})")

@@ -224,6 +224,9 @@ def train(config: TrainConfig, data: Split, resume: str | Path | None = None) ->
         if checkpoint.optimizer_state is not None:
             optimizer.load_state_dict(checkpoint.optimizer_state)
         step, history = checkpoint.step, list(checkpoint.history)
+        if step >= config.steps:  # nothing would be trained, and no checkpoint written in out_dir
+            raise ValueError(f"--resume {resume} is at step {step} already: ask for more --steps than that "
+                             f"(got {config.steps})")
     net: nn.Module = nn.parallel.DistributedDataParallel(model) if distributed else model
     eval_rows = np.random.default_rng(config.seed).permutation(data.test)[: config.eval_windows]
     out_dir = Path(config.out_dir) if config.out_dir is not None and rank == 0 else None
@@ -301,7 +304,9 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
                    "rows (e.g. whole grasps, `fv dataset sim --grasps`); the test rows stay --data's")
     p.add_argument("--out", required=True, help="output folder for checkpoint.pt, metrics.json, result_rank<r>.json")
     p.add_argument("--resume", default=None, help="checkpoint to continue from")
-    p.add_argument("--split", choices=SPLIT_KINDS, default="random")
+    p.add_argument("--split", choices=SPLIT_KINDS, default="sequence",
+                   help="default sequence, as `fv train` (random is the paper's split: windows of one sequence "
+                        "on both sides)")
     p.add_argument("--test-fraction", type=float, default=0.1)
     p.add_argument("--per-sequence", type=int, default=5, help="windows kept per raw sequence")
     p.add_argument("--arch", choices=ARCHS, default=defaults_m.arch)

@@ -129,10 +129,13 @@ def load_sequences(path: str | Path) -> SequenceSet:
     if not path.is_file():
         raise FileNotFoundError(f"slip dataset not found: {path}")
     try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {key: data[key] for key in data.files}
+        data = np.load(path, allow_pickle=False)
     except (zipfile.BadZipFile, OSError, ValueError) as exc:
-        raise ValueError(f"{path} is not a slip dataset .npz file: {exc}") from exc
+        raise ValueError(f"{path} is not a slip dataset .npz file (fv dataset sim writes them): {exc}") from exc
+    if not isinstance(data, np.lib.npyio.NpzFile):  # a lone .npy array
+        raise ValueError(f"{path} is one array, not a slip dataset .npz file (fv dataset sim writes them)")
+    with data:
+        arrays = {key: data[key] for key in data.files}
     missing = sorted({"fields", "labels", "object_ids", "metadata"} - set(arrays))
     if missing:
         raise ValueError(f"{path} is missing arrays {missing}")

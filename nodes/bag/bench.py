@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from nodes.arg_types import positive_float, positive_int
 from nodes.proc_stats import cpu_seconds
 
 TOPICS = ("/camera/image", "/field", "/slip")
@@ -34,10 +35,10 @@ PLAY_IDLE_S = 1.0
 def add_parser(kinds: argparse._SubParsersAction, name: str) -> None:
     p = kinds.add_parser(name, help="record frames + fields + slip at camera rate: completeness, recorder CPU, "
                                     "fast replay rate")
-    p.add_argument("--duration", type=float, default=60.0, metavar="S", help="seconds of publishing (default 60)")
-    p.add_argument("--fps", type=float, default=60.0, help="frames per second (default 60)")
-    p.add_argument("--width", type=int, default=640, help="frame width in px")
-    p.add_argument("--height", type=int, default=480, help="frame height in px")
+    p.add_argument("--duration", type=positive_float, default=60.0, metavar="S", help="seconds of publishing (default 60)")
+    p.add_argument("--fps", type=positive_float, default=60.0, help="frames per second (default 60)")
+    p.add_argument("--width", type=positive_int, default=640, help="frame width in px")
+    p.add_argument("--height", type=positive_int, default=480, help="frame height in px")
     p.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd")
     p.add_argument("--keep", type=Path, help="keep the bag in this (new) folder")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
@@ -170,6 +171,8 @@ def run_bench(duration_s: float, fps: float, width: int, height: int, compressio
 def _bench_bag(args: argparse.Namespace) -> int:
     if args.duration <= 0 or args.fps <= 0:
         raise ValueError("--duration and --fps must be > 0")
+    if args.keep is not None and args.keep.exists():  # the recorder refuses it: the bench waited 15 s, then said so
+        raise ValueError(f"--keep {args.keep} exists: give a new folder")
     r = run_bench(args.duration, args.fps, args.width, args.height, args.compression, args.keep)
     if args.json:
         print(json.dumps(r, indent=2))

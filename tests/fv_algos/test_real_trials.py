@@ -19,7 +19,9 @@ from fv_algos.real_trials import (
     Trial,
     VideoFields,
     cache_path,
+    load_video_fields,
     map_videos,
+    read_cached,
     read_frames,
     read_trials,
     trial_fields,
@@ -194,7 +196,7 @@ def test_map_videos_refuses_fewer_than_one_worker(tmp_path: Path) -> None:
         map_videos([trial], str, workers=0)
 
 
-def test_field_cache_round_trip(isd_data: Path, tmp_path: Path) -> None:
+def test_field_cache_round_trip(isd_data: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     trials = [t for t in read_trials(isd_data) if t.name == "train/nylon_thread/exp_num_1"]
     first = trial_fields(trials, tmp_path / "cache", progress=False)
     assert len(list((tmp_path / "cache").glob("*.npz"))) == 2
@@ -203,6 +205,14 @@ def test_field_cache_round_trip(isd_data: Path, tmp_path: Path) -> None:
         np.testing.assert_array_equal(value.fields, again[key].fields)
     quality = tracking_quality(first)
     assert quality["videos"] == 2 and quality["frames"] == 96
+    damaged = sorted((tmp_path / "cache").glob("*.npz"))[0]  # cut short on the disk: computed again, not fatal
+    damaged.write_bytes(damaged.read_bytes()[:1000])          # (it ended in a BadZipFile naming no file)
+    with caplog.at_level("WARNING"):
+        healed = trial_fields(trials, tmp_path / "cache", progress=False)
+    assert f"cache file {damaged} cannot be read" in caplog.text
+    for key, value in first.items():
+        np.testing.assert_array_equal(value.fields, healed[key].fields)
+    assert read_cached(damaged, load_video_fields) is not None  # written whole again
 
 
 def test_raw_frames_cut_as_read_give_the_recorded_fields_cached_apart(isd_data: Path, tmp_path: Path) -> None:

@@ -103,6 +103,10 @@ def test_resume_continues_exactly(split: Split, tmp_path: Path) -> None:
     metrics = json.loads((tmp_path / "part" / "metrics.json").read_text())
     assert [r["step"] for r in metrics["history"]] == [3, 6]
     assert metrics["train_config"]["model"]["hidden"] == 8
+    # a checkpoint at or past --steps has nothing left to train (it ended in "checkpoint not found"
+    # naming the new run's folder)
+    with pytest.raises(ValueError, match="is at step 6 already: ask for more --steps than that"):
+        train(_config(tmp_path / "again", schedule="constant"), split, resume=resumed.checkpoint_path)
 
 
 def test_resume_with_other_model_config_names_the_mismatch(split: Split, tmp_path: Path) -> None:

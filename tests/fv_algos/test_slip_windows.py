@@ -117,6 +117,10 @@ def test_load_errors_are_clear(sequences: SequenceSet, tmp_path: Path) -> None:
     garbage.write_bytes(b"not a zip file at all")
     with pytest.raises(ValueError, match="not a slip dataset"):
         load_sequences(garbage)
+    lone = tmp_path / "lone.npy"  # a TypeError before
+    np.save(lone, np.arange(3))
+    with pytest.raises(ValueError, match="is one array, not a slip dataset"):
+        load_sequences(lone)
     partial = tmp_path / "partial.npz"
     np.savez(partial, fields=sequences.fields)
     with pytest.raises(ValueError, match="missing arrays"):

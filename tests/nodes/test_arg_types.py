@@ -46,3 +46,47 @@ def test_a_file_system_error_in_a_command_is_one_line_naming_it(monkeypatch: pyt
         assert main(["sim", "--frames", "2"]) == 2
     assert capsys.readouterr().err == "fv sim: error: [Errno 28] No space left on device: '/data/run/frame_00007.png'\n"
     assert caplog.records[-1].exc_info[0] is OSError  # the traceback goes to the debug log (fv -v)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["bench", "bus", "--rate", "0"], "--rate: 0 is not a finite number > 0"),  # a traceback, then a hang
+    (["bench", "bus", "--frames", "0"], "--frames"),                          # "error: p50"
+    (["bench", "bus", "--rate", "nan", "--json"], "--rate: nan is not a finite number > 0"),  # NaN in the JSON
+    (["bench", "pipeline", "--duration", "0"], "--duration: 0 is not a finite number > 0"),  # "success", no data
+    (["bench", "pipeline", "--warmup", "-1"], "--warmup: -1 is not a finite number >= 0"),
+    (["bench", "soak", "--minutes", "nan"], "--minutes: nan is not a finite number > 0"),
+    (["bench", "bag", "--duration", "inf"], "--duration: inf is not a finite number > 0"),  # OverflowError
+    (["eval", "--data", "d.npz", "--out", "r", "--repeats", "0"], "--repeats"),  # said so after training
+    (["train", "--data", "d.npz", "--out", "r", "--export", "adir"], "--export: adir must end in .pt"),  # same
+    (["eval", "--trials", "t", "--model", "gelsight", "--online", "--plot", "p.txt"], "--plot: p.txt must end in .png"),
+    (["sim", "--scene", "s.yaml", "--out", "o", "--preview", "p.txt"], "--preview: p.txt must end in .png"),
+    (["view", "--bag", "b", "--out", "o.png", "--at", "nan"], "--at: nan is not a finite number >= 0"),
+    (["view", "--bag", "b", "--out", "o.mp4", "--fps", "nan"], "--fps: nan is not a finite number >= 0"),
+])
+def test_numbers_and_outputs_that_cannot_work_are_refused_before_any_work(argv: list[str], message: str,
+                                                                          tmp_path: Path, capsys,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2 and message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["bench", "judge", "--layers", "70"], "--layers 70: at most 12"),  # OverflowError
+    (["bench", "soak", "--minutes", "0.1", "--sample", "100"], "needs two samples at least"),  # checks "passed"
+    (["bench", "bag", "--keep", "."], "--keep . exists: give a new folder"),  # waited 15 s for the recorder
+])
+def test_benchmarks_that_would_measure_nothing_are_refused(argv: list[str], message: str, capsys) -> None:
+    assert main(argv) == 2 and message in capsys.readouterr().err
+
+
+def test_a_simulated_sequence_is_not_written_among_an_earlier_ones_frames(tmp_path: Path, capsys) -> None:
+    """`fv sim --frames 3 --out seq` into a folder of 60 earlier frames left frames 3-59 beside the
+    new 3-frame truth.npz."""
+    (tmp_path / "seq").mkdir()
+    (tmp_path / "seq" / "frame_0059.png").write_bytes(b"")
+    assert main(["sim", "--frames", "3", "--out", str(tmp_path / "seq")]) == 2
+    assert "holds files already" in capsys.readouterr().err
+    assert main(["sim", "--frames", "2", "--out", str(tmp_path / "new")]) == 0
+    assert (tmp_path / "new").is_dir()

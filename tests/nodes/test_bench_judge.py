@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from nodes.cli import main
 
 
@@ -17,5 +19,6 @@ def test_bench_judge_times_every_shape(capsys) -> None:
 
 
 def test_bench_judge_refuses_an_empty_ensemble(capsys) -> None:
-    assert main(["bench", "judge", "--members", "0"]) == 2
-    assert "--members must be >= 1" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_:
+        main(["bench", "judge", "--members", "0"])
+    assert exit_.value.code == 2 and "argument --members: 0 is not" in capsys.readouterr().err

@@ -97,6 +97,19 @@ def _free_port_base() -> int:
     raise RuntimeError("no three consecutive free ports")
 
 
+def test_secret_keys_are_the_owners_alone_and_never_replaced(tmp_path) -> None:
+    """The CURVE secret keys were written world-readable (0644), and a second `fv keys` replaced every
+    key without a word, locking out the hosts that hold the old client keys."""
+    files = {p.name: p for p in make_keys(tmp_path / "keys")}
+    modes = {name: path.stat().st_mode & 0o777 for name, path in files.items()}
+    assert modes["server.key_secret"] == modes["client.key_secret"] == 0o600
+    assert modes["server.key"] == modes["client.key"] == 0o644
+    before = files["client.key_secret"].read_bytes()
+    with pytest.raises(ValueError, match="holds keys already"):
+        make_keys(tmp_path / "keys")
+    assert files["client.key_secret"].read_bytes() == before
+
+
 def test_tcp_needs_curve_keys(bus_env: Bus, monkeypatch: pytest.MonkeyPatch) -> None:
     keys = bus_env.folder / "keys"
     make_keys(keys)

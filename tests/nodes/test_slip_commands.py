@@ -61,6 +61,10 @@ def test_train_writes_checkpoint_metrics_curve_and_resumes(data: Path, tmp_path:
                  "--resume", str(run / "checkpoint.pt"), "--export", str(export)]) == 0
     history = json.loads((run / "metrics.json").read_text())["history"]
     assert [r["step"] for r in history] == [2, 4, 6]
+    again = ["train", "--data", str(data), "--out", str(run), "--steps", "2", "--eval-every", "2", *TINY]
+    assert main(again) == 2  # a trained run is not replaced without a word
+    assert json.loads((run / "metrics.json").read_text())["history"] == history
+    assert main([*again, "--force"]) == 0 and json.loads((run / "run.json").read_text())["steps"] == 2
     shipped = load_checkpoint(export)
     assert shipped.optimizer_state is None and shipped.step == 6
     assert json.loads(export.with_suffix(".json").read_text())["steps"] == 6
@@ -85,6 +89,9 @@ def test_train_with_extra_grasps_keeps_the_test_windows(data: Path, tmp_path: Pa
     longer = save_sequences(tmp_path / "longer.npz", synthetic_sequences(4, SyntheticConfig(grid=8, n_frames=9), seed=1))
     assert main(["train", "--data", str(data), "--out", str(tmp_path / "bad"), "--steps", "2", *TINY,
                  "--extra", str(longer)]) == 2
+    leak = tmp_path / "leak"
+    assert main(["train", "--data", str(data), "--out", str(leak), "--steps", "2", *TINY, "--extra", str(data)]) == 2
+    assert not (leak / "checkpoint.pt").exists()  # refused before training: its test windows would be trained on
 
 
 def test_eval_json_has_table1_inflation_and_variants(data: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
@@ -103,6 +110,12 @@ def test_eval_json_has_table1_inflation_and_variants(data: Path, tmp_path: Path,
     assert main([*args, "--json", "--splits", "sequence", "--no-variants"]) == 0
     again = json.loads(capsys.readouterr().out)
     assert all(r["source"].startswith(("checkpoint", "fitted")) for r in again["table1"])
+    assert not (tmp_path / "report" / "variants.json").exists()  # the first run's: not this report's
+    assert not (tmp_path / "report" / "pareto.png").exists()
+    # ...but not a model trained otherwise: --steps 2 used to report the 1-step model
+    capsys.readouterr()
+    assert main([*args, "--steps", "2", "--splits", "sequence", "--no-variants"]) == 2
+    assert "'steps': (1, 2)" in capsys.readouterr().err
 
 
 def test_bad_input_gives_clear_errors(data: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

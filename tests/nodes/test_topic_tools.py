@@ -90,6 +90,19 @@ def test_echo_times_out_and_info_knows_no_topic(bus: Bus) -> None:
     assert result.returncode == 1 and "/nothing" in result.stderr
 
 
+def test_measures_of_too_few_messages_are_null_and_no_bus_is_an_error(bus_env: Bus) -> None:
+    """`fv topic hz --json` on a silent topic printed NaN (not JSON); `fv topic list` and `fv node list`
+    printed [] with status 0 when nothing served the bus, as if it served no node."""
+    for verb in ("list",):
+        for group in ("topic", "node"):
+            result = run_fv(group, verb, "--json")
+            assert result.returncode == 2 and "no forwarder answers on ipc://" in result.stderr, result.stderr
+    bus_env.start_forwarder()
+    result = run_fv("topic", "hz", "/silent", "--duration", "0.5", "--json")
+    report = json.loads(result.stdout)  # strict JSON: no NaN
+    assert result.returncode == 0 and report["min_s"] is None and report["rate_hz"] == 0.0 and report["window"] == 0
+
+
 @pytest.mark.parametrize("type_name, text, match", [
     ("SlipState", "{probabilty: 0.9}", "probabilty"),
     ("SlipState", "{probability: 2.0}", "probability"),
