@@ -150,6 +150,7 @@ class TrialNetConfig:
             f"0 <= start_swap <= 1 (got {self.start_swap})": 0 <= self.start_swap <= 1,
             f"reference_frame >= 0 (got {self.reference_frame})": self.reference_frame >= 0,
             f"a finite fps > 0 (got {self.fps})": 0 < self.fps < float("inf"),
+            f"a finite lr > 0 (got {self.lr})": 0 < self.lr < float("inf"),
         }
         broken = [rule for rule, ok in rules.items() if not ok]
         if broken:

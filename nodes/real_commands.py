@@ -21,7 +21,7 @@ from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from nodes.arg_types import output_file, output_with_suffix, positive_int
+from nodes.arg_types import output_file, output_with_suffix, positive_float, positive_int
 
 if TYPE_CHECKING:  # torch is imported only where a model is used
     from fv_algos.contact_motion import ContactMotionParams
@@ -56,9 +56,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = verbs.add_parser("train", help="train on all trials and write a shipped-model checkpoint + JSON")
     _data_args(p)
     _fit_args(p, window_steps=600)
-    p.add_argument("--out", type=output_file, required=True,
-                   help="checkpoint path, e.g. fv_algos/weights/slip_gelsight_windows.pt")
-    p.add_argument("--cv-report", type=Path, default=None, help="`fv real cv --out` report to record beside it")
+    p.add_argument("--out", type=output_with_suffix(".pt"), required=True,
+                   help="checkpoint path, e.g. fv_algos/weights/slip_gelsight_windows.pt (its record: the .json beside it)")
+    p.add_argument("--cv-report", type=_cv_report, default=None, help="`fv real cv --out` report to record beside it")
     p.set_defaults(func=_train)
 
     p = sub.add_parser("eval-trials", help="judge a slip model on a folder of real trials (video to decision)")
@@ -170,7 +170,7 @@ def _fit_args(p: argparse.ArgumentParser, window_steps: int) -> None:
     p.add_argument("--steps", type=int, default=None,
                    help=f"optimizer steps (default: trial: TrialNetConfig's, windows: {window_steps})")
     p.add_argument("--batch-size", type=int, default=None, help="default: trial: TrialNetConfig's, windows: 32")
-    p.add_argument("--lr", type=float, default=None, help="default: trial: TrialNetConfig's, windows: 1e-3")
+    p.add_argument("--lr", type=positive_float, default=None, help="default: trial: TrialNetConfig's, windows: 1e-3")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--stride", type=int, default=5, help="frames between window starts (default 5)")
     p.add_argument("--activity-px", type=float, default=None, help="activity (px/frame) from which a slip "
@@ -375,14 +375,25 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
-def _write_sidecar(path: Path, info: dict, cv_report: Path | None) -> None:
+def _cv_report(text: str) -> dict:
+    """An `fv real cv --out` report, read before any training (argparse type): a file that is not
+    one is named now, not after the model is written without its record."""
+    try:
+        report = json.loads(Path(text).read_text())
+    except (OSError, ValueError) as exc:
+        raise argparse.ArgumentTypeError(f"{text}: not an `fv real cv --out` report ({exc})") from None
+    if not isinstance(report, dict) or "summary" not in report:
+        raise argparse.ArgumentTypeError(f"{text}: not an `fv real cv --out` report (no summary)")
+    return report
+
+
+def _write_sidecar(path: Path, info: dict, cv_report: dict | None) -> None:
     """Write `info` (plus the summary of an `fv real cv --out` report, and its online part when it
     was run with --online) beside the model as JSON."""
     if cv_report is not None:
-        report = json.loads(cv_report.read_text())
-        info["cross_validation"] = report["summary"]
-        if "online" in report:
-            info["cross_validation_online"] = {k: v for k, v in report["online"].items() if k != "plot"}
+        info["cross_validation"] = cv_report["summary"]
+        if "online" in cv_report:
+            info["cross_validation_online"] = {k: v for k, v in cv_report["online"].items() if k != "plot"}
     path.with_suffix(".json").write_text(json.dumps(info, indent=1))
 
 

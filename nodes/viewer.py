@@ -15,6 +15,7 @@ sequence number in the state changed.
 from __future__ import annotations
 
 import collections
+import errno
 import ipaddress
 import json
 import threading
@@ -147,8 +148,9 @@ class ViewerNode(Node):
         try:
             server = _Server((host, port), self)
         except OSError as exc:
-            raise RuntimeError(f"viewer cannot listen on {host}:{port} ({exc.strerror or exc}); "
-                               f"choose another port (-p port=0 takes any free one)") from None
+            advice = ("choose another port (port:=0 in a launch, -p port=0 for fv node: any free one)"
+                      if exc.errno == errno.EADDRINUSE else "check the host: an address of this machine")
+            raise RuntimeError(f"viewer cannot listen on {host}:{port} ({exc.strerror or exc}); {advice}") from None
         self.port = int(server.server_address[1])
         self.counters["port"] = self.port
         threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.2}, name=f"{self.name}-http",
@@ -337,7 +339,11 @@ class _Handler(BaseHTTPRequestHandler):
         viewer.counters["requests"] += 1
         path = urlsplit(self.path).path
         try:
-            if path in ("/", "/index.html"):
+            asked = urlsplit("//" + (self.headers.get("Host") or "")).hostname or ""
+            if _is_loopback(viewer.params.host) and not _is_loopback(asked):
+                # DNS rebinding: a web page of another site whose name resolves to 127.0.0.1 may not read this one
+                self._send(HTTPStatus.FORBIDDEN, "text/plain", f"Host {asked!r} is not this machine\n".encode())
+            elif path in ("/", "/index.html"):
                 self._send(HTTPStatus.OK, "text/html; charset=utf-8", viewer.page)
             elif path == "/state.json":
                 body = json.dumps(viewer.page_state(), separators=(",", ":"), allow_nan=False).encode()

@@ -61,6 +61,10 @@ def test_a_file_system_error_in_a_command_is_one_line_naming_it(monkeypatch: pyt
     (["eval", "--trials", "t", "--model", "gelsight", "--online", "--plot", "p.txt"], "--plot: p.txt must end in .png"),
     (["sim", "--scene", "s.yaml", "--out", "o", "--preview", "p.txt"], "--preview: p.txt must end in .png"),
     (["view", "--bag", "b", "--out", "o.png", "--at", "nan"], "--at: nan is not a finite number >= 0"),
+    (["real", "train", "--trials", "t", "--out", "m1.json"], "--out: m1.json must end in .pt"),  # the record
+    (["real", "train", "--trials", "t", "--out", "m.pt", "--lr", "inf"], "--lr: inf is not a finite number > 0"),
+    (["real", "train", "--trials", "t", "--out", "m.pt", "--cv-report", "missing.json"],  # after training, the
+     "--cv-report: missing.json: not an `fv real cv --out` report"),                       # model left without record
     (["view", "--bag", "b", "--out", "o.mp4", "--fps", "nan"], "--fps: nan is not a finite number >= 0"),
 ])
 def test_numbers_and_outputs_that_cannot_work_are_refused_before_any_work(argv: list[str], message: str,

@@ -165,15 +165,26 @@ def _abort(sock: socket.socket) -> None:
 def test_viewer_survives_clients_that_go_away(viewer: ViewerNode, pipeline: PublisherSocket) -> None:
     publish_frame(pipeline, 3, 0.5)
     wait_state(viewer, lambda s: s["frame"] is not None)
-    for request in (b"GET /frame.jpg HTTP/1.1\r\nHost: x\r\n\r\n", b"GET /sta", b"", b"NONSENSE\r\n\r\n"):
+    for request in (b"GET /frame.jpg HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n", b"GET /sta", b"", b"NONSENSE\r\n\r\n"):
         sock = socket.create_connection(("127.0.0.1", viewer.port), timeout=2)
         sock.sendall(request)
         _abort(sock)
     with socket.create_connection(("127.0.0.1", viewer.port), timeout=2) as sock:
-        sock.sendall(b"GET /frame.jpg HTTP/1.1\r\nHost: x\r\n\r\n")
+        sock.sendall(b"GET /frame.jpg HTTP/1.1\r\nHost: localhost\r\n\r\n")
         assert sock.recv(64).startswith(b"HTTP/1.1 200")
     status, _, body = get(viewer, "/state.json")
     assert status == 200 and json.loads(body)["frame"] is not None
+
+
+def test_a_page_of_another_site_cannot_read_the_local_viewer(viewer: ViewerNode) -> None:
+    """DNS rebinding: a site whose name a browser resolves to 127.0.0.1 sends its own name as Host. The
+    viewer, serving on loopback, answers only to loopback names (it answered any Host with 200)."""
+    for host, status in ((b"evil.example", b"403"), (b"evil.example:%d", b"403"), (b"127.0.0.1:%d", b"200"),
+                         (b"localhost:%d", b"200"), (b"[::1]:%d", b"200")):
+        with socket.create_connection(("127.0.0.1", viewer.port), timeout=2) as sock:
+            sock.sendall(b"GET /state.json HTTP/1.1\r\nHost: " + (host % viewer.port if b"%d" in host else host)
+                         + b"\r\n\r\n")
+            assert sock.recv(64).startswith(b"HTTP/1.1 " + status), host
 
 
 def test_a_taken_port_is_a_clear_error(bus: Bus) -> None:
@@ -199,6 +210,7 @@ def test_view_launch_file_adds_the_viewer_to_the_pipeline() -> None:
     assert kinds[-1] == "viewer" and {"camera", "tracker", "interpolator", "slip_detector"} <= set(kinds)
     assert specs[-1].params["port"] == 0
     assert next(s for s in specs if s.kind == "camera").params["fps"] == 15.0
+    assert specs[-1].respawn and specs[-1].max_retries == 3  # a taken port: it respawned every second for good
 
 
 # -- the page in a real browser ----------------------------------------------------------
