@@ -176,6 +176,24 @@ def test_viewer_survives_clients_that_go_away(viewer: ViewerNode, pipeline: Publ
     assert status == 200 and json.loads(body)["frame"] is not None
 
 
+def test_head_answers_as_get_without_a_body_and_writes_are_refused(viewer: ViewerNode) -> None:
+    """HEAD and POST were answered 501 (HEAD is required of a server, a write to a read-only page is 405)."""
+    import http.client
+    conn = http.client.HTTPConnection("127.0.0.1", viewer.port, timeout=5)
+    for method, status in (("HEAD", 200), ("POST", 405), ("GET", 200), ("DELETE", 405)):  # one kept-alive connection
+        conn.request(method, "/state.json")
+        response = conn.getresponse()
+        body = response.read()
+        assert response.status == status, method
+        if method == "HEAD":
+            assert body == b"" and int(response.headers["Content-Length"]) > 0
+        if method == "GET":
+            assert "frame" in json.loads(body)  # the body comes whole after a HEAD on the same connection
+        if status == 405:
+            assert response.headers["Allow"] == "GET, HEAD"
+    conn.close()
+
+
 def test_a_page_of_another_site_cannot_read_the_local_viewer(viewer: ViewerNode) -> None:
     """DNS rebinding: a site whose name a browser resolves to 127.0.0.1 sends its own name as Host. The
     viewer, serving on loopback, answers only to loopback names (it answered any Host with 200)."""
