@@ -117,11 +117,12 @@ def read_trials(root: str | Path) -> list[Trial]:
             raise ValueError(f"{where}: no trial")
         name = os.path.normpath(name)
         folder = root / name
-        if folder.resolve() in seen:  # t1, ./t1 and t1/ are one folder
-            raise ValueError(f"{where}: trial {name!r} is listed twice (also on line {seen[folder.resolve()]})")
+        same = folder.resolve()  # t1, ./t1 and t1/ are one folder
+        if same in seen:
+            raise ValueError(f"{where}: trial {name!r} is listed twice (also on line {seen[same]})")
         if not obj:
             raise ValueError(f"{where}: trial {name!r} has no object (object-held-out folds need one)")
-        seen[folder.resolve()] = line
+        seen[same] = line
         extra = {k: v for k, v in row.items() if k not in REQUIRED_COLUMNS}
         trials.append(Trial(name, obj, LABEL_VALUES[label], folder, _camera_videos(folder, where), extra))
     if not trials:
@@ -136,7 +137,7 @@ def _camera_videos(folder: Path, where: str) -> dict[str, Path]:
     videos = {}
     for camera in CAMERAS:
         named = [folder / f"{camera}{suffix}" for suffix in VIDEO_SUFFIXES]
-        broken = [path for path in named if path.is_symlink() and not path.is_file() or path.is_dir()]
+        broken = [path for path in named if (path.is_symlink() and not path.is_file()) or path.is_dir()]
         if broken:
             raise ValueError(f"{where}: {broken[0]} is not a video file (a broken link or a folder)")
         found = [path for path in named if path.is_file()]

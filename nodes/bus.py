@@ -61,6 +61,12 @@ def validate_topic(topic: str) -> str:
     return topic
 
 
+def absolute_namespace(namespace: str) -> str:
+    """"left", "/left" and "/left/" are "/left"; "" (or "/") is no namespace, ""."""
+    name = namespace.strip("/")
+    return "/" + name if name else ""
+
+
 def resolve_topic(topic: str, namespace: str = "", remap: dict[str, str] | None = None) -> str:
     """The absolute topic a node in `namespace` ("/left", "" for none) with `remap` means by
     `topic`: a relative name ("camera/image") gets the namespace (/left/camera/image), an absolute

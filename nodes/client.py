@@ -33,6 +33,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from abc import ABC, abstractmethod
 from typing import Callable, Iterator, TypeVar
 
 from msgs import Message, SlipState
@@ -44,11 +45,12 @@ POLL_S = 0.1
 _C = TypeVar("_C", bound="_Closing")
 
 
-class _Closing:
+class _Closing(ABC):
     """A context manager that calls `self.close()` on exit."""
 
+    @abstractmethod
     def close(self) -> None:
-        raise NotImplementedError
+        """Release the sockets (and threads) the object holds."""
 
     def __enter__(self: _C) -> _C:
         return self

@@ -40,6 +40,7 @@ from typing import Any
 
 import yaml
 
+from nodes.bus import absolute_namespace
 from nodes.params import ParamError, YamlLoader, build_params, parse_text
 
 TOP_KEYS = {"args", "include", "nodes"}
@@ -244,7 +245,7 @@ def _namespace(f: _File, entry: _Dict, key: str, line: int) -> str:
     if value and not _NAMESPACE_RE.fullmatch(value):
         raise f.error(entry.lines.get("namespace", line), key,
                       f"{value!r} is not a namespace (names of letters, digits and _ joined by /)")
-    return "/" + value.lstrip("/") if value else ""
+    return absolute_namespace(value)
 
 
 def _in_namespace(spec: NodeSpec, namespace: str) -> NodeSpec:

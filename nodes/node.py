@@ -35,7 +35,7 @@ import zmq
 import msgs
 from msgs import Message, MessageError, NodeStatus
 from nodes.bus import (ALL_TOPICS, LINGER_MS, SUB_HWM, PublisherSocket, SeqTracker, connect_client, new_context,
-                       parse_envelope, resolve_topic, subscription_prefixes)
+                       absolute_namespace, parse_envelope, resolve_topic, subscription_prefixes)
 from nodes.endpoints import BusAddress, bus_address
 from nodes.params import build_params
 
@@ -146,7 +146,7 @@ class Node:
     def __init__(self, name: str, params: dict[str, Any] | None = None, *, namespace: str = "",
                  remap: dict[str, str] | None = None, address: BusAddress | None = None) -> None:
         self.name = name
-        self.namespace = "/" + namespace.strip("/") if namespace.strip("/") else ""  # "left" and "/left/": /left
+        self.namespace = absolute_namespace(namespace)
         self.remap = dict(remap or {})
         self.params = build_params(self.Params, params or {}, where=f"node {name!r}")
         self.log = logging.getLogger(name)

@@ -271,8 +271,7 @@ def _train(args: argparse.Namespace) -> int:
         split=args.split, seed=args.seed, test_fraction=args.test_fraction, model_config=checkpoint.model_config.to_dict(),
         params=count_parameters(build_model(checkpoint.model_config)), history=checkpoint.history, wall_s=wall_s,
         windows_per_s=result["windows_per_s"], dataset_metadata=sequences.metadata, resumed_from=args.resume,
-        lr=slip_train.TrainConfig.lr if args.lr is None else args.lr,
-        batch_size=slip_train.TrainConfig.batch_size if args.batch is None else args.batch,
+        lr=checkpoint.train_config["lr"], batch_size=checkpoint.train_config["batch_size"],
         windows_per_cpu_s=result.get("windows_per_cpu_s"), autocast=result.get("autocast"),
         extra=None if extra is None else (args.extra, dataset_fingerprint(extra)))
     print(f"{record['model_config']['arch']} on the {args.split} split: test accuracy "

@@ -87,8 +87,6 @@ def _view(args: argparse.Namespace) -> int:
         raise ValueError("--start / --duration choose a video's span; a still takes --at S")
     if not still and args.at is not None:
         raise ValueError("--at picks a still's frame (--out x.png); a video takes --start S --duration S")
-    if args.fps < 0 or (args.duration or 0.0) < 0:
-        raise ValueError("--fps and --duration must be >= 0")
     style = ViewStyle(args.height, args.history, args.arrow_scale, args.field_range)
     topics = ViewTopics(args.image_topic, args.markers_topic, args.field_topic, args.slip_topic)
     if still:

@@ -169,8 +169,6 @@ def run_bench(duration_s: float, fps: float, width: int, height: int, compressio
 
 
 def _bench_bag(args: argparse.Namespace) -> int:
-    if args.duration <= 0 or args.fps <= 0:
-        raise ValueError("--duration and --fps must be > 0")
     if args.keep is not None and args.keep.exists():  # the recorder refuses it: the bench waited 15 s, then said so
         raise ValueError(f"--keep {args.keep} exists: give a new folder")
     r = run_bench(args.duration, args.fps, args.width, args.height, args.compression, args.keep)

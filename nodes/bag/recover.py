@@ -35,8 +35,7 @@ _OPCODES = {int(op) for op in Opcode}
 @dataclass
 class RecoverReport:
     """What a recovery kept and lost (sizes in bytes, times in ns of log time). damaged: the
-    [start, end) byte ranges of the source that were skipped, in file order. in_place: recovered
-    into the source itself (a complete one is left as it is)."""
+    [start, end) byte ranges of the source that were skipped, in file order."""
 
     source: str
     output: str
@@ -134,16 +133,17 @@ def _record_at(data: mmap.mmap, pos: int) -> tuple[object, list, int] | None:
     return record, contents, end
 
 
-def _next_chunk(data: mmap.mmap, pos: int) -> int:
-    """Offset of the first chunk at or after byte `pos` that reads whole (len(data) when none).
-    A false start needs a length that fits the file and a chunk that passes its CRC."""
+def _next_chunk(data: mmap.mmap, pos: int) -> tuple[int, tuple[object, list, int] | None]:
+    """(offset, :func:`_record_at` there) of the first chunk at or after byte `pos` that reads whole;
+    (len(data), None) when none. A false start needs a length that fits the file and a chunk that
+    passes its CRC."""
     chunk = bytes([int(Opcode.CHUNK)])
     while (pos := data.find(chunk, pos)) != -1:
         found = _record_at(data, pos)
         if found is not None and isinstance(found[0], Chunk):
-            return pos
+            return pos, found
         pos += 1
-    return len(data)
+    return len(data), None
 
 
 def _readable_records(source: Path, report: RecoverReport) -> Iterator[tuple[object, list]]:
@@ -155,10 +155,10 @@ def _readable_records(source: Path, report: RecoverReport) -> Iterator[tuple[obj
         while pos < len(data):
             found = _record_at(data, pos)
             if found is None:
-                resume = _next_chunk(data, pos + 1)
+                resume, found = _next_chunk(data, pos + 1)
                 report.damaged.append((pos, resume))
-                pos = resume
-                continue
+                if found is None:
+                    return
             record, contents, pos = found
             if isinstance(record, Footer):
                 report.complete = not report.damaged
