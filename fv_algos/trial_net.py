@@ -29,7 +29,7 @@ from torch import nn
 
 from fv_algos.contact_motion import ContactMotionParams, TrialSeries
 from fv_algos.real_trials import CAMERAS, Trial, TrialFields, VideoFields, at_reference_width, require_frames
-from fv_algos.slip.classifier import LOAD_ERRORS
+from fv_algos.slip.classifier import read_torch_file
 from fv_algos.slip.evaluate import classification_metrics
 from fv_algos.trial_eval import fold_summary, map_folds, object_folds
 
@@ -411,8 +411,8 @@ def _read(path: str | Path) -> dict | None:
     """The payload of ``path`` when it holds a model written by :func:`save_trial_model` (tensors and
     plain values only: read with ``weights_only``), else None."""
     try:
-        data = torch.load(path, map_location="cpu", weights_only=True)
-    except LOAD_ERRORS:
+        data = read_torch_file(Path(path))
+    except ValueError:
         return None
     return data if isinstance(data, dict) and data.get("kind") == KIND else None
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import importlib.metadata
 import pickle
+import warnings
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -81,8 +82,23 @@ def save_checkpoint(path: str | Path, checkpoint: Checkpoint) -> Path:
     return path
 
 
-# what torch.load raises on a file that is no checkpoint
-LOAD_ERRORS = (pickle.UnpicklingError, zipfile.BadZipFile, RuntimeError, EOFError, OSError)
+def read_torch_file(path: Path) -> object:
+    """What ``torch.save`` wrote to the file ``path``, read with ``weights_only=True`` (tensors and
+    plain values only). ValueError naming ``path`` for any file torch cannot read so: text, another
+    format, a truncated save, a pickle of other Python objects."""
+    try:
+        with warnings.catch_warnings():  # torch warns of a pickle protocol it may not read, then says why not
+            warnings.filterwarnings("ignore", "Detected pickle protocol", UserWarning)
+            return torch.load(path, map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, zipfile.BadZipFile, RuntimeError, EOFError, OSError, KeyError, ValueError,
+            TypeError) as exc:
+        text = str(exc)
+        if "WeightsUnpickler error:" in text:  # keep torch's reason, not its advice on weights_only=False
+            text = text.split("WeightsUnpickler error:", 1)[1].strip().split("\n\n", 1)[0]
+        text = text.split(". ", 1)[0]  # its first sentence
+        raise ValueError(f"{path} is not a model file that torch.load reads with weights_only=True "
+                         f"({type(exc).__name__}: {text or 'the file ends early'})") from exc
+
 
 def load_checkpoint(path: str | Path, expected: ModelConfig | None = None) -> Checkpoint:
     """Read and validate a checkpoint.
@@ -94,10 +110,7 @@ def load_checkpoint(path: str | Path, expected: ModelConfig | None = None) -> Ch
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except LOAD_ERRORS as exc:
-        raise ValueError(f"{path} is not a slip checkpoint (torch.load failed: {exc})") from exc
+    payload = read_torch_file(path)
     if isinstance(payload, dict) and "kind" in payload and "format" not in payload:
         raise ValueError(f"{path} holds a {payload['kind']!r} model, which decides once per grasp from whole "
                          "trials (fv eval --trials), not a classifier of windows of fields")

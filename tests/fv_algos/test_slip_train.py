@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
 from dataclasses import replace
 import subprocess
 import sys
@@ -14,6 +15,7 @@ import torch
 
 from fv_algos.slip.classifier import SlipClassifier, load_checkpoint, model_from_checkpoint, save_checkpoint, Checkpoint
 from fv_algos.slip.models import ModelConfig, build_model
+from fv_algos.trial_net import read_trial_model
 from fv_algos.slip.train import TrainConfig, batch_rows, lr_at, main, parameter_digest, train
 from fv_algos.slip.windows import (
     SequenceSet,
@@ -135,10 +137,19 @@ def test_checkpoint_round_trip_and_classifier(split: Split, tmp_path: Path) -> N
 def test_checkpoint_errors_are_clear(tmp_path: Path) -> None:
     with pytest.raises(FileNotFoundError, match="not found"):
         load_checkpoint(tmp_path / "nope.pt")
-    garbage = tmp_path / "garbage.pt"
-    garbage.write_bytes(b"\x00\x01 not a torch file")
-    with pytest.raises(ValueError, match="not a slip checkpoint"):
-        load_checkpoint(garbage)
+    real = tmp_path / "real.pt"
+    save_checkpoint(real, Checkpoint(ModelConfig(), build_model(ModelConfig()).state_dict(), 0))
+    pickled = tmp_path / "pickled.pt"
+    pickled.write_bytes(pickle.dumps(object))
+    not_models = {"garbage": b"\x00\x01 not a torch file", "text": b"hello", "empty": b"",
+                  "cut short": real.read_bytes()[:3000], "pickled object": pickled.read_bytes()}
+    for name, data in not_models.items():  # any exception torch.load raises becomes one clear ValueError
+        bad = tmp_path / f"{name}.pt"
+        bad.write_bytes(data)
+        with pytest.raises(ValueError, match="is not a model file that torch.load reads") as err:
+            load_checkpoint(bad)
+        assert str(bad) in str(err.value) and "weights_only=False" not in str(err.value), name
+        assert read_trial_model(bad) is None, name
     other = tmp_path / "other.pt"
     torch.save({"weights": torch.zeros(3)}, other)
     with pytest.raises(ValueError, match="format tag"):
