@@ -35,6 +35,20 @@ def positive_int(text: str) -> int:
     return value
 
 
+MAX_SEED = 2**63 - 1  # torch.manual_seed and numpy's generators take every seed up to this
+
+
+def random_seed(text: str) -> int:
+    """A random seed: a whole number from 0 to `MAX_SEED`."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"{text} is not a seed from 0 to 2**63 - 1")
+    return value
+
+
 def _writable(folder: Path) -> None:
     """ArgumentTypeError when ``folder``, or the nearest of its parents that exists, is a file or cannot be
     written into: checked before a long job, so that it does not end unable to save its result."""

@@ -21,7 +21,7 @@ from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from nodes.arg_types import output_file, output_with_suffix, positive_float, positive_int
+from nodes.arg_types import output_file, output_with_suffix, positive_float, positive_int, random_seed
 
 if TYPE_CHECKING:  # torch is imported only where a model is used
     from fv_algos.contact_motion import ContactMotionParams
@@ -171,7 +171,7 @@ def _fit_args(p: argparse.ArgumentParser, window_steps: int) -> None:
                    help=f"optimizer steps (default: trial: TrialNetConfig's, windows: {window_steps})")
     p.add_argument("--batch-size", type=int, default=None, help="default: trial: TrialNetConfig's, windows: 32")
     p.add_argument("--lr", type=positive_float, default=None, help="default: trial: TrialNetConfig's, windows: 1e-3")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=random_seed, default=0)
     p.add_argument("--stride", type=int, default=5, help="frames between window starts (default 5)")
     p.add_argument("--activity-px", type=float, default=None, help="activity (px/frame) from which a slip "
                    "trial's window is labelled slip (default: the TrialRule default)")

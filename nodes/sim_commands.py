@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from nodes.arg_types import output_file, output_folder, output_with_suffix
+from nodes.arg_types import output_file, output_folder, output_with_suffix, random_seed
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -16,7 +16,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--frames", type=int, default=60, help="frames to write (default 60)")
     p.add_argument("--preview", type=output_with_suffix(".png"), help="write one preview PNG (frame, true markers, true field)")
     p.add_argument("--frame", type=int, default=-1, help="which frame to preview (default: the last of --frames)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=random_seed, default=0)
     p.set_defaults(func=_sim)
 
     p = sub.add_parser("calibrate", help="fisheye chessboard calibration from images or a video")

@@ -8,7 +8,7 @@ import shlex
 import time
 from pathlib import Path
 
-from nodes.arg_types import output_file, output_folder, output_with_suffix, positive_float, positive_int
+from nodes.arg_types import output_file, output_folder, output_with_suffix, positive_float, positive_int, random_seed
 from nodes.real_commands import crop_flags, online_flags
 
 SPLITS = {"sequence": "sequence", "paper": "random", "object": "object"}
@@ -27,7 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "labelled with its truth: extra training data for `fv train --extra`")
     q.add_argument("--frames", type=int, default=15, help="frames per sequence (default 15)")
     q.add_argument("--fps", type=float, default=15.0, help="frame rate, Hz (default 15)")
-    q.add_argument("--seed", type=int, default=0, help="master seed (default 0)")
+    q.add_argument("--seed", type=random_seed, default=0, help="master seed (default 0)")
     q.add_argument("--workers", type=positive_int, default=2, help="worker processes (default 2)")
     q.add_argument("--preset", default="default", help="perception preset: paper, default, fastest")
     q.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -125,9 +125,9 @@ def _model_flags(p: argparse.ArgumentParser, single_run: bool = True) -> None:
     p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default=None,
                    help="training arithmetic: auto = bf16 autocast on CPUs with native bf16 (AMX/AVX512-BF16), "
                         "else fp32 (default: TrainConfig's)")
-    p.add_argument("--seed", type=int, default=0, help="training and split seed (default 0)")
+    p.add_argument("--seed", type=random_seed, default=0, help="training and split seed (default 0)")
     p.add_argument("--test-fraction", type=float, default=0.1, help="held-out share (default 0.1)")
-    p.add_argument("--threads", type=int, default=None, help="torch threads for training")
+    p.add_argument("--threads", type=positive_int, default=None, help="torch threads for training")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 

@@ -106,6 +106,8 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.min_lr_fraction must be in [0, 1], got {self.min_lr_fraction}")
         if self.grad_clip is not None and not (np.isfinite(self.grad_clip) and self.grad_clip > 0):
             raise ValueError(f"TrainConfig.grad_clip must be finite and > 0 (or None), got {self.grad_clip}")
+        if not 0 <= self.seed < 2**63:
+            raise ValueError(f"TrainConfig.seed must be from 0 to 2**63 - 1, got {self.seed}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"TrainConfig.precision must be one of {PRECISIONS}, got {self.precision!r}")
 

@@ -66,6 +66,10 @@ def test_a_file_system_error_in_a_command_is_one_line_naming_it(monkeypatch: pyt
     (["real", "train", "--trials", "t", "--out", "m.pt", "--cv-report", "missing.json"],  # after training, the
      "--cv-report: missing.json: not an `fv real cv --out` report"),                       # model left without record
     (["view", "--bag", "b", "--out", "o.mp4", "--fps", "nan"], "--fps: nan is not a finite number >= 0"),
+    (["sim", "--frames", "2", "--seed", "-1"], "--seed: -1 is not a seed from 0 to 2**63 - 1"),  # numpy's words
+    (["train", "--data", "d.npz", "--out", "r", "--seed", "1" + "0" * 20], "--seed: 1000"),  # after loading
+    (["real", "cv", "--trials", "t", "--seed", "x"], "--seed: 'x' is not a whole number"),
+    (["train", "--data", "d.npz", "--out", "r", "--threads", "0"], "--threads: 0 is not >= 1"),  # torch's words
 ])
 def test_numbers_and_outputs_that_cannot_work_are_refused_before_any_work(argv: list[str], message: str,
                                                                           tmp_path: Path, capsys,
