@@ -111,14 +111,14 @@ def online_flags(p: argparse.ArgumentParser) -> None:
                    help="--online: PNG of the share of held and slip cameras at P(slip) >= 0.5 over time")
 
 
-def check_online(args: argparse.Namespace, command: str, trial_level: bool) -> None:
-    """SystemExit naming the flags when --alarm or --plot come without --online, or --online with a
+def check_online(args: argparse.Namespace, trial_level: bool) -> None:
+    """ValueError naming the flags when --alarm or --plot come without --online, or --online with a
     model that has no running P(slip) (not ``trial_level``)."""
     given = [f for f, v in (("--alarm", args.alarm), ("--plot", args.plot)) if v is not None]
     if given and not args.online:
-        raise SystemExit(f"{command}: {' and '.join(given)} need --online")
+        raise ValueError(f"{' and '.join(given)} {'needs' if len(given) == 1 else 'need'} --online")
     if args.online and not trial_level:
-        raise SystemExit(f"{command}: --online needs a trial-level model (a window model has no running P(slip))")
+        raise ValueError(f"--online needs a trial-level model (a window model has no running P(slip))")
 
 
 def _alarm_rule(text: str):
@@ -267,7 +267,7 @@ def _trial_inputs(args: argparse.Namespace, reference_frame: int, params: Contac
 
 def _cv(args: argparse.Namespace) -> int:
     started = time.perf_counter()
-    check_online(args, "fv real cv", args.method == "trial")
+    check_online(args, args.method == "trial")
     if args.method == "trial":
         from fv_algos.trial_net import cross_validate_trials
         config = _trial_config(args)
@@ -479,7 +479,7 @@ def eval_trials_command(args: argparse.Namespace) -> int:
     from nodes.slip_detector import model_path
     path = model_path(args.model)
     trial_model = read_trial_model(path)
-    check_online(args, "fv eval --trials", trial_model is not None)
+    check_online(args, trial_model is not None)
     out = _eval_windows(args, path) if trial_model is None else _eval_trial_net(args, trial_model)
     wall = time.perf_counter() - started
     out = {"model": str(path), **out, "wall_s": wall, "s_per_trial": wall / out["n_trials"],
