@@ -260,7 +260,7 @@ def _train(args: argparse.Namespace) -> int:
     argv += [item for flag, value in optional.items() if value is not None for item in (flag, str(value))]
     argv += ["--no-progress"] if args.no_progress else []
     started = time.perf_counter()
-    slip_train.main(argv)
+    slip_train.main(argv, sequences, extra)
     wall_s = time.perf_counter() - started
     if int(os.environ.get("RANK", "0")) != 0:
         return 0

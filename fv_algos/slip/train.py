@@ -46,7 +46,7 @@ from fv_algos.slip.models import (
     to_model_input,
     width_gain,
 )
-from fv_algos.slip.windows import SPLIT_KINDS, Split, load_sequences, make_windows, split_windows, with_extra_training
+from fv_algos.slip.windows import SPLIT_KINDS, SequenceSet, Split, load_sequences, make_windows, split_windows, with_extra_training
 
 PAPER_LR = 1e-5
 SCHEDULES = ("cosine", "constant")
@@ -331,12 +331,14 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, sequences: SequenceSet | None = None,
+         extra: SequenceSet | None = None) -> int:
     """Command-line entry (also what torchrun runs); writes result_rank<r>.json with the
-    parameter digest and final metrics for every rank. Returns the exit status."""
+    parameter digest and final metrics for every rank. Returns the exit status. ``sequences`` and
+    ``extra``: the files of --data and --extra when the caller has read them already (`fv train`)."""
     steady_malloc()  # this is the process entry under torchrun
     args = _parse(argv)
-    sequences = load_sequences(args.data)
+    sequences = load_sequences(args.data) if sequences is None else sequences
     model_config = ModelConfig(
         arch=args.arch, hidden=args.hidden, kernel=args.kernel, window=args.window,
         grid=sequences.grid, scale_px=args.scale_px, field_width_px=sequences.frame_width_px,
@@ -350,7 +352,7 @@ def main(argv: list[str] | None = None) -> int:
     windows = make_windows(sequences, window=args.window, per_sequence=args.per_sequence)
     split = split_windows(windows, args.split, args.test_fraction, args.seed)
     if args.extra is not None:
-        split = with_extra_training(split, load_sequences(args.extra))
+        split = with_extra_training(split, load_sequences(args.extra) if extra is None else extra)
     launched = int(os.environ.get("WORLD_SIZE", "1")) > 1
     if launched:
         cuda = torch.device(args.device).type == "cuda"

@@ -46,10 +46,21 @@ def test_dataset_sim_grasps_writes_frame_labels(tmp_path: Path, capsys: pytest.C
     assert f"wrote {len(grasps.labels)} sequences (from 2 grasps" in capsys.readouterr().out
 
 
-def test_train_writes_checkpoint_metrics_curve_and_resumes(data: Path, tmp_path: Path) -> None:
+def test_train_writes_checkpoint_metrics_curve_and_resumes(data: Path, tmp_path: Path,
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    import fv_algos.slip.train
+    import fv_algos.slip.windows
+    loaded = []
+
+    def load(path: Path):
+        loaded.append(path)
+        return load_sequences(path)
+    monkeypatch.setattr(fv_algos.slip.windows, "load_sequences", load)  # fv train's own import
+    monkeypatch.setattr(fv_algos.slip.train, "load_sequences", load)
     run = tmp_path / "run"
     assert main(["train", "--data", str(data), "--out", str(run), "--steps", "4", "--eval-every", "2", *TINY,
                  "--precision", "fp32"]) == 0
+    assert len(loaded) == 1  # the data set is read once (it was read twice)
     for name in ("checkpoint.pt", "metrics.json", "run.json", "curve.png"):
         assert (run / name).is_file(), name
     record = json.loads((run / "run.json").read_text())
