@@ -177,6 +177,7 @@ def _polonsky_keer(halfspace: HalfSpace, gap_mm: np.ndarray, load_N: float, p0: 
     t = np.zeros_like(p)
     g_old, conjugate = 1.0, False
     approach = 0.0
+    self_compliance = None
     for _ in range(params.normal_max_iterations):
         contact = p > 0
         g = halfspace.normal_displacement_mm(p) + gap_mm
@@ -188,8 +189,18 @@ def _polonsky_keer(halfspace: HalfSpace, gap_mm: np.ndarray, load_N: float, p0: 
         r = halfspace.normal_displacement_mm(t)
         r -= r[contact].mean()
         denom = float(np.sum(r[contact] * t[contact]))
-        if denom <= 0:
-            return p, approach, True
+        if denom <= 0:  # the contact set is solved (e.g. one cell, where g is 0): done unless the
+            overlap = (p == 0) & (g < 0)  # indenter goes through the skin outside it
+            if not overlap.any():
+                return p, approach, True
+            if self_compliance is None:  # uz of a cell under its own unit pressure, mm/MPa
+                unit = np.zeros_like(p)
+                unit[0, 0] = 1.0
+                self_compliance = float(halfspace.normal_displacement_mm(unit)[0, 0])
+            p = np.where(overlap, -g / self_compliance, p)
+            p *= load_N / (p.sum() * area)
+            conjugate = False
+            continue
         tau = float(np.sum(g[contact] * t[contact])) / denom
         p_old = p
         p = np.maximum(p - tau * t, 0.0)

@@ -152,6 +152,21 @@ def test_incipient_threshold_and_effects(model: ContactModel) -> None:
     assert not np.any(normal_only.traction_mpa) and normal_only.slip_state == "stick"
 
 
+def test_a_sharp_indenter_never_goes_through_the_skin(model: ContactModel) -> None:
+    """The normal solver's first contact set can be one cell, where the CG step is zero: it stopped
+    there as converged with the whole load on that cell, the rest of the indenter inside the skin
+    (1 cell, 16.9 MPa, 9.6 mm deep at this pose; 61 cells, 1.5 mm turned by 90 degrees)."""
+    rng = np.random.default_rng(0)
+    poses = [((0.234, -1.367), 0.0)] + [(tuple(rng.uniform(-2, 2, 2)), rng.uniform(0, 2 * np.pi)) for _ in range(20)]
+    for centre, angle in poses:
+        obj = Corner(fillet_mm=0.7086, youngs_modulus_mpa=168741.0)
+        model.reset()
+        sol = model.normal_solution(obj, np.array(centre), angle, 2.55, None)
+        gap = obj.gap_mm(*model.grid.mesh_mm(), np.array(centre), angle)
+        through = gap - gap.min() + model.halfspace.normal_displacement_mm(sol.pressure_mpa) - sol.approach_mm
+        assert sol.contact.sum() > 20 and through[~sol.contact].min() > -0.01, (centre, angle)
+
+
 def test_zero_load_gives_zero_displacement(model: ContactModel) -> None:
     s = _solve(model, normal=0.0, force=(0.0, 0.0))
     assert not np.any(s.displacement_mm) and s.contact.sum() == 0
