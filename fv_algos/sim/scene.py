@@ -31,6 +31,7 @@ tangential contact is not modelled: loading is treated as monotonic).
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -279,13 +280,17 @@ def _lerp(a: Loads, b: Loads, s: float) -> Loads:
     )
 
 
-def scene_commands(scene: Scene) -> list[Command]:
-    """The commanded loads and motions at every frame time t_k = k / fps, k < n_frames."""
+def _step_bounds(scene: Scene) -> np.ndarray:
+    """(len(steps) + 1,) start time of every step and the scene's end, s."""
+    return np.cumsum([0.0] + [s.duration_s for s in scene.steps])
+
+
+def scene_commands(scene: Scene) -> Iterator[Command]:
+    """The commanded loads and motions at every frame time t_k = k / fps, k < n_frames, one at a time."""
     starts = [scene.initial]
     for step in scene.steps:
         starts.append(_end_loads(step, starts[-1]))
-    bounds = np.cumsum([0.0] + [s.duration_s for s in scene.steps])
-    out = []
+    bounds = _step_bounds(scene)
     for k in range(scene.n_frames):
         t = k / scene.fps
         i = min(int(np.searchsorted(bounds, t, side="right")) - 1, len(scene.steps) - 1)
@@ -297,8 +302,24 @@ def scene_commands(scene: Scene) -> list[Command]:
             motion, velocity = step.action, step.velocity_mm_s
         elif step.action == "twist" and step.angular_velocity_deg_s is not None:
             motion, spin = "spin", float(np.radians(step.angular_velocity_deg_s))
-        out.append(Command(t, step.action, loads, motion, velocity, spin))
-    return out
+        yield Command(t, step.action, loads, motion, velocity, spin)
+
+
+def scripted_motion(scene: Scene, t0_s: float, t1_s: float) -> tuple[np.ndarray, float]:
+    """How far the steps move the object between ``t0_s`` and ``t1_s`` (slides and rolls: (2,) mm;
+    spins: rad), integrated over the time each step overlaps the interval, so a slide goes its velocity
+    times its duration whatever the frame rate."""
+    bounds = _step_bounds(scene)
+    shift, turn = np.zeros(2), 0.0
+    for step, start, end in zip(scene.steps, bounds[:-1], bounds[1:]):
+        overlap = min(end, t1_s) - max(start, t0_s)
+        if overlap <= 0:
+            continue
+        if step.action in ("slide", "roll"):
+            shift += np.asarray(step.velocity_mm_s) * overlap
+        elif step.action == "twist" and step.angular_velocity_deg_s is not None:
+            turn += float(np.radians(step.angular_velocity_deg_s)) * overlap
+    return shift, turn
 
 
 def _unit(rng: np.random.Generator) -> np.ndarray:

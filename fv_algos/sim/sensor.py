@@ -22,7 +22,7 @@ from fv_algos.sim.halfspace import SurfaceGrid
 from fv_algos.sim.render import RenderParams, SkinRenderer
 from fv_algos.sim.render import EFFECTS as RENDER_EFFECTS
 from fv_algos.sim.scene import (DEFAULT_RENDER_EFFECTS, SCENARIO_KINDS, Command, Scene, grasp_scene, random_scenario,
-                                scene_commands)
+                                scene_commands, scripted_motion)
 from fv_algos.sim.skin import SkinParams, marker_grid_mm
 
 
@@ -68,20 +68,21 @@ class SceneRunner:
     def __init__(self, scene: Scene, skin: SkinParams, contact: ContactParams) -> None:
         self.scene = scene
         self.model = ContactModel(skin, contact)
-        self._commands = scene_commands(scene)
         self._effects = frozenset(scene.effects)
 
     def __len__(self) -> int:
-        return len(self._commands)
+        return self.scene.n_frames
 
     def __iter__(self) -> Iterator[MechanicsFrame]:
-        """Yields MechanicsFrame for frames 0 .. n_frames - 1."""
+        """Yields MechanicsFrame for frames 0 .. n_frames - 1. Between two frames the object moves as
+        the steps script it (:func:`fv_algos.sim.scene.scripted_motion`), or, where the loads alone pass
+        the friction limit (gross slip with the "slip" effect), at the scene's slide speed / spin rate."""
         scene = self.scene
         self.model.reset()
         centre = np.array(scene.start_mm, dtype=np.float64)
         angle = float(np.radians(scene.start_angle_deg))
         dt = 1.0 / scene.fps
-        for k, cmd in enumerate(self._commands):
+        for k, cmd in enumerate(scene_commands(scene)):
             velocity = np.array(cmd.velocity_mm_s, dtype=np.float64)
             speed = float(np.hypot(*velocity))
             direction = velocity / speed if speed > 0 else np.zeros(2)
@@ -92,11 +93,9 @@ class SceneRunner:
                 cmd.motion if cmd.motion == "roll" or "slip" in self._effects else "none", direction, self._effects,
             )
             yield MechanicsFrame(k, cmd, centre.copy(), angle, state)
-            if cmd.motion == "roll" or (cmd.motion == "slide" and "slip" in self._effects):
-                centre = centre + velocity * dt
-            elif cmd.motion == "spin" and "slip" in self._effects:
-                angle += cmd.angular_velocity_rad_s * dt
-            elif state.slip_state == "gross" and "slip" in self._effects:
+            shift, turn = scripted_motion(scene, cmd.stamp_s, (k + 1) * dt)
+            centre, angle = centre + shift, angle + turn
+            if cmd.motion == "none" and state.slip_state == "gross" and "slip" in self._effects:
                 if state.slip_type == "translational":
                     force = np.array(cmd.loads.force_N)
                     centre = centre + scene.slide_speed_mm_s * dt * force / max(float(np.hypot(*force)), 1e-12)

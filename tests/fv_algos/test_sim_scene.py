@@ -139,10 +139,10 @@ def _numbers(loads: Loads) -> list[float]:
 def test_a_grasp_starts_and_ends_at_rest_and_plays_its_scenario_between(kind: str) -> None:
     scene = random_scenario(np.random.default_rng(5), kind, n_frames=15, fps=30.0)
     grasp = grasp_scene(scene, approach_s=0.4, release_s=0.4, rest_s=0.2)
-    commands = scene_commands(grasp)
+    commands = list(scene_commands(grasp))
     assert grasp.initial == Loads() and commands[0].loads == Loads()
     approach = 12 + 6 * (any(scene.initial.force_N))  # frames of the press (0.4 s) and the shear (0.2 s)
-    body = scene_commands(scene)
+    body = list(scene_commands(scene))
     assert {c.action for c in commands[approach + 1:approach + 15]} == {c.action for c in body[1:]}  # (a frame
     # on a step's boundary, the body's first one included, may fall on either side of it: the times are sums of floats)
     np.testing.assert_allclose([_numbers(c.loads) for c in commands[approach:approach + 15]],

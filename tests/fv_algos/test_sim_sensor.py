@@ -89,3 +89,24 @@ def test_random_loop_mode_plays_grasps_from_rest_and_frame_time() -> None:
         assert frames[last].truth.mechanics.command.loads == Loads()
         assert np.abs(frames[last].truth.marker_displacement_mm).max() < 1e-9
     assert sensor.last_frame_s > 0
+
+
+@pytest.mark.parametrize("fps", [1.0, 3.0, 7.0, 30.0])
+def test_a_slide_goes_its_distance_at_any_frame_rate(fps: float) -> None:
+    """The object moved velocity / fps once per frame inside the step: a 0.5 s slide at 4 mm/s went
+    0 mm at 1 fps, 2.667 at 3 and 1.714 at 7 (2 mm)."""
+    from fv_algos.sim.contact import ContactParams
+    from fv_algos.sim.sensor import SceneRunner
+    from fv_algos.sim.skin import SkinParams
+    scene = scene_from_dict({"object": {"shape": "sphere"}, "fps": fps, "effects": ["normal", "shear", "torsion", "slip"],
+                             "initial": {"normal_N": 2.0},
+                             "steps": [{"action": "hold", "duration_s": 0.6},
+                                       {"action": "slide", "duration_s": 0.5, "velocity_mm_s": [4.0, 0.0]},
+                                       {"action": "hold", "duration_s": 1.0},
+                                       {"action": "twist", "duration_s": 0.5, "angular_velocity_deg_s": 30.0},
+                                       {"action": "hold", "duration_s": 1.0}]})
+    runner = SceneRunner(scene, SkinParams(), ContactParams())
+    frames = {round(f.command.stamp_s * fps): f for f in runner}
+    after_slide, after_twist = frames[int(np.ceil(2.1 * fps))], frames[len(runner) - 1]
+    np.testing.assert_allclose(after_slide.centre_mm, [2.0, 0.0], atol=1e-9)
+    assert np.degrees(after_twist.angle_rad) == pytest.approx(15.0)
