@@ -33,7 +33,7 @@ from tqdm import tqdm
 from fv_algos.perception import Perception, PerceptionParams
 from fv_algos.sim.objects import SHAPES, shape_name
 from fv_algos.sim.scene import DEFAULT_RENDER_EFFECTS, NON_SLIP_KINDS, SLIP_KINDS, Scene, grasp_scene, random_scenario
-from fv_algos.sim.sensor import SimSensor
+from fv_algos.sim.sensor import SceneRunner, SensorParams, SimSensor
 from fv_algos.slip.windows import SequenceSet
 
 OBJECT_NAMES: tuple[str, ...] = tuple(SHAPES)
@@ -42,6 +42,8 @@ OBJECT_NAMES: tuple[str, ...] = tuple(SHAPES)
 _THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 GRASP_MOTION_S = (2.0, 4.0)  # a grasp's scenario lasts one of these, s: the main job's 60 frames at 30 and 15 fps
 GRASP_SEGMENT_STEP = 10  # frames between the starts of a grasp's sequences
+SLIP_FROM_FRAME = 3  # a slip sequence slips from this frame on (random_scenario's kinds: frame 3 at the latest)
+MAX_DRAWS = 20  # scenarios drawn for one sequence at most, until one's truth agrees with its kind
 
 
 @dataclass(frozen=True)
@@ -120,11 +122,25 @@ def _perceive(scene: Scene, rng: np.random.Generator, preset: str) -> tuple[np.n
     return np.stack(fields), np.array(frame_slip, dtype=bool), np.array(invalid, dtype=bool), sensor.camera.width
 
 
+def _scenario_of_kind(rng: np.random.Generator, kind: str, config: SimDatasetConfig) -> Scene:
+    """A random scenario of ``kind`` whose mechanics' truth is what its label says: a slip kind slips on
+    every frame from ``SLIP_FROM_FRAME`` on, so that every window of it holds slip; a no-slip kind never
+    slips. A draw that misses (e.g. an "incipient" shear on a bottle cap's lip or an edge, whose slip zone
+    stays under half the contact: truth "stick") is drawn again from ``rng``."""
+    params = SensorParams()
+    for _ in range(MAX_DRAWS):
+        scene = random_scenario(rng, kind, config.n_frames, config.fps, frozenset(config.render_effects))
+        slip = np.array([frame.state.is_slip for frame in SceneRunner(scene, params.skin, params.contact)])
+        if slip[SLIP_FROM_FRAME:].all() if kind in SLIP_KINDS else not slip.any():
+            return scene
+    raise RuntimeError(f"no {kind} scenario in {MAX_DRAWS} draws slipped as its label says")
+
+
 def simulate_sequence(config: SimDatasetConfig, index: int, kind: str) -> SimSequence:
     """Render sequence ``index`` of kind ``kind`` and run perception on it (deterministic in
-    (config.seed, index))."""
+    (config.seed, index)); its label is its kind's (:func:`_scenario_of_kind` makes the truth agree)."""
     rng = np.random.default_rng([config.seed, index])
-    scene = random_scenario(rng, kind, config.n_frames, config.fps, frozenset(config.render_effects))
+    scene = _scenario_of_kind(rng, kind, config)
     fields, frame_slip, invalid, width = _perceive(scene, rng, config.preset)
     return SimSequence(fields, kind, int(kind in SLIP_KINDS), OBJECT_NAMES.index(shape_name(scene.obj)), frame_slip,
                        int(invalid.sum()), width)

@@ -40,8 +40,9 @@ from typing import Any
 
 import yaml
 
+from fv_algos.yaml_loader import YamlLoader
 from nodes.bus import absolute_namespace
-from nodes.params import ParamError, YamlLoader, build_params, parse_text
+from nodes.params import ParamError, build_params, parse_text
 
 TOP_KEYS = {"args", "include", "nodes"}
 NODE_KEYS = {"kind", "name", "namespace", "params", "remap", "env", "respawn", "respawn_delay", "max_retries",

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import re
 import types
 import typing
 from typing import Any
 
 import yaml
+
+from fv_algos.yaml_loader import YamlLoader
 
 
 class ParamError(ValueError):
@@ -53,15 +54,6 @@ def _coerce(tp: Any, value: Any) -> Any:
     if typing.get_origin(tp) is tuple and isinstance(value, list):
         return tuple(value)
     return value
-
-
-class YamlLoader(yaml.SafeLoader):
-    """SafeLoader that also reads YAML 1.2's floats without a dot (1e9, -2E-3) as numbers: YAML 1.1,
-    PyYAML's, reads them as text, so `fps:=1e9` was refused as "not of type float"."""
-
-
-YamlLoader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9]+[eE][-+]?[0-9]+$"),
-                                 list("-+0123456789"))
 
 
 def parse_text(text: str) -> Any:

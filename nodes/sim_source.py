@@ -43,10 +43,13 @@ class SimSource:
     def read(self) -> Frame | None:
         if self._frames is None:
             return None
-        frame = next(self._frames, None)
-        if frame is None:  # a scene ended: play it again
-            self.open()
-            frame = next(self._frames)
+        try:
+            frame = next(self._frames, None)
+            if frame is None:  # a scene ended: play it again
+                self.open()
+                frame = next(self._frames)
+        except ValueError as exc:  # a scene its mechanics cannot play on (e.g. the object slid off the skin)
+            raise SourceError(f"{self.name}: {exc}") from None
         return Frame(frame.image, time.time_ns())
 
     def close(self) -> None:

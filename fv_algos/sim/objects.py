@@ -310,8 +310,7 @@ def make_object(description: dict[str, Any]) -> Indenter:
     for key in params:
         if key not in allowed:
             raise ValueError(f"object key {key!r} is not a field of {name}; allowed: {sorted(allowed)}")
-    try:
-        values = {k: float(v) for k, v in params.items()}
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"object fields must be numbers: {exc}") from None
-    return cls(**values)
+    for key, value in params.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"object.{key} must be a number, got {value!r}")
+    return cls(**{k: float(v) for k, v in params.items()})

@@ -41,6 +41,7 @@ import yaml
 
 from fv_algos.sim.objects import SHAPES, Indenter, make_object, shape_name
 from fv_algos.sim.render import EFFECTS as RENDER_EFFECTS
+from fv_algos.yaml_loader import YamlLoader
 
 MECHANICS_EFFECTS = frozenset({"normal", "shear", "torsion", "slip"})
 EFFECTS = MECHANICS_EFFECTS | RENDER_EFFECTS
@@ -185,6 +186,8 @@ def _step_from_dict(desc: Any, index: int) -> Step:
         values[key] = _vector(desc[key], name) if key in ("force_N", "velocity_mm_s") else _number(desc[key], name)
     if values.get("normal_N", 0.0) < 0:
         raise ValueError(f"{where}.normal_N must be >= 0, got {values['normal_N']}")
+    if values.get("velocity_mm_s") == (0.0, 0.0) or values.get("angular_velocity_deg_s") == 0.0:
+        raise ValueError(f"{where}: a {action} at zero speed does not move the object (use hold)")
     return Step(action=action, duration_s=duration, **values)
 
 
@@ -229,8 +232,8 @@ def scene_from_dict(desc: dict[str, Any]) -> Scene:
     if initial.torque_Nmm:
         needed |= {"torsion"}
     if "effects" in desc:
-        if not isinstance(desc["effects"], list):
-            raise ValueError("effects must be a list of names")
+        if not isinstance(desc["effects"], list) or not all(isinstance(name, str) for name in desc["effects"]):
+            raise ValueError(f"effects must be a list of names, got {desc['effects']!r}")
         effects = frozenset(desc["effects"])
         unknown = effects - EFFECTS
         if unknown:
@@ -242,6 +245,9 @@ def scene_from_dict(desc: dict[str, Any]) -> Scene:
         effects = needed
     start = _vector(desc.get("start_mm", [0.0, 0.0]), "start_mm")
     rates = {k: _number(desc.get(k, d), k) for k, d in (("slide_speed_mm_s", 5.0), ("spin_rate_deg_s", 30.0))}
+    for key, rate in rates.items():
+        if rate <= 0:
+            raise ValueError(f"{key} must be > 0, got {rate}")
     return Scene(obj, fps, effects, steps, start, _number(desc.get("start_angle_deg", 0.0), "start_angle_deg"), initial, **rates)
 
 
@@ -252,8 +258,18 @@ def load_scene(path: str | Path) -> Scene:
     if suffix not in (".yaml", ".yml", ".json"):
         raise ValueError(f"scene file must end in .yaml, .yml or .json, got {path.name!r}")
     text = path.read_text()
-    desc = json.loads(text) if suffix == ".json" else yaml.safe_load(text)
-    return scene_from_dict(desc)
+    try:
+        desc = json.loads(text) if suffix == ".json" else yaml.load(text, Loader=YamlLoader)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not JSON: {exc}") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+        raise ValueError(f"{path}: not YAML: {where}{getattr(exc, 'problem', None) or exc}") from None
+    try:
+        return scene_from_dict(desc)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
 
 
 def _end_loads(step: Step, start: Loads) -> Loads:

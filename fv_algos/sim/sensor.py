@@ -69,6 +69,7 @@ class SceneRunner:
         self.scene = scene
         self.model = ContactModel(skin, contact)
         self._effects = frozenset(scene.effects)
+        self._half_size_mm = skin.size_mm / 2.0
 
     def __len__(self) -> int:
         return self.scene.n_frames
@@ -88,10 +89,16 @@ class SceneRunner:
             direction = velocity / speed if speed > 0 else np.zeros(2)
             if cmd.motion == "spin":
                 direction = np.array([np.sign(cmd.angular_velocity_rad_s), 0.0])
+            if np.abs(centre).max() > self._half_size_mm + 1e-9:  # its load would all press on the skin's rim
+                raise ValueError(f"frame {k} (t = {cmd.stamp_s:.3f} s): the object's centre ({centre[0]:.2f}, "
+                                 f"{centre[1]:.2f}) mm has left the skin, which spans +-{self._half_size_mm:g} mm")
             state = self.model.solve(
                 scene.obj, centre, angle, cmd.loads.normal_N, np.array(cmd.loads.force_N), cmd.loads.torque_Nmm,
                 cmd.motion if cmd.motion == "roll" or "slip" in self._effects else "none", direction, self._effects,
             )
+            if state.slip_state == "gross" and cmd.motion == "none" and "slip" not in self._effects:
+                raise ValueError(f"frame {k} (t = {cmd.stamp_s:.3f} s): the loads pass the friction limit (gross "
+                                 f"{state.slip_type} slip) but the scene lacks the 'slip' effect that moves the object")
             yield MechanicsFrame(k, cmd, centre.copy(), angle, state)
             shift, turn = scripted_motion(scene, cmd.stamp_s, (k + 1) * dt)
             centre, angle = centre + shift, angle + turn

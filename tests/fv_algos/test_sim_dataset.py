@@ -8,7 +8,7 @@ import pytest
 
 from fv_algos.sim.objects import SHAPES
 from fv_algos.sim.scene import NON_SLIP_KINDS, SLIP_KINDS
-from fv_algos.sim_dataset import (GRASP_SEGMENT_STEP, OBJECT_NAMES, SimDatasetConfig, generate, iter_sequences, kind_plan,
+from fv_algos.sim_dataset import (GRASP_SEGMENT_STEP, OBJECT_NAMES, SLIP_FROM_FRAME, SimDatasetConfig, generate, iter_sequences, kind_plan,
                                   simulate_grasp, simulate_sequence)
 from fv_algos.slip.windows import SequenceSet, load_sequences, make_windows, save_sequences
 
@@ -100,3 +100,12 @@ def test_bad_input_is_rejected() -> None:
         SimDatasetConfig(n_frames=3)
     with pytest.raises(ValueError, match="workers"):
         next(iter_sequences(CONFIG, workers=0))
+
+
+def test_a_sequence_slips_as_its_label_says() -> None:
+    """Sequence 70 of the default set (seed 0) is an "incipient" shear on an edge labelled slip, whose
+    slip zone stayed under half the contact: its truth said stick on all 15 frames (24 of the 1,600)."""
+    config = SimDatasetConfig(n_sequences=1600)
+    kind = kind_plan(config.n_sequences, config.seed)[70]
+    sequence = simulate_sequence(config, 70, kind)
+    assert kind == "incipient" and sequence.label == 1 and sequence.frame_slip[SLIP_FROM_FRAME:].all()

@@ -74,11 +74,30 @@ def test_twist_and_roll() -> None:
         ({"effects": ["normal"]}, "effects"),
         ({"colour": "red"}, "colour"),
         ({"steps": [{"action": "press", "duration_s": 1, "normal_N": 1, "torque_Nmm": 2}]}, "torque_Nmm"),
+        ({"steps": [{"action": "slide", "duration_s": 1, "velocity_mm_s": [0, 0]}]}, "a slide at zero speed"),
+        ({"steps": [{"action": "twist", "duration_s": 1, "angular_velocity_deg_s": 0}]}, "a twist at zero speed"),
+        ({"slide_speed_mm_s": -5}, "slide_speed_mm_s must be > 0"),  # moved the object against the force
+        ({"spin_rate_deg_s": 0}, "spin_rate_deg_s must be > 0"),      # gross slip that never moved
+        ({"effects": ["normal", {"x": 1}]}, "effects must be a list of names"),  # unhashable type: 'dict'
+        ({"object": {"shape": "sphere", "radius_mm": "10"}}, "object.radius_mm must be a number"),  # taken
     ],
 )
 def test_bad_descriptions_name_the_key(change: dict, key: str) -> None:
     with pytest.raises(ValueError, match=key):
         scene_from_dict({**EXAMPLE, **change})
+
+
+def test_mechanics_a_scene_cannot_play_are_named_by_frame() -> None:
+    off = {**EXAMPLE, "steps": [{"action": "press", "duration_s": 0.2, "normal_N": 2.0},
+                                {"action": "slide", "duration_s": 4.0, "velocity_mm_s": [5, 0]}]}
+    with pytest.raises(ValueError, match=r"frame 5\d \(t = 2.6\d0 s\): the object's centre \(12.\d\d, 0.00\) mm has "
+                                         r"left the skin, which spans \+-12 mm"):  # its whole load pressed the rim
+        _run(off)
+    past = {"object": {"shape": "sphere", "mu": 0.5}, "fps": 10, "effects": ["normal", "shear"],
+            "initial": {"normal_N": 2.0}, "steps": [{"action": "shear", "duration_s": 1.0, "force_N": [2.0, 0]}]}
+    with pytest.raises(ValueError, match="frame 5 .* pass the friction limit .* lacks the 'slip' effect"):
+        _run(past)  # the truth said gross slip while the object stood still
+    assert _run({**past, "effects": ["normal", "shear", "slip"]})[-1].centre_mm[0] > 0
 
 
 def test_yaml_and_json_files(tmp_path) -> None:
@@ -87,6 +106,14 @@ def test_yaml_and_json_files(tmp_path) -> None:
     assert load_scene(tmp_path / "s.yaml") == load_scene(tmp_path / "s.json") == scene_from_dict(EXAMPLE)
     with pytest.raises(ValueError, match="yaml"):
         load_scene(tmp_path / "s.txt")
+    (tmp_path / "e.yaml").write_text(yaml.safe_dump(EXAMPLE).replace("duration_s: 0.5", "duration_s: 5e-1"))
+    assert load_scene(tmp_path / "e.yaml") == scene_from_dict(EXAMPLE)  # YAML 1.2's 5e-1 is a number
+    (tmp_path / "broken.yaml").write_text("object: {shape: sphere\nfps: 30\n")
+    with pytest.raises(ValueError, match=r"broken.yaml: not YAML: line 2, column 4: expected ',' or '}'"):
+        load_scene(tmp_path / "broken.yaml")  # a parser traceback naming "<unicode string>"
+    (tmp_path / "bad.json").write_text(json.dumps({**EXAMPLE, "object": {"shape": "egg"}}))
+    with pytest.raises(ValueError, match="bad.json: .*object.shape 'egg' is unknown"):
+        load_scene(tmp_path / "bad.json")
 
 
 @pytest.mark.parametrize("kind", SLIP_KINDS + NON_SLIP_KINDS)

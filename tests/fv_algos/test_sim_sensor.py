@@ -110,3 +110,19 @@ def test_a_slide_goes_its_distance_at_any_frame_rate(fps: float) -> None:
     after_slide, after_twist = frames[int(np.ceil(2.1 * fps))], frames[len(runner) - 1]
     np.testing.assert_allclose(after_slide.centre_mm, [2.0, 0.0], atol=1e-9)
     assert np.degrees(after_twist.angle_rad) == pytest.approx(15.0)
+
+
+def test_a_scene_its_mechanics_cannot_play_is_a_named_camera_fault(tmp_path) -> None:
+    """A camera on such a scene logged a bare exception and replayed its first frames."""
+    import yaml
+
+    from nodes.camera_sources import SourceError
+    from nodes.sim_source import SimSource
+    scene = tmp_path / "off.yaml"
+    scene.write_text(yaml.safe_dump({"object": {"shape": "sphere"}, "fps": 5, "initial": {"normal_N": 1.0},
+                                     "steps": [{"action": "slide", "duration_s": 4.0, "velocity_mm_s": [5, 0]}]}))
+    source = SimSource(str(scene), 0, 5.0)
+    source.open()
+    with pytest.raises(SourceError, match=r"off.yaml: frame 13 .* has left the skin"):
+        for _ in range(20):
+            source.read()
