@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 from pathlib import Path
 
 from nodes.arg_types import output_file, output_folder, output_with_suffix, random_seed
@@ -39,23 +40,33 @@ def _sim(args: argparse.Namespace) -> int:
         raise ValueError("give --out DIR and/or --preview FILE.png")
     if args.frames < 1:
         raise ValueError(f"--frames {args.frames} must be >= 1")
+    if args.frame < -1:
+        raise ValueError(f"--frame {args.frame} must be >= 0 (or -1: the last of --frames)")
     if args.out is not None and args.out.is_dir() and any(args.out.iterdir()):
         raise ValueError(f"--out {args.out} holds files already: an earlier sequence's frames would stay among "
                          "these; choose an empty or new folder")
     scene = load_scene(args.scene) if args.scene else None
+    frames = args.frames if scene is None else min(args.frames, scene.n_frames)
+    index = args.frame if args.frame >= 0 else frames - 1
+    if scene is not None and index >= scene.n_frames:
+        raise ValueError(f"--frame {index}: the scene has {scene.n_frames} frames (0 to {scene.n_frames - 1})")
     if args.out is not None:
-        out = write_sequence(SimSensor(scene, seed=args.seed), args.out, args.frames)
-        print(f"wrote {args.frames} frames with ground truth to {out}")
+        written = write_sequence(SimSensor(scene, seed=args.seed), args.out, frames)
+        whole = f" (the whole scene; --frames asked for {args.frames})" if written < args.frames else ""
+        print(f"wrote {written} frames with ground truth to {args.out}{whole}")
     if args.preview is not None:
-        index = args.frame if args.frame >= 0 else args.frames - 1
-        frame = None
-        for frame, _ in zip(SimSensor(scene, seed=args.seed), range(index + 1)):
-            pass
         args.preview.parent.mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(args.preview), preview_image(frame))
-        t = frame.truth
-        print(f"wrote preview of frame {index} to {args.preview} "
-              f"(slip state {t.slip_state}, contact {t.contact_area_mm2:.1f} mm^2)")
+        if args.out is not None and index < frames:  # written already: no second simulation
+            shutil.copyfile(args.out / f"preview_{index:05d}.png", args.preview)
+            truth = json.loads((args.out / "truth.json").read_text())["frames"][index]
+            state, area = truth["slip_state"], truth["contact_area_mm2"]
+        else:
+            frame = None
+            for frame, _ in zip(SimSensor(scene, seed=args.seed), range(index + 1)):
+                pass
+            cv2.imwrite(str(args.preview), preview_image(frame))
+            state, area = frame.truth.slip_state, frame.truth.contact_area_mm2
+        print(f"wrote preview of frame {index} to {args.preview} (slip state {state}, contact {area:.1f} mm^2)")
     return 0
 
 

@@ -8,6 +8,7 @@ markers and displacement arrows over a frame.
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -303,8 +304,11 @@ def preview_image(frame: SimFrame, arrow_scale: float = 5.0) -> np.ndarray:
     return out
 
 
-def write_sequence(sensor: SimSensor, out_dir: str | Path, n_frames: int) -> Path:
-    """Write `n_frames` frames as PNG plus ground truth for inspection.
+def write_sequence(sensor: SimSensor, out_dir: str | Path, n_frames: int) -> int:
+    """Write the first `n_frames` frames (fewer when the scene ends first) as PNG plus ground truth for
+    inspection, into a new or empty folder `out_dir`. The files are written to `out_dir` + ".partial" and
+    the folder renamed once all are there, so a failure (e.g. a scene that slides its object off the
+    skin) leaves no folder of some frames without their truth; it removes the partial folder.
 
     Files: frame_%05d.png, preview_%05d.png, truth.npz (stamp_s (T,), markers_ref_mm
     (N, 2), marker_displacement_mm (T, N, 3), markers_px (T, N, 2), visible (T, N),
@@ -312,12 +316,28 @@ def write_sequence(sensor: SimSensor, out_dir: str | Path, n_frames: int) -> Pat
     truth.json (per-frame slip state/type, loads, contact area and centre, pose).
 
     Returns:
-        The output folder.
+        T, the frames written.
     """
     if n_frames < 1:
         raise ValueError(f"n_frames must be >= 1, got {n_frames}")
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ValueError(f"{out} is not a new or empty folder")
+    partial = out.with_name(out.name + ".partial")
+    shutil.rmtree(partial, ignore_errors=True)  # an earlier run's, killed before it could remove it
+    partial.mkdir(parents=True)
+    try:
+        written = _write_frames(sensor, partial, n_frames)
+        if out.exists():
+            out.rmdir()
+        partial.rename(out)
+    finally:
+        shutil.rmtree(partial, ignore_errors=True)
+    return written
+
+
+def _write_frames(sensor: SimSensor, out: Path, n_frames: int) -> int:
+    """The files of :func:`write_sequence`, into the folder `out`; returns the frames written."""
     arrays: dict[str, list[np.ndarray]] = {k: [] for k in ("stamp_s", "marker_displacement_mm", "markers_px", "visible", "contact", "slip", "displacement_mm", "slip_label")}
     records = []
     for i, frame in zip(range(n_frames), sensor):
@@ -337,4 +357,4 @@ def write_sequence(sensor: SimSensor, out_dir: str | Path, n_frames: int) -> Pat
         })
     np.savez_compressed(out / "truth.npz", markers_ref_mm=sensor.markers_ref_mm, **{k: np.stack(v) for k, v in arrays.items()})
     (out / "truth.json").write_text(json.dumps({"frames": records}, indent=1))
-    return out
+    return len(records)

@@ -65,7 +65,8 @@ def test_image_displacement_matches_marker_motion() -> None:
 
 def test_write_sequence_and_preview(tmp_path) -> None:
     sensor = SimSensor(scene_from_dict(SCENE), seed=0)
-    out = write_sequence(sensor, tmp_path / "seq", 4)
+    out = tmp_path / "seq"
+    assert write_sequence(sensor, out, 4) == 4
     assert len(list(out.glob("frame_*.png"))) == 4 and len(list(out.glob("preview_*.png"))) == 4
     data = np.load(out / "truth.npz")
     assert data["marker_displacement_mm"].shape == (4, 256, 3)
@@ -126,3 +127,27 @@ def test_a_scene_its_mechanics_cannot_play_is_a_named_camera_fault(tmp_path) -> 
     with pytest.raises(SourceError, match=r"off.yaml: frame 13 .* has left the skin"):
         for _ in range(20):
             source.read()
+
+
+def test_a_failed_sequence_leaves_no_folder_and_the_command_says_what_it_wrote(tmp_path, capsys) -> None:
+    """A scene that failed at frame 13 left 26 PNGs without truth, which then blocked the retry; `fv sim
+    --frames 200` of an 87-frame scene said "wrote 200 frames", and `--frame 500` of it previewed its last."""
+    import yaml
+
+    from nodes.cli import main
+    off = tmp_path / "off.yaml"
+    off.write_text(yaml.safe_dump({"object": {"shape": "sphere"}, "fps": 5, "initial": {"normal_N": 1.0},
+                                   "steps": [{"action": "slide", "duration_s": 4.0, "velocity_mm_s": [5, 0]}]}))
+    assert main(["sim", "--scene", str(off), "--out", str(tmp_path / "seq"), "--frames", "20"]) == 2
+    assert "has left the skin" in capsys.readouterr().err and sorted(p.name for p in tmp_path.iterdir()) == ["off.yaml"]
+    short = tmp_path / "short.yaml"
+    short.write_text(yaml.safe_dump({**SCENE, "fps": 10}))
+    n_frames = scene_from_dict({**SCENE, "fps": 10}).n_frames
+    assert main(["sim", "--scene", str(short), "--out", str(tmp_path / "seq"), "--frames", "200",
+                 "--preview", str(tmp_path / "p.png")]) == 0
+    printed = capsys.readouterr().out
+    assert f"wrote {n_frames} frames with ground truth to {tmp_path / 'seq'} (the whole scene" in printed
+    assert f"wrote preview of frame {n_frames - 1} to" in printed
+    assert (tmp_path / "p.png").read_bytes() == (tmp_path / "seq" / f"preview_{n_frames - 1:05d}.png").read_bytes()
+    assert main(["sim", "--scene", str(short), "--preview", str(tmp_path / "q.png"), "--frame", "500"]) == 2
+    assert f"--frame 500: the scene has {n_frames} frames" in capsys.readouterr().err
