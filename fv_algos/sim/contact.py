@@ -33,7 +33,7 @@ import numpy as np
 
 from fv_algos.sim.halfspace import HalfSpace, SurfaceGrid
 from fv_algos.sim.objects import Coin, Indenter, Sphere
-from fv_algos.sim.skin import SkinParams
+from fv_algos.sim.skin import Elastomer, SkinParams
 
 
 @dataclass(frozen=True)
@@ -525,7 +525,18 @@ class ContactModel:
         if isinstance(obj, Coin) and self._inside(centre_mm, obj.radius_mm):
             return flat_punch_solution(self.grid, centre_mm, load_N, obj.radius_mm, e_star)
         gap = obj.gap_mm(self._mesh[0], self._mesh[1], centre_mm, angle_rad)
-        return solve_normal(self.halfspace, gap, load_N, self.params, warm)
+        return solve_normal(self._normal_halfspace(e_star), gap, load_N, self.params, warm)
+
+    def _normal_halfspace(self, contact_modulus_mpa: float) -> HalfSpace:
+        """The compliance the normal solver presses against: the skin's, and the object's as well when it
+        is not rigid by comparison (its compliance over 1e-3 of the skin's: a soft object flattens too,
+        as in the Hertz and flat-punch forms, whose E* it shares). The skin's displacements stay the skin's
+        own (`halfspace`)."""
+        skin = self.skin.material
+        skin_modulus = skin.youngs_modulus_mpa / (1.0 - skin.poisson_ratio**2)
+        if contact_modulus_mpa >= skin_modulus / (1.0 + 1e-3):
+            return self.halfspace
+        return HalfSpace(self.grid, Elastomer(contact_modulus_mpa * (1.0 - skin.poisson_ratio**2), skin.poisson_ratio))
 
     def solve(
         self,
