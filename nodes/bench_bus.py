@@ -189,6 +189,8 @@ def add_parser(kinds: argparse._SubParsersAction, name: str) -> None:
 
 
 def _bench_bus(args: argparse.Namespace) -> int:
+    if args.throughput_frames < 2:  # a rate needs two frames: one gave "throughput_fps": 0.0
+        raise ValueError(f"--throughput-frames {args.throughput_frames}: a throughput needs 2 frames at least")
     result = run_bench(args)
     if args.json:
         print(json.dumps(result, indent=2))

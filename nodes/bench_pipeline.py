@@ -50,7 +50,7 @@ CONFIGS: dict[str, dict[str, str]] = {
 PIPELINE_NODES = ("camera", "tracker", "interpolator", "slip_detector")
 STAGE_TOPICS = ("/markers", "/field", "/slip")
 FIRST_SLIP_TIMEOUT_S = 90.0
-TABLE_COLUMNS = ("config", "fps", "camera_hz", "slip_hz", "dropped", "skipped", "latency_p50_ms",
+TABLE_COLUMNS = ("config", "fps", "camera_hz", "slip_hz", "dropped_total", "skipped", "latency_p50_ms",
                  "latency_p99_ms", "cpu_percent_total", "peak_rss_mb_total")
 
 
@@ -162,7 +162,7 @@ def run_once(config: str, fps: float, duration_s: float, warmup_s: float, thread
                 rec.stamps[item.topic][msg.stamp_ns] = (msg.pub_ns, recv_ns)
         wall = time.monotonic() - t0
         cpu = {name: round(100.0 * (cpu_seconds(pid) - cpu0[name]) / wall, 1) for name, pid in pids.items()}
-        peak = {name: round(memory_bytes(pid)[1] / 2**20, 1) for name, pid in pids.items()}
+        peak = {name: round(memory_bytes(pid)[1] / 1e6, 1) for name, pid in pids.items()}
         respawned = [name for name in PIPELINE_NODES if launch.pid(name) != pids[name]]
     return summarise(config, fps, wall, rec, first_status, cpu, peak, respawned)
 
@@ -214,7 +214,7 @@ def run_bench(rates: list[float], configs: list[str], duration_s: float, warmup_
 def add_parser(kinds: argparse._SubParsersAction, name: str) -> None:
     p = kinds.add_parser(name, help="the four-process pipeline at several camera rates, paper vs default")
     p.add_argument("--fps", default="30,60,120", help="comma-separated camera rates in Hz (default 30,60,120)")
-    p.add_argument("--configs", default="paper,default", help=f"comma-separated among {sorted(CONFIGS)}")
+    p.add_argument("--configs", default="paper,default", help=f"comma-separated among {sorted(CONFIGS)} (default paper,default)")
     p.add_argument("--duration", type=positive_float, default=20.0, help="measured seconds per run (default 20)")
     p.add_argument("--warmup", type=non_negative_float, default=3.0, help="seconds after the first /slip before measuring")
     p.add_argument("--threads", type=positive_int, default=1, help="torch threads of the slip detector (default 1)")

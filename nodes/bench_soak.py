@@ -51,7 +51,7 @@ def memory_growth(series: dict[tuple[str, int], list[tuple[float, int]]], run_s:
         first = float(np.median([rss for _, rss in kept[:k]]))
         last = float(np.median([rss for _, rss in kept[-k:]]))
         rows.append({"node": name, "pid": pid, "span_s": round(kept[-1][0] - kept[0][0], 1),
-                     "rss_mb_first": round(first / 2**20, 2), "rss_mb_last": round(last / 2**20, 2),
+                     "rss_mb_first": round(first / 1e6, 2), "rss_mb_last": round(last / 1e6, 2),
                      "growth_percent": round(100.0 * (last - first) / first, 3)})
     return rows
 

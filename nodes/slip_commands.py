@@ -466,9 +466,12 @@ def _bench_slip(args: argparse.Namespace) -> int:
     cfg = model.config
     window = np.zeros((1, cfg.window, cfg.grid, cfg.grid, 3), np.float32)
     rows = []
+    thread_counts = _csv(args.threads, int)
+    if min(thread_counts) < 1:
+        raise ValueError(f"--threads {args.threads}: every thread count must be >= 1")
     for variant in _csv(args.variants, str):
         predictor = variant_predictor(model, variant)
-        for threads in _csv(args.threads, int):
+        for threads in thread_counts:
             rows.append({"model": args.model, "variant": variant, "threads": threads, "params": count_parameters(model),
                          "ms_per_window": time_forward(predictor, window, threads, args.repeats)})
     print(json.dumps(rows, indent=1) if args.json else markdown_table(rows, list(rows[0])))

@@ -300,7 +300,7 @@ def _node_state(st: NodeStatus, age_s: float, stale_s: float) -> dict[str, Any]:
     return {"name": st.node, "state": "stale" if age_s > stale_s else st.state, "message": st.message,
             "rate_hz": _finite(st.rate_hz), "proc_ms_mean": _finite(st.proc_ms_mean),
             "proc_ms_p99": _finite(st.proc_ms_p99), "cpu_percent": _finite(st.cpu_percent), "drops": st.drops,
-            "gaps": st.gaps, "errors": st.errors, "rss_mb": st.rss_bytes / 2 ** 20, "age_s": round(age_s, 2)}
+            "gaps": st.gaps, "errors": st.errors, "rss_mb": st.rss_bytes / 1e6, "age_s": round(age_s, 2)}
 
 
 def _is_loopback(host: str) -> bool:

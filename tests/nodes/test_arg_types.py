@@ -84,6 +84,9 @@ def test_numbers_and_outputs_that_cannot_work_are_refused_before_any_work(argv: 
     (["bench", "judge", "--layers", "70"], "--layers 70: at most 12"),  # OverflowError
     (["bench", "soak", "--minutes", "0.1", "--sample", "100"], "needs two samples at least"),  # checks "passed"
     (["bench", "bag", "--keep", "."], "--keep . exists: give a new folder"),  # waited 15 s for the recorder
+    (["bench", "bag", "--duration", "0.01"], "--duration 0.01 s at --fps 60.0 publishes no frame"),  # "no topic"
+    (["bench", "slip", "--threads", "1,0"], "--threads 1,0: every thread count must be >= 1"),  # "warmup"
+    (["bench", "bus", "--throughput-frames", "1"], "a throughput needs 2 frames at least"),  # 0.0 frames/s
 ])
 def test_benchmarks_that_would_measure_nothing_are_refused(argv: list[str], message: str, capsys) -> None:
     assert main(argv) == 2 and message in capsys.readouterr().err

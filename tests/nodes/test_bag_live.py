@@ -411,3 +411,5 @@ def test_bench_bag_reports_completeness_and_cpu(bus: BusAddress, spawn: Spawn) -
     assert result["complete"] and result["published"]["/camera/image"] == 120
     assert result["recorded"] == result["published"] and set(result["missing"].values()) == {0}
     assert 0 < result["recorder_cpu_percent"] < 200 and result["fast_play"]["received"] == 120
+    assert result["publish_s"] >= 1.9  # the payload rate is over the publishing time, which can exceed --duration
+    assert result["payload_MBps"] == pytest.approx(result["payload_b"] / 1e6 / result["publish_s"])

@@ -3,6 +3,7 @@ stamps, and one short real run of the four-process pipeline."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 from nodes.bench_pipeline import Record, percentiles_ms, stage_latencies
 from nodes.bench_soak import memory_growth
@@ -41,9 +42,9 @@ def test_memory_growth_per_process_series() -> None:
     assert "short" not in rows
 
 
-def test_bench_pipeline_short_run_reports_every_stage() -> None:
+def test_bench_pipeline_short_run_reports_every_stage(tmp_path: Path) -> None:
     out = run_fv("bench", "pipeline", "--fps", "20", "--configs", "default", "--duration", "3", "--warmup", "1",
-                 "--json", timeout_s=150.0)
+                 "--json", "--out", str(tmp_path), timeout_s=150.0)
     assert out.returncode == 0, out.stderr[-2000:]
     run = json.loads(out.stdout)["runs"][0]
     assert run["config"] == "default" and run["fps"] == 20.0
@@ -53,6 +54,8 @@ def test_bench_pipeline_short_run_reports_every_stage() -> None:
     lat = run["latency_ms"]
     assert 0 < lat["capture_to_markers"]["p50"] <= lat["capture_to_slip"]["p50"]
     assert run["respawned"] == []
+    row = (tmp_path / "table.md").read_text().splitlines()[-1].split("|")
+    assert row[5].strip() == str(run["dropped_total"])  # a dict of the stages' drops was printed there
 
 
 def test_bench_pipeline_rejects_an_unknown_configuration() -> None:
