@@ -37,6 +37,7 @@ from nodes.launch_file import NodeSpec, load_launch, parse_arg_overrides
 from nodes.node import LAUNCH_ENV, STANDBY_READY
 
 GRACE_S = 1.2
+NAMESAKE_WAIT_S = 0.5  # how long a launch on a running bus listens for the NodeStatus of namesakes
 FORWARDER_GRACE_S = 0.5
 FORWARDER_RETRY_S = 1.0  # wait between failed forwarder restarts
 FORWARDER_CHECK_S = 1.0  # period of the pings to a forwarder this launch shares (did not start)
@@ -202,6 +203,12 @@ class Launch:
             self._forwarder = ensure_forwarder(address)
             if self._forwarder is not None:
                 self.say(f"started forwarder on {address.url} pid {self._forwarder.pid}")
+        if self._forwarder is None:  # a forwarder serves this bus already: another launch may be on it
+            running = self._namesakes_running()
+            if running:
+                raise RuntimeError(f"nodes named {', '.join(running)} already run on {address.url} (another launch?): "
+                                   "two pipelines on one bus mix their topics; stop that launch, or give this one "
+                                   "another FV_BUS or a namespace")
         self._status_pub = PublisherSocket(self.name, address)
         self._status_reader = TopicReader([STATUS_TOPIC], address)
         try:
@@ -212,6 +219,16 @@ class Launch:
             raise
         self._supervisor = threading.Thread(target=self._supervise, name="launch-supervisor", daemon=True)
         self._supervisor.start()
+
+    def _namesakes_running(self) -> list[str]:
+        """The names of this launch's nodes that a running node on the bus has already: its NodeStatus
+        is fresh and, on a local (IPC) bus, its process is alive."""
+        from nodes.topic_tools import discover
+
+        alive = discover(NAMESAKE_WAIT_S)
+        local = not self._address.is_tcp
+        return sorted(child.spec.name for child in self.children if child.spec.name in alive
+                      and (not local or _process_state(alive[child.spec.name].pid) not in ("", "Z")))
 
     def wait(self, timeout_s: float | None = None) -> bool:
         """Block until the launch ended by itself (required node died, all nodes exited)

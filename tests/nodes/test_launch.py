@@ -236,6 +236,24 @@ def _launch(folder: Path, text: str) -> tuple[Launch, io.StringIO]:
     return launch, out
 
 
+def test_a_second_launch_of_the_same_nodes_on_one_bus_is_refused(bus: Bus, tmp_path: Path) -> None:
+    """Two main jobs on one bus mixed their /slip streams (the state flipped every 0.1 s) without a word."""
+    first, _ = _launch(tmp_path, "nodes:\n  - {kind: talker, params: {rate_hz: 20}}\n")
+    first.start()
+    try:
+        wait_status("talker", timeout_s=8.0)
+        (tmp_path / "b").mkdir()
+        (tmp_path / "c").mkdir()
+        second, _ = _launch(tmp_path / "b", "nodes:\n  - {kind: talker}\n  - {kind: listener}\n")
+        with pytest.raises(RuntimeError, match=f"nodes named talker already run on {bus.address.url}"):
+            second.start()
+        other, _ = _launch(tmp_path / "c", "nodes:\n  - {kind: listener}\n")  # other names: welcome
+        other.start()
+        other.stop()
+    finally:
+        first.stop()
+
+
 def test_killed_respawn_node_is_back_within_delay_plus_1s(bus_env: Bus, tmp_path: Path) -> None:
     delay_s = 0.3
     launch, out = _launch(tmp_path, f"nodes:\n  - kind: talker\n    params: {{rate_hz: 20}}\n"
