@@ -10,8 +10,9 @@ mm; the first inner corner is the origin. Camera frame and pixels as in `fv_algo
 """
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -20,6 +21,19 @@ import numpy as np
 from fv_algos.fisheye import FisheyeCamera, utc_timestamp
 
 IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
+
+STARTING_HALF_FOV_RAD: tuple[float, ...] = (1.0, 1.25, 1.5)
+"""Ray angles (rad) at half the image's longer side that `cv2.fisheye.calibrate` is started from: focal
+length max(W, H) / 2 / angle, principal point at the image centre. 1.0 is OpenCV's own start, from which
+a strong fisheye (fx near W / 3) can diverge or fail; the fit with the lowest RMS wins."""
+
+OUTLIER_FACTOR = 3.0
+"""A view is dropped as an outlier only when its reprojection RMS is over `CalibrationParams.max_rms_px`
+and over this many times the median view's."""
+
+SUBPIX_SPACING_SHARE = 1.0 / 3.0
+"""The cornerSubPix half window is at most this share of the distance to the nearest neighbouring corner:
+a larger one takes in the next corner's edges and pulls the refined corner off."""
 
 
 @dataclass(frozen=True)
@@ -73,9 +87,13 @@ class CalibrationParams:
     Attributes:
         board: the chessboard in the views.
         min_views: fewest views with a found board that a calibration accepts.
-        subpix_half_window_px: half side of the cornerSubPix search window, px.
+        subpix_half_window_px: largest half side of the cornerSubPix search window, px (smaller
+            where the corners lie closer: see `find_chessboard_corners`).
         max_iterations: iteration limit of cv2.fisheye.calibrate.
         epsilon: convergence threshold of cv2.fisheye.calibrate.
+        max_rms_px: largest reprojection RMS accepted, px: a view above it (and OUTLIER_FACTOR
+            times the median view) is dropped, worst first, and the rest calibrated again; a
+            calibration still above it is refused.
     """
 
     board: Chessboard = field(default_factory=Chessboard)
@@ -83,6 +101,7 @@ class CalibrationParams:
     subpix_half_window_px: int = 5
     max_iterations: int = 100
     epsilon: float = 1e-9
+    max_rms_px: float = 2.0
 
     def __post_init__(self) -> None:
         if self.min_views < 3:
@@ -91,6 +110,8 @@ class CalibrationParams:
             raise ValueError(f"subpix_half_window_px must be >= 2, got {self.subpix_half_window_px}")
         if self.max_iterations < 1 or not self.epsilon > 0:
             raise ValueError(f"max_iterations must be >= 1 and epsilon > 0, got {self.max_iterations}, {self.epsilon}")
+        if not (np.isfinite(self.max_rms_px) and self.max_rms_px > 0):
+            raise ValueError(f"max_rms_px must be a finite number > 0, got {self.max_rms_px}")
 
 
 @dataclass(eq=False)
@@ -123,13 +144,36 @@ def _to_gray(image: np.ndarray, name: str) -> np.ndarray:
     raise ValueError(f"image {name!r} must be (H, W) or (H, W, 3), got shape {image.shape}")
 
 
+def _subpix_half_windows(corners: np.ndarray, board: Chessboard, max_half_window_px: int) -> np.ndarray:
+    """(M,) int cornerSubPix half windows, px: SUBPIX_SPACING_SHARE of each corner's distance to its
+    nearest row or column neighbour, from 1 to max_half_window_px.
+
+    Args:
+        corners: (M, 2) corner pixels in the detector's grid order (rows of `board.inner_corners[0]`).
+    """
+    cols, rows = board.inner_corners
+    grid = corners.reshape(rows, cols, 2)
+    across = np.linalg.norm(np.diff(grid, axis=1), axis=2)  # (rows, cols - 1)
+    down = np.linalg.norm(np.diff(grid, axis=0), axis=2)  # (rows - 1, cols)
+    spacing = np.full((rows, cols), np.inf)
+    spacing[:, :-1] = across
+    spacing[:, 1:] = np.minimum(spacing[:, 1:], across)
+    spacing[:-1] = np.minimum(spacing[:-1], down)
+    spacing[1:] = np.minimum(spacing[1:], down)
+    return np.clip(np.floor(spacing * SUBPIX_SPACING_SHARE), 1, max_half_window_px).astype(int).ravel()
+
+
 def find_chessboard_corners(image: np.ndarray, board: Chessboard, subpix_half_window_px: int = 5) -> np.ndarray | None:
     """Inner corners of the chessboard in an image, refined to sub-pixel.
+
+    Each corner is refined in a window of at most a third of the distance to its nearest
+    neighbouring corner (`SUBPIX_SPACING_SHARE`), so that small or steeply tilted squares are
+    refined on their own edges only.
 
     Args:
         image: (H, W) or (H, W, 3) BGR uint8 image.
         board: the chessboard looked for.
-        subpix_half_window_px: half side of the cornerSubPix search window, px.
+        subpix_half_window_px: largest half side of the cornerSubPix search window, px.
     Returns:
         (M, 2) float64 corner pixels (u, v) row by row as `board.object_points_mm()`
         (possibly starting from the opposite corner), or None if the board is not found.
@@ -139,39 +183,161 @@ def find_chessboard_corners(image: np.ndarray, board: Chessboard, subpix_half_wi
     found, corners = cv2.findChessboardCorners(gray, board.inner_corners, flags=flags)
     if not found:
         return None
+    corners = corners.reshape(-1, 2).astype(np.float32)
+    half_windows = _subpix_half_windows(corners, board, subpix_half_window_px)
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-3)
-    window = (subpix_half_window_px, subpix_half_window_px)
-    refined = cv2.cornerSubPix(gray, corners.astype(np.float32), window, (-1, -1), criteria)
-    return refined.reshape(-1, 2).astype(np.float64)
+    for half in np.unique(half_windows):
+        chosen = half_windows == half
+        window = (int(half), int(half))
+        refined = cv2.cornerSubPix(gray, corners[chosen].reshape(-1, 1, 2), window, (-1, -1), criteria)
+        corners[chosen] = refined.reshape(-1, 2)
+    return corners.astype(np.float64)
+
+
+def _common_size(grays: Sequence[tuple[str, np.ndarray]]) -> tuple[tuple[int, int], dict[str, str]]:
+    """The most common (width, height) of the views (the first seen on a tie), and name -> reason
+    for the views of another size."""
+    sizes = [(gray.shape[1], gray.shape[0]) for _, gray in grays]
+    counts = Counter(sizes)
+    size, count = counts.most_common(1)[0]
+    odd = {
+        name: f"image size {w}x{h} differs from the most common {size[0]}x{size[1]} ({count} of {len(grays)} views)"
+        for (name, _), (w, h) in zip(grays, sizes) if (w, h) != size
+    }
+    return size, odd
+
+
+def _not_found_error(n_found: int, n_views: int, rejected: dict[str, str], params: CalibrationParams) -> ValueError:
+    """A short error for too few boards found: the count of each reason, with a few view names."""
+    by_reason: dict[str, list[str]] = {}
+    for name, why in rejected.items():
+        by_reason.setdefault(why, []).append(name)
+    parts = [f"{len(names)} x {why} ({', '.join(names[:3])}{', ...' if len(names) > 3 else ''})"
+             for why, names in by_reason.items()]
+    cols, rows = params.board.inner_corners
+    return ValueError(
+        f"chessboard found in {n_found} of {n_views} views, need at least {params.min_views}; rejected: "
+        f"{'; '.join(parts)}. The board size counts INNER corners: {cols}x{rows} is a board of "
+        f"{cols + 1}x{rows + 1} squares"
+    )
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """One cv2.fisheye.calibrate solution: the camera (without rms_px and date) and (V,) float64
+    per-view reprojection RMS, px (inf for a view whose board it puts partly behind the camera)."""
+
+    camera: FisheyeCamera
+    per_view_rms_px: np.ndarray
+
+    @property
+    def rms_px(self) -> float:
+        """Overall reprojection RMS, px (every view has the same corners); inf if a view's is."""
+        return float(np.sqrt(np.mean(self.per_view_rms_px**2)))
+
+
+def _per_view_rms(camera: FisheyeCamera, object_points: np.ndarray, image_points: Sequence[np.ndarray],
+                  rvecs: Sequence[np.ndarray], tvecs: Sequence[np.ndarray]) -> np.ndarray:
+    """(V,) float64 reprojection RMS of each view, px; inf where a board point falls behind the camera."""
+    rms = np.full(len(image_points), np.inf)
+    for i, (rvec, tvec, observed) in enumerate(zip(rvecs, tvecs, image_points)):
+        R, _ = cv2.Rodrigues(rvec)
+        points_cam = object_points @ R.T + tvec.reshape(1, 3)
+        if np.all(points_cam[:, 2] > 0):
+            rms[i] = np.sqrt(np.mean(np.sum((camera.project(points_cam) - observed) ** 2, axis=1)))
+    return rms
+
+
+def _fit_from(start_K: np.ndarray, object_points: np.ndarray, image_points: Sequence[np.ndarray],
+              size: tuple[int, int], params: CalibrationParams) -> _Fit:
+    """cv2.fisheye.calibrate started from the (3, 3) matrix start_K and no distortion.
+
+    Raises:
+        cv2.error: OpenCV failed.
+        ValueError: it returned no valid camera (a focal length <= 0).
+    """
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, params.max_iterations, params.epsilon)
+    flags = cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW | cv2.CALIB_USE_INTRINSIC_GUESS
+    # cv2.fisheye.calibrate accepts the points as (1, M, 3) / (1, M, 2) float64 arrays.
+    _, K, D, rvecs, tvecs = cv2.fisheye.calibrate(
+        [object_points[None]] * len(image_points), [p[None] for p in image_points],
+        size, start_K.copy(), np.zeros(4), flags=flags, criteria=criteria,
+    )
+    camera = FisheyeCamera(K=K, D=D.ravel(), width=size[0], height=size[1])
+    return _Fit(camera, _per_view_rms(camera, object_points, image_points, rvecs, tvecs))
+
+
+def _best_fit(object_points: np.ndarray, image_points: Sequence[np.ndarray], size: tuple[int, int],
+              params: CalibrationParams, names: Sequence[str]) -> _Fit:
+    """The fit with the lowest RMS among the starts of STARTING_HALF_FOV_RAD.
+
+    Raises:
+        ValueError: OpenCV failed, or gave no valid camera, from every start (the views named).
+    """
+    fits: list[_Fit] = []
+    errors: list[str] = []
+    for half_fov in STARTING_HALF_FOV_RAD:
+        focal = max(size) / 2.0 / half_fov
+        start_K = np.array([[focal, 0.0, (size[0] - 1) / 2.0], [0.0, focal, (size[1] - 1) / 2.0], [0.0, 0.0, 1.0]])
+        try:
+            fits.append(_fit_from(start_K, object_points, image_points, size, params))
+        except (cv2.error, ValueError) as exc:
+            errors.append(f"from fx {focal:.0f} px: {str(exc).strip().splitlines()[-1]}")
+    if not fits:
+        raise ValueError(f"cv2.fisheye.calibrate failed on views {list(names)}: {'; '.join(errors)}")
+    return min(fits, key=lambda fit: fit.rms_px)
+
+
+def _outlier(per_view_rms_px: np.ndarray, max_rms_px: float) -> tuple[int, str] | None:
+    """(index, reason) of the worst view when it is an outlier (over max_rms_px and OUTLIER_FACTOR times the
+    median view), else None."""
+    worst = int(np.argmax(per_view_rms_px))
+    value, median = per_view_rms_px[worst], np.median(per_view_rms_px)
+    if not (value > max_rms_px and value > OUTLIER_FACTOR * median):
+        return None
+    if not np.isfinite(value):
+        return worst, "the calibration puts its board behind the camera: dropped as an outlier"
+    return worst, (f"reprojection RMS {value:.2f} px, over {max_rms_px:g} px and {OUTLIER_FACTOR:g}x the "
+                   f"median view's {median:.2f} px: dropped as an outlier")
+
+
+def _rms_error(fit: _Fit, names: Sequence[str], max_rms_px: float) -> ValueError:
+    """The refusal of a calibration over max_rms_px, naming its RMS and its worst views."""
+    order = np.argsort(-fit.per_view_rms_px)[:3]
+    worst = ", ".join(f"{names[i]} {fit.per_view_rms_px[i]:.2f} px" for i in order)
+    return ValueError(
+        f"calibration RMS {fit.rms_px:.2f} px is over the limit of {max_rms_px:g} px (worst views: {worst}); "
+        "check the board size and square, and remove blurred or partly hidden views"
+    )
 
 
 def calibrate_fisheye(views: Sequence[tuple[str, np.ndarray]], params: CalibrationParams) -> CalibrationResult:
     """Calibrate a fisheye camera from chessboard views with `cv2.fisheye.calibrate`.
 
+    The solver is started from several focal lengths (STARTING_HALF_FOV_RAD) and the best fit
+    kept; a view that fails (reprojection RMS over params.max_rms_px and OUTLIER_FACTOR times the
+    median view, or its board put behind the camera) is dropped and the rest calibrated again.
+
     Args:
-        views: (name, image) pairs; images (H, W) or (H, W, 3) uint8, all the same size.
+        views: (name, image) pairs; images (H, W) or (H, W, 3) uint8.
         params: board and solver parameters.
     Returns:
-        The calibration; views whose board was not found, or whose size differs from the
-        first view's, are listed in `rejected` with the reason.
+        The calibration at the most common image size; views of another size, whose board was
+        not found, or dropped as outliers are listed in `rejected` with the reason.
     Raises:
         ValueError: no views, malformed images, fewer than params.min_views boards found
-            (the message names the rejected views), or the solver failed.
+            (counted by reason, a few views named), the solver failed, or the RMS is over
+            params.max_rms_px (its worst views named).
     """
     if len(views) == 0:
         raise ValueError("views is empty: calibration needs chessboard images")
     board = params.board
-    object_points = board.object_points_mm()
-    size: tuple[int, int] | None = None
+    grays = [(name, _to_gray(image, name)) for name, image in views]
+    size, rejected = _common_size(grays)
     used: list[str] = []
-    rejected: dict[str, str] = {}
     image_points: list[np.ndarray] = []
-    for name, image in views:
-        gray = _to_gray(image, name)
-        view_size = (gray.shape[1], gray.shape[0])
-        size = view_size if size is None else size
-        if view_size != size:
-            rejected[name] = f"image size {view_size[0]}x{view_size[1]} differs from the first view's {size[0]}x{size[1]}"
+    for name, gray in grays:
+        if name in rejected:
             continue
         corners = find_chessboard_corners(gray, board, params.subpix_half_window_px)
         if corners is None:
@@ -180,28 +346,18 @@ def calibrate_fisheye(views: Sequence[tuple[str, np.ndarray]], params: Calibrati
         used.append(name)
         image_points.append(corners)
     if len(used) < params.min_views:
-        raise ValueError(
-            f"chessboard found in {len(used)} of {len(views)} views, need at least {params.min_views}; "
-            f"rejected: {rejected}"
-        )
-    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, params.max_iterations, params.epsilon)
-    flags = cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW
-    # cv2.fisheye.calibrate accepts the points as (1, M, 3) / (1, M, 2) float64 arrays.
-    try:
-        rms_px, K, D, rvecs, tvecs = cv2.fisheye.calibrate(
-            [object_points[None]] * len(used),
-            [p[None] for p in image_points],
-            size, np.zeros((3, 3)), np.zeros(4), flags=flags, criteria=criteria,
-        )
-    except cv2.error as exc:
-        raise ValueError(f"cv2.fisheye.calibrate failed on views {used}: {exc}") from exc
-    camera = FisheyeCamera(K=K, D=D.ravel(), width=size[0], height=size[1], rms_px=float(rms_px), date=utc_timestamp())
-    per_view = np.empty(len(used))
-    for i, (rvec, tvec, observed) in enumerate(zip(rvecs, tvecs, image_points)):
-        R, _ = cv2.Rodrigues(rvec)
-        predicted = camera.project(object_points @ R.T + tvec.reshape(1, 3))
-        per_view[i] = np.sqrt(np.mean(np.sum((predicted - observed) ** 2, axis=1)))
-    return CalibrationResult(camera=camera, rms_px=float(rms_px), used=used, rejected=rejected, per_view_rms_px=per_view)
+        raise _not_found_error(len(used), len(views), rejected, params)
+    object_points = board.object_points_mm()
+    fit = _best_fit(object_points, image_points, size, params, used)
+    while len(used) > params.min_views and (outlier := _outlier(fit.per_view_rms_px, params.max_rms_px)):
+        worst, rejected[used[worst]] = outlier
+        del used[worst], image_points[worst]
+        fit = _best_fit(object_points, image_points, size, params, used)
+    if not fit.rms_px <= params.max_rms_px:
+        raise _rms_error(fit, used, params.max_rms_px)
+    camera = replace(fit.camera, rms_px=fit.rms_px, date=utc_timestamp())
+    return CalibrationResult(camera=camera, rms_px=fit.rms_px, used=used, rejected=rejected,
+                             per_view_rms_px=fit.per_view_rms_px)
 
 
 def image_files(folder: str | Path, suffixes: tuple[str, ...] = IMAGE_SUFFIXES) -> list[Path]:

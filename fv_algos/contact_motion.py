@@ -38,10 +38,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from fv_algos.atomic_file import write_atomically
 from fv_algos.frame_rate import pick
 from fv_algos.frame_crop import FrameCrop
 from fv_algos.real_trials import (Trial, VideoKey, cache_folder, cache_stem, map_videos, read_cached, read_frames,
-                                   video_key, write_atomically)
+                                   video_key)
 
 SERIES = ("relative_px", "marker_px", "contact_above_min", "imprint_change", "imprint_step_rms")
 SERIES_CACHE_VERSION = 5

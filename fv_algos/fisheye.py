@@ -22,6 +22,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from fv_algos.atomic_file import write_atomically
+
 DEFAULT_CAMERA_DISTANCE_MM = 15.0
 """Distance from the camera centre to the undeformed skin plane of the default sensor, mm."""
 
@@ -246,7 +248,9 @@ class FisheyeCamera:
     def save(self, path: str | Path) -> None:
         """Write the calibration as JSON: K, D, width, height, rms_px, date.
 
-        `date` is the stored one, or the current UTC time when none is stored.
+        `date` is the stored one, or the current UTC time when none is stored. Missing folders
+        are created; the file is written beside its place and renamed into it, so that a reader
+        (or a failed write) never leaves half a file.
         """
         record = {
             "K": self.K.tolist(),
@@ -256,7 +260,8 @@ class FisheyeCamera:
             "rms_px": self.rms_px,
             "date": self.date if self.date is not None else utc_timestamp(),
         }
-        Path(path).write_text(json.dumps(record, indent=2) + "\n")
+        text = json.dumps(record, indent=2) + "\n"
+        write_atomically(Path(path), lambda tmp: tmp.write_text(text))
 
     @classmethod
     def load(cls, path: str | Path) -> "FisheyeCamera":

@@ -41,6 +41,7 @@ from tqdm import tqdm
 
 from fv_algos import detection, perception, tracking
 from fv_algos import field as field_module
+from fv_algos.atomic_file import write_atomically
 from fv_algos.frame_crop import FrameCrop
 from fv_algos.perception import Perception, PerceptionParams
 from fv_algos.tracking import neighbour_consistency
@@ -318,19 +319,6 @@ def cache_folder(cache_dir: str | Path | None) -> Path | None:
     if not os.access(path, os.W_OK | os.X_OK):
         raise ValueError(f"cache folder {path} is not writable")
     return path
-
-
-def write_atomically(path: Path, write: Callable[[Path], None]) -> None:
-    """Create ``path`` through ``write(tmp)`` on a temporary file beside it (named after this process,
-    so processes sharing a cache never write the same file), then rename it into place: a reader sees
-    the whole file or none."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp{path.suffix}")
-    try:
-        write(tmp)
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def read_cached(path: Path, load: Callable[[Path], T]) -> T | None:

@@ -2,6 +2,8 @@
 V4L2 device, published as `Image` on `/camera/image` with capture stamps, plus a latched
 `CameraInfo` on `/camera/info`. `crop` and `size` cut a share off each border of every frame
 and resize the rest (after `undistort`; `CameraInfo` describes the frames as published). A
+`calibration` made at another resolution of the same aspect ratio is scaled to the source's
+frames (logged once); one of another aspect ratio is refused at start, both sizes named. A
 lost source is reported in NodeStatus and reopened with backoff; a source that cannot be
 opened at start fails with a clear error.
 
@@ -12,12 +14,13 @@ after `start_timeout_s` it starts anyway, warned."""
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from fv_algos.fisheye import FisheyeCamera
 from fv_algos.frame_crop import FrameCrop
 from msgs import CameraInfo, Image
 from nodes.camera_sources import FolderSource, Frame, FrameSource, SourceError, V4L2Source, VideoFileSource
@@ -26,6 +29,7 @@ from nodes.start_gate import StartGate
 
 SOURCES = ("sim", "video", "folder", "v4l2")
 ENCODINGS = ("mono8", "bgr8")
+ASPECT_TOLERANCE = 0.01  # relative difference of width / height taken as the same aspect ratio
 
 
 @dataclass
@@ -39,7 +43,7 @@ class CameraParams:
     height: int = 480
     exposure: float = -1.0  # v4l2 manual exposure (driver units), < 0 = auto
     white_balance: float = -1.0  # v4l2 white balance temperature (K), < 0 = auto
-    calibration: str = ""  # calibration JSON from `fv calibrate` ("" = none / sim's own)
+    calibration: str = ""  # calibration JSON from `fv calibrate` ("" = none / sim's own); scaled to another resolution
     undistort: bool = False  # remap frames with the calibration before publishing
     crop: list[float] = field(default_factory=list)  # shares cut off the borders: [] none, [s] each, [top, bottom, left, right]
     size: list[int] = field(default_factory=list)  # [width, height] px the cropped frame is resized to ([] = as cut)
@@ -85,6 +89,26 @@ def make_source(p: CameraParams) -> FrameSource:
     return SimSource(p.scene, p.seed, p.fps, p.prerender)
 
 
+def calibration_for_size(camera: FisheyeCamera, width: int, height: int) -> FisheyeCamera:
+    """`camera` (calibrated on its own width x height frames) for frames of width x height px: itself
+    when the sizes match, else its matrix and RMS scaled to the new resolution (the distortion acts
+    on normalised coordinates and stays).
+
+    Raises:
+        ValueError: the aspect ratios differ (another camera, or a cropped mode); both sizes named.
+    """
+    if camera.size == (width, height):
+        return camera
+    if abs(width * camera.height / (height * camera.width) - 1.0) > ASPECT_TOLERANCE:
+        raise ValueError(
+            f"calibration for {camera.width}x{camera.height} frames does not fit the source's {width}x{height} "
+            "frames (another aspect ratio: another camera or a cropped mode); calibrate at this size"
+        )
+    K, _, _ = FrameCrop(size=(width, height)).camera_matrix(camera.K, camera.width, camera.height)
+    rms_px = None if camera.rms_px is None else camera.rms_px * width / camera.width
+    return replace(camera, K=K, width=width, height=height, rms_px=rms_px)
+
+
 class CameraNode(Node):
     """Publishes frames at `fps` from the configured source."""
 
@@ -96,6 +120,7 @@ class CameraNode(Node):
         self.source.open()  # SourceError at start is fatal, with the source named
         self.image_pub = self.publisher("camera/image", Image)
         self.info_pub = self.publisher("camera/info", CameraInfo, latched=True)
+        self.held_frame: Frame | None = None  # read at setup for its size, published first
         self.fisheye = self._load_calibration()
         self.maps = self.fisheye.undistort_maps() if (p.undistort and self.fisheye) else None
         self.crop = FrameCrop.from_lists(p.crop, p.size)
@@ -107,11 +132,29 @@ class CameraNode(Node):
         self.start_gate = StartGate(self, p.start_after, p.start_timeout_s)
         self.timer(1.0 / rate, self.tick)
 
-    def _load_calibration(self):
-        from fv_algos.fisheye import FisheyeCamera
-        if self.params.calibration:
-            return FisheyeCamera.load(self.params.calibration)
-        return getattr(self.source, "camera", None)
+    def _load_calibration(self) -> FisheyeCamera | None:
+        """The calibration file's camera fitted to the source's frames (`calibration_for_size`, with
+        the size of a first frame read here and held to be published first), the simulator's own
+        camera, or None.
+
+        Raises:
+            ValueError: the calibration file is bad, or of another aspect ratio than the frames.
+            SourceError: the source gives no first frame.
+        """
+        if not self.params.calibration:
+            return getattr(self.source, "camera", None)
+        camera = FisheyeCamera.load(self.params.calibration)
+        self.held_frame = self.source.read()
+        if self.held_frame is None:
+            raise SourceError(f"{self.source.name}: no frame to check the calibration's "
+                              f"{camera.width}x{camera.height} against")
+        height, width = self.held_frame.image.shape[:2]
+        fitted = calibration_for_size(camera, width, height)
+        if fitted is not camera:
+            self.log.warning("calibration %s is for %dx%d frames: its matrix is scaled by %.3g to the source's "
+                             "%dx%d frames", self.params.calibration, camera.width, camera.height,
+                             width / camera.width, width, height)
+        return fitted
 
     def _publish_info(self) -> None:
         """The camera model of the frames as published: undistorted frames are a pinhole camera
@@ -137,10 +180,11 @@ class CameraNode(Node):
             self._reopen()
             return
         try:
-            frame = self.source.read()
+            frame = self.held_frame or self.source.read()
         except SourceError as exc:
             self._lost(str(exc))
             return
+        self.held_frame = None
         if frame is None:
             if getattr(self.source, "finished", False):
                 self.warn(f"{self.source.name}: end of input")

@@ -7,7 +7,7 @@ import json
 import shutil
 from pathlib import Path
 
-from nodes.arg_types import output_file, output_folder, output_with_suffix, random_seed
+from nodes.arg_types import output_file, output_folder, output_with_suffix, positive_float, positive_int, random_seed
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -24,9 +24,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--images", type=Path, help="folder of chessboard images")
     src.add_argument("--video", type=Path, help="video of a chessboard")
-    p.add_argument("--every", type=int, default=10, help="video: use every k-th frame (default 10)")
-    p.add_argument("--board", default="7x5", help="inner corners COLSxROWS (default 7x5)")
+    p.add_argument("--every", type=positive_int, help=f"--video only: use every k-th frame (default {DEFAULT_EVERY})")
+    p.add_argument("--board", default="7x5",
+                   help="INNER corners COLSxROWS, one less than the squares each way (default 7x5: 8x6 squares)")
     p.add_argument("--square-mm", type=float, default=2.5, help="square side in mm (default 2.5)")
+    p.add_argument("--max-rms-px", type=positive_float, default=2.0,
+                   help="refuse a calibration whose reprojection RMS is over this (px, default 2); a view over it "
+                        "and 3x the median view is dropped first")
     p.add_argument("--out", type=output_file, required=True, help="calibration JSON the camera node loads")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=_calibrate)
@@ -70,21 +74,38 @@ def _sim(args: argparse.Namespace) -> int:
     return 0
 
 
+DEFAULT_EVERY = 10  # `fv calibrate --video`: every k-th frame by default
+WORST_VIEWS_SHOWN = 3  # views named in the text report, worst RMS first
+
+
+def _calibration_views(args: argparse.Namespace) -> list[tuple[str, object]]:
+    """The (name, (H, W) uint8 image) views of --images, or of every --every-th frame of --video."""
+    from fv_algos.calibration import load_images, load_video_frames
+    if args.images is not None:
+        if args.every is not None:
+            raise ValueError("--every applies to --video only: --images uses every image of the folder")
+        return load_images(args.images)
+    return load_video_frames(args.video, DEFAULT_EVERY if args.every is None else args.every)
+
+
 def _calibrate(args: argparse.Namespace) -> int:
-    from fv_algos.calibration import CalibrationParams, Chessboard, calibrate_fisheye, load_images, load_video_frames
+    from fv_algos.calibration import CalibrationParams, Chessboard, calibrate_fisheye
     cols, _, rows = args.board.partition("x")
     if not (cols.isdigit() and rows.isdigit()):
         raise ValueError(f"--board {args.board!r} is not COLSxROWS, e.g. 7x5")
     board = Chessboard((int(cols), int(rows)), args.square_mm)
-    views = load_images(args.images) if args.images else load_video_frames(args.video, args.every)
-    result = calibrate_fisheye(views, CalibrationParams(board=board))
+    result = calibrate_fisheye(_calibration_views(args), CalibrationParams(board=board, max_rms_px=args.max_rms_px))
     result.camera.save(args.out)
+    per_view = dict(zip(result.used, result.per_view_rms_px.tolist()))
     report = {"rms_px": result.rms_px, "used": len(result.used), "rejected": result.rejected,
-              "K": result.camera.K.tolist(), "D": result.camera.D.tolist(), "out": str(args.out)}
+              "per_view_rms_px": per_view, "K": result.camera.K.tolist(), "D": result.camera.D.tolist(),
+              "out": str(args.out)}
     if args.json:
         print(json.dumps(report, indent=2))
     else:
         for name, why in result.rejected.items():
             print(f"rejected {name}: {why}")
+        worst = sorted(per_view.items(), key=lambda item: -item[1])[:WORST_VIEWS_SHOWN]
+        print("worst views: " + ", ".join(f"{name} {rms:.3f} px" for name, rms in worst))
         print(f"calibrated from {len(result.used)} views, RMS {result.rms_px:.3f} px -> {args.out}")
     return 0

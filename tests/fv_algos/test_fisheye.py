@@ -133,6 +133,30 @@ def test_save_load_round_trip(tmp_path: Path) -> None:
     assert loaded.date is not None and loaded.date == json.loads(path.read_text())["date"]
 
 
+def test_save_creates_missing_folders(tmp_path: Path) -> None:
+    path = tmp_path / "new" / "deeper" / "camera.json"
+    GENERAL.save(path)
+    np.testing.assert_array_equal(FisheyeCamera.load(path).K, GENERAL.K)
+
+
+def test_a_failed_save_leaves_the_old_file_whole(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "camera.json"
+    FisheyeCamera.default().save(path)
+    before = path.read_text()
+    real_write_text = Path.write_text
+
+    def write_half_then_fail(self: Path, text: str) -> int:
+        real_write_text(self, text[: len(text) // 2])
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", write_half_then_fail)
+    with pytest.raises(OSError, match="No space"):
+        GENERAL.save(path)
+    monkeypatch.undo()
+    assert path.read_text() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["camera.json"]  # no temporary file left
+
+
 @pytest.mark.parametrize(
     ("change", "field"),
     [

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from fv_algos.atomic_file import write_atomically
 from fv_algos.frame_crop import FrameCrop
 from fv_algos.grasp_alarm import AlarmRule
 from fv_algos.real_trials import (
@@ -27,7 +28,6 @@ from fv_algos.real_trials import (
     trial_fields,
     tracking_quality,
     video_fields,
-    write_atomically,
 )
 from fv_algos.slip.classifier import Checkpoint, save_checkpoint
 from fv_algos.slip.models import ModelConfig, build_model

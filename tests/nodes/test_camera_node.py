@@ -96,6 +96,53 @@ def test_undistorted_frames_come_with_their_pinhole_matrix_and_no_distortion(bus
     assert not info.D.any() and (info.width, info.height) == (cam.width, cam.height)
 
 
+def test_a_calibration_at_another_resolution_is_scaled_to_the_frames() -> None:
+    """Pixels of the 640x480 calibration map to the 160x120 frames' pixel centres: (u + 0.5) / 4 - 0.5."""
+    from fv_algos.fisheye import FisheyeCamera
+    from nodes.camera import calibration_for_size
+    camera = FisheyeCamera(K=np.array([[305.0, 0.0, 326.0], [0.0, 298.0, 235.0], [0.0, 0.0, 1.0]]),
+                           D=np.array([-0.03, 0.01, -0.002, 0.0]), width=640, height=480, rms_px=0.2)
+    assert calibration_for_size(camera, 640, 480) is camera
+    small = calibration_for_size(camera, 160, 120)
+    assert small.size == (160, 120) and small.rms_px == pytest.approx(0.05)
+    points = np.random.default_rng(0).uniform([-10.0, -8.0, 5.0], [10.0, 8.0, 20.0], (50, 3))
+    np.testing.assert_allclose(small.project(points), (camera.project(points) + 0.5) / 4 - 0.5, atol=1e-9)
+    with pytest.raises(ValueError, match=r"calibration for 640x480 frames does not fit the source's 160x90 frames"):
+        calibration_for_size(camera, 160, 90)
+
+
+def test_undistorted_video_at_half_the_calibrations_resolution_comes_whole(bus, spawn, tmp_path: Path) -> None:
+    """Before, a 640x480 calibration on 160x120 video gave 480x640 frames, mostly black, and
+    /camera/info said 640x480."""
+    from fv_algos.fisheye import FisheyeCamera
+    video, calibration = tmp_path / "clip.avi", tmp_path / "calibration.json"
+    _write_video(video)
+    camera = FisheyeCamera.default()
+    camera.save(calibration)
+    spawn("node", "camera", "-p", "source=video", "-p", f"path={video}", "-p", "fps=20",
+          "-p", f"calibration={calibration}", "-p", "undistort=true")
+    _, msg = _rate("/camera/image", 0.5, skip_s=0.0)
+    with TopicReader(["/camera/info"]) as late_joiner:
+        info = late_joiner.recv(5.0).msg
+    assert msg.data.shape == (120, 160)
+    assert msg.data[10:-10, 10:-10].min() > 0  # the undistorted frame fills the view (no black border)
+    assert (info.width, info.height) == (160, 120)
+    from nodes.camera import calibration_for_size
+    np.testing.assert_allclose(info.K, calibration_for_size(camera, 160, 120).undistorted_camera_matrix())
+
+
+def test_a_calibration_of_another_aspect_ratio_is_refused_at_start(bus, tmp_path: Path) -> None:
+    from fv_algos.fisheye import FisheyeCamera
+    video, calibration = tmp_path / "clip.avi", tmp_path / "wide.json"
+    _write_video(video)
+    default = FisheyeCamera.default()
+    FisheyeCamera(K=default.K, D=default.D, width=640, height=360).save(calibration)
+    result = run_fv("node", "camera", "-p", "source=video", "-p", f"path={video}",
+                    "-p", f"calibration={calibration}", timeout_s=20)
+    assert result.returncode != 0
+    assert "640x360" in result.stderr and "160x120" in result.stderr and "Traceback" not in result.stderr
+
+
 def test_a_video_is_cropped_frame_by_frame(bus, spawn, tmp_path: Path) -> None:
     from fv_algos.frame_crop import FrameCrop
     video = tmp_path / "clip.avi"
