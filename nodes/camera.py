@@ -54,6 +54,8 @@ class CameraParams:
     reopen_backoff_s: float = 0.5  # first retry delay after a lost source; doubles up to 8 s
     start_after: list[str] = field(default_factory=list)  # node names to wait for before the first frame
     start_timeout_s: float = 30.0  # start anyway (warned) when they have not all reported by then
+    exit_after_end_s: float = -1.0  # video / folder played once: exit (status 0) this long after its last frame,
+    # once the pipeline has judged it, so that a launch replaying a file ends (< 0: keep running)
 
     def __post_init__(self) -> None:
         if self.source not in SOURCES:
@@ -121,6 +123,7 @@ class CameraNode(Node):
         self.image_pub = self.publisher("camera/image", Image)
         self.info_pub = self.publisher("camera/info", CameraInfo, latched=True)
         self.held_frame: Frame | None = None  # read at setup for its size, published first
+        self.end_at: float | None = None  # monotonic time to stop at, once the source has ended
         self.fisheye = self._load_calibration()
         self.maps = self.fisheye.undistort_maps() if (p.undistort and self.fisheye) else None
         self.crop = FrameCrop.from_lists(p.crop, p.size)
@@ -172,7 +175,10 @@ class CameraNode(Node):
                                          height=height, K=K, D=D, rms_px=float(getattr(cam, "rms_px", 0.0) or 0.0)))
 
     def tick(self) -> None:
-        if getattr(self.source, "finished", False) or self.start_gate.waiting():
+        if getattr(self.source, "finished", False):
+            self._after_end()
+            return
+        if self.start_gate.waiting():
             return
         if self.retry_at:
             if time.monotonic() < self.retry_at:
@@ -188,10 +194,22 @@ class CameraNode(Node):
         if frame is None:
             if getattr(self.source, "finished", False):
                 self.warn(f"{self.source.name}: end of input")
+                self._after_end()
                 return
             self._lost(f"{self.source.name}: no frame")
             return
         self.publish_frame(frame)
+
+    def _after_end(self) -> None:
+        """Once the source has ended: stop the node `exit_after_end_s` after its last frame (when >= 0)."""
+        if self.params.exit_after_end_s < 0:
+            return
+        now = time.monotonic()
+        if self.end_at is None:
+            self.end_at = now + self.params.exit_after_end_s
+        elif now >= self.end_at:
+            self.log.info("%s ended %.1f s ago: stopping", self.source.name, self.params.exit_after_end_s)
+            self.stop()
 
     def _lost(self, why: str) -> None:
         """Report the source lost (`why` names it: a SourceError's text) and retry with

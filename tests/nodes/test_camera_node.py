@@ -3,6 +3,7 @@ video instead of dying, and fails clearly on a source it cannot open."""
 from __future__ import annotations
 
 import shutil
+import subprocess
 import time
 from pathlib import Path
 
@@ -47,6 +48,22 @@ def test_video_source_rate_and_info(bus, spawn, tmp_path: Path) -> None:
     assert 16.0 <= rate <= 22.0, rate
     assert msg.data.shape == (120, 160) and msg.encoding == "mono8"
     assert abs(msg.stamp_ns - time.time_ns()) < 2e9  # capture stamps are wall-clock times
+
+
+def test_a_video_played_once_stops_its_camera_after_its_end(bus, spawn, tmp_path: Path) -> None:
+    """A launch replaying a video (video.yaml) ran on after its end until Ctrl-C; the camera now exits
+    with status 0 `exit_after_end_s` after the last frame, which ends a launch where it is required."""
+    video = tmp_path / "clip.avi"
+    _write_video(video, frames=10)
+    with TopicReader(["/camera/image"]) as reader:
+        camera = spawn("node", "camera", "-p", "source=video", "-p", f"path={video}", "-p", "fps=20",
+                       "-p", "loop=false", "-p", "exit_after_end_s=0.5")
+        frames = [item for item in iter(lambda: reader.recv(3.0), None)]
+    assert camera.wait(5.0) == 0 and len(frames) == 10
+    looping = spawn("node", "camera", "-p", "source=video", "-p", f"path={video}", "-p", "fps=20",
+                    "-p", "exit_after_end_s=0.5")  # loop (the default): the video never ends
+    with pytest.raises(subprocess.TimeoutExpired):
+        looping.wait(2.0)
 
 
 def test_folder_source_bgr(bus, spawn, tmp_path: Path) -> None:
