@@ -46,11 +46,12 @@ class Vote:
     grasp start of the fresh answers; first_ns, last_ns, the first grasp start and last judged stamp of
     the cameras that count (with none: the newest grasp start and answer); voters; and why each other
     camera is left out, by name (an invalid answer is left out without a reason). Faults: "no answer
-    yet" (none ``stale_after_s`` after the first camera's first answer), "stale" or "earlier grasp"
-    (still on one ``same_grasp_s`` after the newest grasp started). Expected, for a frame or so:
-    "starting" (no answer yet, within ``stale_after_s`` of the first camera's first) and "switching
-    grasp" (on an earlier grasp with an answer from before the newest grasp started or within
-    ``same_grasp_s`` of it: after a reset, a camera whose next frame has not come yet)."""
+    yet" (none arrived ``stale_after_s`` after the first camera's first), "stale" (none arrived for
+    ``stale_after_s``) or "earlier grasp" (still on one ``same_grasp_s`` after the newest grasp
+    started). Expected, for a frame or so: "starting" (no answer yet, within ``stale_after_s`` of the
+    first camera's first) and "switching grasp" (on an earlier grasp with an answer from before the
+    newest grasp started or within ``same_grasp_s`` of it: after a reset, a camera whose next frame has
+    not come yet)."""
 
     probability: float | None
     newest_grasp_ns: int
@@ -64,12 +65,25 @@ class Vote:
         return {name: why for name, why in self.left_out.items() if why not in EXPECTED}
 
 
+class StampAhead(ValueError):
+    """An answer refused by :meth:`CameraVote.update`: stamped ``ahead_s`` (s) ahead of every camera's
+    clock and the caller's, more than ``stale_after_s``."""
+
+    def __init__(self, camera: str, ahead_s: float) -> None:
+        super().__init__(f"{camera}: answer stamped {ahead_s:.1f} s ahead of every clock")
+        self.camera, self.ahead_s = camera, ahead_s
+
+
 class CameraVote:
     """The vote of named cameras' latest answers (:func:`camera_vote`). Left out: a camera with no answer
-    within ``stale_after_s`` of the newest (a camera that stopped), and one still on an earlier grasp,
-    whose grasp started more than ``same_grasp_s`` before the newest (after a reset every camera starts a
-    new grasp with its next frame: a vote never mixes grasps). :class:`Vote` tells the faults from what
-    every start and every reset brings for a frame or so."""
+    arrived within ``stale_after_s`` (a camera that stopped), and one still on an earlier grasp, whose
+    grasp started more than ``same_grasp_s`` before the newest (after a reset every camera starts a new
+    grasp with its next frame: a vote never mixes grasps). :class:`Vote` tells the faults from what
+    every start and every reset brings for a frame or so.
+
+    Staleness is judged by arrival, on the caller's monotonic clock: by capture stamps, a camera whose
+    clock ran 2 s behind was left out for good while its answers came, and one answer stamped an hour
+    ahead made every other camera stale. Such an answer is refused (:class:`StampAhead`)."""
 
     def __init__(self, cameras: Sequence[str], stale_after_s: float = 1.0, same_grasp_s: float = 1.0) -> None:
         if len(cameras) < 2 or len(set(cameras)) != len(cameras):
@@ -79,19 +93,40 @@ class CameraVote:
         self.cameras = tuple(cameras)
         self.stale_after_ns, self.same_grasp_ns = stale_after_s * 1e9, same_grasp_s * 1e9
         self.latest: dict[str, CameraAnswer] = {}
-        self.first_ns: int | None = None  # stamp of the first answer of any camera
+        self.arrived_s: dict[str, float] = {}  # when each camera's latest answer arrived (caller's clock, s)
+        self.seen: dict[str, tuple[int, float]] = {}  # each camera's last stamp (refused or not) and its arrival
+        self.first_s: float | None = None  # arrival of the first answer of any camera
 
-    def update(self, camera: str, answer: CameraAnswer) -> Vote:
-        """Take ``camera``'s newest answer; the vote of all the cameras' latest."""
-        self.latest[camera] = answer
-        self.first_ns = answer.stamp_ns if self.first_ns is None else min(self.first_ns, answer.stamp_ns)
-        now = max(a.stamp_ns for a in self.latest.values())
-        fresh = {c: a for c, a in self.latest.items() if now - a.stamp_ns <= self.stale_after_ns}
+    def ahead_s(self, stamp_ns: int, arrived_s: float, clock_ns: int) -> float:
+        """How far (s) ``stamp_ns``, arrived at ``arrived_s`` (monotonic s) when the caller's wall
+        clock read ``clock_ns``, is ahead of every clock: of that wall clock, and of the last stamp each
+        camera sent advanced by the time since it arrived. A camera whose clock is behind is not ahead of
+        its own last answer; cameras on a host whose clock is ahead of the caller's are not ahead of
+        their own; answers whose latency fell (a detector catching up) are not ahead of the wall clock."""
+        host_s = (stamp_ns - clock_ns) / 1e9
+        if not self.seen:
+            return host_s
+        return min(host_s, (stamp_ns - max(s + (arrived_s - a) * 1e9 for s, a in self.seen.values())) / 1e9)
+
+    def update(self, camera: str, answer: CameraAnswer, arrived_s: float, clock_ns: int) -> Vote:
+        """Take ``camera``'s newest answer, arrived at ``arrived_s`` (s, the caller's monotonic clock)
+        when its wall clock read ``clock_ns``; the vote of all the cameras' latest. StampAhead for an
+        answer stamped more than ``stale_after_s`` ahead of every clock (:meth:`ahead_s`): it is left
+        out, and a camera whose clock jumped ahead counts again from its next answer."""
+        ahead_s = self.ahead_s(answer.stamp_ns, arrived_s, clock_ns)
+        self.seen[camera] = (answer.stamp_ns, arrived_s)
+        if ahead_s * 1e9 > self.stale_after_ns:
+            raise StampAhead(camera, ahead_s)
+        self.latest[camera], self.arrived_s[camera] = answer, arrived_s
+        self.first_s = arrived_s if self.first_s is None else self.first_s
+        fresh = {c: a for c, a in self.latest.items() if (arrived_s - self.arrived_s[c]) * 1e9 <= self.stale_after_ns}
+        now = max(a.stamp_ns for a in fresh.values())
         grasp = max(a.grasp_start_ns for a in fresh.values())
         left_out, voters = {}, {}
         for name in self.cameras:
             if name not in self.latest:
-                left_out[name] = "no answer yet" if now - self.first_ns > self.stale_after_ns else "starting"
+                late = (arrived_s - self.first_s) * 1e9 > self.stale_after_ns
+                left_out[name] = "no answer yet" if late else "starting"
             elif name not in fresh:
                 left_out[name] = "stale"
             elif grasp - fresh[name].grasp_start_ns > self.same_grasp_ns:

@@ -6,7 +6,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from msgs.message import ArraySpec, Message
+from msgs.message import ArraySpec, Message, require_image_size
 
 ENCODING_CHANNELS = {"mono8": 1, "bgr8": 3, "rgb8": 3}
 
@@ -71,5 +71,4 @@ class CameraInfo(Message):
             raise ValueError(f"K: shape {self.K.shape} is not (3, 3)")
         if self.D.shape != (4,):
             raise ValueError(f"D: shape {self.D.shape} is not (4,)")
-        if self.width <= 0 or self.height <= 0:
-            raise ValueError(f"width/height: {self.width}x{self.height} is not a positive size")
+        require_image_size(self.width, self.height)

@@ -47,6 +47,19 @@ class ArraySpec:
 
 
 HEADER_FIELDS = ("seq", "stamp_ns", "pub_ns", "frame_id", "node")
+HEADER_INTS = ("seq", "stamp_ns", "pub_ns")  # int64 on the wire and never negative: [0, 2**63)
+INT64_LIMIT = 2**63
+
+
+def header_int_problem(value: object) -> str | None:
+    """Why `value` is no header int (seq, stamp_ns, pub_ns: an int in [0, 2**63)), or None when it is one.
+    Beyond that range msgpack or numpy's int64 fail later, far from the message (a node's status thread
+    died of an OverflowError re-encoding a counter a seq of 2**63 - 1 had inflated)."""
+    if not isinstance(value, int) or isinstance(value, bool):
+        return f"{value!r:.40} is not an int"
+    if not 0 <= value < INT64_LIMIT:
+        return f"{value} is not in [0, 2**63)"
+    return None
 
 
 @dataclass(kw_only=True)
@@ -73,8 +86,12 @@ class Message:
     def validate(self) -> None:
         """Raise ValueError("field: reason") when the fields are inconsistent.
 
-        The base checks array specs; subclasses add shape relations between fields.
+        The base checks the header ints and array specs; subclasses add relations between fields.
         """
+        for name in HEADER_INTS:
+            reason = header_int_problem(getattr(self, name))
+            if reason:
+                raise ValueError(f"{name}: {reason}")
         for name, spec in self.ARRAYS.items():
             reason = spec.check(getattr(self, name))
             if reason:
@@ -97,3 +114,10 @@ def require_same_length(msg: Message, names: tuple[str, ...]) -> None:
         n = getattr(msg, name).shape[0]
         if n != first:
             raise ValueError(f"{name}: has {n} rows but {names[0]} has {first}")
+
+
+def require_image_size(width: int, height: int) -> None:
+    """Raise ValueError unless `width` x `height` (px) is a positive image size: a width of 0 stopped a
+    window model's slip detector (no frame width) and one of 1 scaled its fields 640-fold."""
+    if width <= 0 or height <= 0:
+        raise ValueError(f"width/height: {width}x{height} is not a positive image size")

@@ -7,7 +7,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from msgs.message import ArraySpec, Message, require_same_length
+from msgs.message import ArraySpec, Message, require_image_size, require_same_length
 
 
 @dataclass(kw_only=True)
@@ -18,7 +18,7 @@ class MarkerArray(Message):
     cur_px: (N, 2) float current positions x, y (last seen position when not valid).
     valid: (N,) bool, the marker was matched in this frame and passed the checks.
     frames_since_seen: (N,) int, 0 when seen in this frame.
-    width, height: size in px of the image the markers were found in.
+    width, height: size in px of the image the markers were found in (both > 0).
     """
 
     TYPE: ClassVar[str] = "MarkerArray"
@@ -43,6 +43,7 @@ class MarkerArray(Message):
             if getattr(self, name).shape[1:] != (2,):
                 raise ValueError(f"{name}: shape {getattr(self, name).shape} is not (N, 2)")
         require_same_length(self, ("ref_px", "cur_px", "valid", "frames_since_seen"))
+        require_image_size(self.width, self.height)
 
 
 @dataclass(kw_only=True)
@@ -114,7 +115,7 @@ class ContactSummary(Message):
 class SlipState(Message):
     """Slip decision for the window of fields ending at `stamp_ns`.
 
-    probability: P(slip) in [0, 1]. slip: the decision after threshold and hysteresis.
+    probability: P(slip) in [0, 1]. slip: the decision after threshold (in [0, 1]) and hysteresis.
     window_stamps_ns: (T,) int64 capture stamps of the fields the model judged (a trial
     model judges a whole grasp: its first stamp and that of its last frame judged, the current one
     unless a camera faster than the model has this frame left out).
@@ -135,5 +136,6 @@ class SlipState(Message):
 
     def validate(self) -> None:
         super().validate()
-        if not 0.0 <= self.probability <= 1.0:
-            raise ValueError(f"probability: {self.probability} is not in [0, 1]")
+        for name in ("probability", "threshold"):
+            if not 0.0 <= getattr(self, name) <= 1.0:  # NaN too
+                raise ValueError(f"{name}: {getattr(self, name)} is not in [0, 1]")

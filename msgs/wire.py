@@ -19,7 +19,7 @@ from typing import Any, Iterable
 import msgpack
 import numpy as np
 
-from msgs.message import HEADER_FIELDS, Message, MessageError
+from msgs.message import HEADER_FIELDS, HEADER_INTS, Message, MessageError, header_int_problem
 
 MAX_NDIM = 8
 
@@ -94,6 +94,10 @@ def decode_header(frame: Any, topic: str = "?") -> dict[str, Any]:
                        ("fields", dict), ("arrays", list)):
         if not isinstance(header.get(name), kind) or isinstance(header.get(name), bool):
             raise MessageError(topic, type_name, name, f"missing or not {kind.__name__}")
+    for name in HEADER_INTS:
+        reason = header_int_problem(header[name])
+        if reason:
+            raise MessageError(topic, type_name, name, reason)
     return header
 
 
@@ -109,7 +113,8 @@ def _check_scalar(cls: type[Message], name: str, value: Any, default: Any) -> An
     else:
         ok = isinstance(value, type(default))
     if not ok:
-        raise TypeError(f"{value!r} is not a finite {type(default).__name__}")
+        kind = "finite float" if isinstance(default, float) else type(default).__name__
+        raise TypeError(f"{value!r:.80} is not {'an' if kind[0] in 'aeiou' else 'a'} {kind}")
     return value
 
 

@@ -15,7 +15,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import zmq
 
@@ -222,8 +222,12 @@ class SeqTracker:
     the same message again and drops it. A seq that goes back otherwise means the
     publisher restarted: the count starts over. With `pub_ns` given, a replay is told
     from a restarted publisher's new latched message by its publish time (a replay is
-    byte-identical); without it, any latched seq that goes back counts as a replay.
+    byte-identical); without it, any latched seq that goes back counts as a replay. A seq more
+    than `MAX_GAP` ahead is no gap either (no publisher lost that many messages in between) but a
+    sequence that starts over there: one bad seq (2**63 - 1) had made `gaps` too large for msgpack.
     """
+
+    MAX_GAP: ClassVar[int] = 1_000_000
 
     last: dict[tuple[str, str], int] = field(default_factory=dict)
     last_pub_ns: dict[tuple[str, str], int] = field(default_factory=dict)
@@ -236,7 +240,7 @@ class SeqTracker:
             if latched and (pub_ns is None or pub_ns == self.last_pub_ns.get(key)):
                 return False
             prev = None
-        if prev is not None and seq > prev + 1:
+        if prev is not None and prev + 1 < seq <= prev + 1 + self.MAX_GAP:
             self.gaps += seq - prev - 1
         self.last[key] = seq
         if pub_ns is not None:
@@ -272,6 +276,7 @@ class TopicReader:
                 self._sock.setsockopt(zmq.SUBSCRIBE, prefix)
         self.seq = SeqTracker()
         self.malformed = 0
+        self.last_malformed = ""  # why the last malformed message was dropped, naming its publisher
 
     def recv_raw(self, timeout_s: float | None = None) -> tuple[str, str, bool, list[Any]] | None:
         """(topic, node, latched, message frames) of the next fresh message, or None on
@@ -282,14 +287,14 @@ class TopicReader:
             if not self._sock.poll(None if wait is None else int(wait * 1000)):
                 return None
             frames = self._sock.recv_multipart(copy=False)
+            node = "?"
             try:
                 topic, node, latched = parse_envelope(frames[0])
                 header = msgs.decode_header(frames[1], topic) if len(frames) > 1 else None
                 if header is None:
                     raise ValueError("no header frame")
             except (ValueError, MessageError) as exc:
-                self.malformed += 1
-                log.debug("dropped malformed message: %s", exc)
+                self._dropped(exc, node)
                 continue
             if self.seq.accept(topic, node, header["seq"], latched, header["pub_ns"]):
                 return topic, node, latched, frames[1:]
@@ -302,12 +307,17 @@ class TopicReader:
             raw = self.recv_raw(wait)
             if raw is None:
                 return None
-            topic, _node, latched, frames = raw
+            topic, node, latched, frames = raw
             try:
                 return Received(topic, msgs.decode(frames, topic), latched)
             except MessageError as exc:
-                self.malformed += 1
-                log.debug("dropped malformed message: %s", exc)
+                self._dropped(exc, node)
+
+    def _dropped(self, exc: Exception, node: str) -> None:
+        """Count a malformed message from publisher `node` and keep why in `last_malformed`."""
+        self.malformed += 1
+        self.last_malformed = f"{exc} (from node {node!r})"
+        log.debug("dropped malformed message: %s", self.last_malformed)
 
     def close(self) -> None:
         self._sock.close(linger=LINGER_MS)

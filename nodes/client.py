@@ -17,7 +17,10 @@ Callback form (a background thread calls the function)::
         robot.run_task()
 
 `timeout_s` makes silence an error (`TimeoutError`): a gripper that stops hearing the
-slip detector should know. The bus is the one `FV_BUS` names (default: this host's).
+slip detector should know. A message of another type than expected (a NodeStatus published on
+`/slip` by mistake) or one that cannot be decoded is dropped, counted and logged (at most every
+`LOG_EVERY_S` per kind): it never reaches the loop nor stops a listener. The bus is the one
+`FV_BUS` names (default: this host's).
 
 Publishing (the gripper closed: every tracker takes a new reference, a new grasp starts)::
 
@@ -36,12 +39,28 @@ import time
 from abc import ABC, abstractmethod
 from typing import Callable, Iterator, TypeVar
 
-from msgs import Message, SlipState
+from msgs import CameraInfo, ContactSummary, DisplacementField, Image, MarkerArray, Message, NodeStatus, SlipState
 from nodes.bus import PublisherSocket, TopicReader
 from nodes.endpoints import BusAddress
 
 log = logging.getLogger("fv.client")
 POLL_S = 0.1
+LOG_EVERY_S = 10.0  # a kind of dropped message is logged when first seen, then at most this often
+# what the pipeline publishes on a topic of each name, in any namespace (/slip, /left/slip): the type
+# `subscribe` expects when given none
+TOPIC_TYPES: dict[str, type[Message]] = {
+    "slip": SlipState, "field": DisplacementField, "contact": ContactSummary, "markers": MarkerArray,
+    "markers/reference": MarkerArray, "camera/image": Image, "camera/info": CameraInfo, "status": NodeStatus,
+}
+
+
+def expected_type(topic: str) -> type[Message]:
+    """The type the pipeline publishes on `topic` (`TOPIC_TYPES`, by the end of its name), or
+    `Message` (any type) for a topic of another name."""
+    for name, cls in TOPIC_TYPES.items():
+        if topic == "/" + name or topic.endswith("/" + name):
+            return cls
+    return Message
 _C = TypeVar("_C", bound="_Closing")
 
 
@@ -62,7 +81,10 @@ class _Closing(ABC):
 class Subscription(_Closing):
     """Messages of one topic, read on demand; iterate it, or call `recv()`.
 
-    msg_type: the expected class (TypeError for another), None for any.
+    msg_type: the expected class; None for the type the pipeline publishes on a topic of that
+    name (`expected_type`: SlipState on /slip and /left/slip), any type on other topics; `Message`
+    for any type. A message of another type is dropped and counted in `wrong_type`, one that cannot
+    be decoded in `malformed`; both are logged when first seen, then at most every `LOG_EVERY_S`.
     timeout_s: longest silence allowed while iterating, None = wait forever.
     latest: skip to the newest message when several are waiting (for control loops
     slower than the topic); default keeps every message in order.
@@ -71,22 +93,46 @@ class Subscription(_Closing):
     def __init__(self, topic: str, msg_type: type[Message] | None = None, *, timeout_s: float | None = None,
                  latest: bool = False, address: BusAddress | None = None) -> None:
         self.topic = topic
-        self.msg_type = msg_type
+        self.msg_type = expected_type(topic) if msg_type is None else msg_type
         self.timeout_s = timeout_s
         self.latest = latest
+        self.wrong_type = 0
+        self._logged_s: dict[str, float] = {}  # kind of dropped message -> when it was last logged (monotonic s)
         self._reader = TopicReader([topic], address)
 
     def recv(self, timeout_s: float | None = None) -> Message | None:
-        """The next message (the newest one waiting when `latest`), or None after `timeout_s`."""
-        item = self._reader.recv(timeout_s)
-        if item is None:
-            return None
-        if self.latest:
-            while (newer := self._reader.recv(0)) is not None:
-                item = newer
-        if self.msg_type is not None and not isinstance(item.msg, self.msg_type):
-            raise TypeError(f"{self.topic}: expected {self.msg_type.TYPE}, got {item.msg.TYPE} from {item.msg.node!r}")
-        return item.msg
+        """The next message of the expected type (the newest one waiting when `latest`), or None
+        after `timeout_s`; others are dropped and counted on the way."""
+        msg = self._next(timeout_s)
+        if msg is not None and self.latest:
+            while (newer := self._next(0)) is not None:
+                msg = newer
+        return msg
+
+    def _next(self, timeout_s: float | None) -> Message | None:
+        """The next message of the expected type within `timeout_s`, or None."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            malformed = self._reader.malformed
+            item = self._reader.recv(None if deadline is None else max(0.0, deadline - time.monotonic()))
+            if self._reader.malformed != malformed:
+                self._log_drop("malformed", "malformed", self._reader.malformed, self._reader.last_malformed)
+            if item is None:
+                return None
+            if isinstance(item.msg, self.msg_type):
+                return item.msg
+            self.wrong_type += 1
+            self._log_drop(f"type {item.msg.TYPE}", "wrong_type", self.wrong_type,
+                           f"a {item.msg.TYPE} from node {item.msg.node!r}, not a {self.msg_type.TYPE}")
+
+    def _log_drop(self, kind: str, counter: str, count: int, why: str) -> None:
+        """Log a dropped message of `kind` (counted in `counter`, now `count`) when first seen, then at
+        most every LOG_EVERY_S."""
+        now = time.monotonic()
+        if now - self._logged_s.get(kind, -LOG_EVERY_S) >= LOG_EVERY_S:
+            self._logged_s[kind] = now
+            log.warning("%s: dropped %s (%s: %d; logged at most every %g s)", self.topic, why, counter, count,
+                        LOG_EVERY_S)
 
     def __iter__(self) -> Iterator[Message]:
         while True:
@@ -127,7 +173,9 @@ def wait_for_message(topic: str, msg_type: type[Message] | None = None, timeout_
 
 class Listener(_Closing):
     """Calls `callback(msg)` for each message of `topic` from a background thread until
-    `close()`. A callback that raises is logged and counted in `errors`; the thread goes on."""
+    `close()`. A callback that raises is logged and counted in `errors`; a message of another type
+    or that cannot be decoded is dropped and counted in `wrong_type` or `malformed` (see
+    `Subscription`); the thread goes on."""
 
     def __init__(self, topic: str, callback: Callable[[Message], object], msg_type: type[Message] | None = None,
                  *, latest: bool = False, address: BusAddress | None = None) -> None:
@@ -135,6 +183,8 @@ class Listener(_Closing):
         self.callback = callback
         self.errors = 0
         self.received = 0
+        self.wrong_type = 0
+        self.malformed = 0
         self._stop = threading.Event()
         self._ready = threading.Event()
         self._args = (topic, msg_type, latest, address)
@@ -148,6 +198,7 @@ class Listener(_Closing):
             self._ready.set()
             while not self._stop.is_set():
                 msg = sub.recv(POLL_S)
+                self.wrong_type, self.malformed = sub.wrong_type, sub.malformed
                 if msg is None:
                     continue
                 self.received += 1

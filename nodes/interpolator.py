@@ -11,25 +11,30 @@ from fv_algos.field import FieldInterpolator, FieldParams
 from msgs import ContactSummary, DisplacementField, MarkerArray
 from nodes.node import Node
 
-METHODS = ("rbf_operator", "rbf_refit", "griddata")
-
 
 @dataclass
 class InterpolatorParams:
     method: str = "rbf_operator"  # rbf_operator (precomputed) | rbf_refit (the paper) | griddata (cubic)
-    kernel: str = "thin_plate_spline"  # any scipy RBFInterpolator kernel name
+    kernel: str = "thin_plate_spline"  # thin_plate_spline | multiquadric | inverse_multiquadric | gaussian | linear | cubic
     grid: int = 30  # grid is grid x grid cells over the reference markers
     smoothing: float = 0.0
     width_px: float = 0.0  # kernel width for multiquadric / gaussian; 0 = marker spacing
     contact: bool = True  # also publish /contact
     contact_threshold_px: float = 1.0
     input_timeout_s: float = 2.0  # warn in NodeStatus after this long without markers (0 = never)
+    max_markers: int = 400  # a MarkerArray with more is refused: the RBF solve grows as N^3 (3000 took 19 s)
 
     def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise ValueError(f"method {self.method!r} is not one of {METHODS}")
-        if self.grid < 2:
-            raise ValueError(f"grid {self.grid} must be >= 2")
+        self.field_params()  # ValueError names a bad method, kernel, grid, smoothing or width_px
+        if self.input_timeout_s < 0:
+            raise ValueError(f"input_timeout_s {self.input_timeout_s} must be > 0, or 0 for never")
+        if self.max_markers < 3:
+            raise ValueError(f"max_markers {self.max_markers} must be >= 3")
+
+    def field_params(self) -> FieldParams:
+        """The field interpolation these params describe."""
+        return FieldParams(method=self.method, grid_shape=(self.grid, self.grid), kernel=self.kernel,
+                           smoothing=self.smoothing, width_px=self.width_px or None)
 
 
 class InterpolatorNode(Node):
@@ -39,8 +44,7 @@ class InterpolatorNode(Node):
 
     def setup(self) -> None:
         p = self.params
-        self.field_params = FieldParams(method=p.method, grid_shape=(p.grid, p.grid), kernel=p.kernel,
-                                        smoothing=p.smoothing, width_px=p.width_px or None)
+        self.field_params = p.field_params()
         self.contact_params = ContactParams(p.contact_threshold_px)
         self.interpolator = None
         self.reference_key = b""
@@ -48,9 +52,15 @@ class InterpolatorNode(Node):
         self.contact_pub = self.publisher("contact", ContactSummary) if p.contact else None
         self.subscribe("markers", MarkerArray, self.on_markers, depth=5,
                        stale_after_s=p.input_timeout_s or None)
-        self.counters.update(invalid_fields=0)
+        self.counters.update(invalid_fields=0, too_many_markers=0)
 
     def on_markers(self, msg: MarkerArray) -> None:
+        if len(msg.ref_px) > self.params.max_markers:
+            self.counters["too_many_markers"] += 1
+            self.warn(f"a MarkerArray of {len(msg.ref_px)} markers from {msg.node!r} refused: more than max_markers "
+                      f"{self.params.max_markers} (too_many_markers)", kind="too many markers")
+            return
+        self.clear_warning()
         key = msg.ref_px.tobytes()
         if key != self.reference_key:
             self.interpolator = FieldInterpolator(msg.ref_px, self.field_params)

@@ -224,12 +224,15 @@ class Node:
     def teardown(self) -> None:
         """Release the node's resources (override when it holds devices or files)."""
 
-    def warn(self, message: str) -> None:
-        """Report a degraded state in NodeStatus (and log it once per message)."""
+    def warn(self, message: str, kind: str | None = None) -> None:
+        """Report a degraded state in NodeStatus and log it, once per `kind`: what the warning is
+        about, without the figures its message carries ("window rejected" for "window rejected: 12
+        non-finite values"); default the message itself (a message with a count then logs each new count)."""
         self.state, self.message = "warn", message
-        self._log_once("warn:" + message, logging.WARNING, message)
+        self._log_once("warn:" + (message if kind is None else kind), logging.WARNING, message)
 
     def clear_warning(self) -> None:
+        """Back to "ok" in NodeStatus: the node's own warning is over (runtime faults are apart)."""
         self.state, self.message = "ok", ""
 
     def stop(self) -> None:
@@ -450,36 +453,57 @@ class Node:
     def _watch_loop(self) -> None:
         """The status thread: NodeStatus every STATUS_PERIOD_S and at once when the health
         changes (which fault, not how long it has lasted); logs stuck callbacks and the
-        forwarder going and coming back."""
+        forwarder going and coming back. An exception in one round is logged once per kind and
+        the thread goes on: a node whose status stopped dropped out of `fv node list`."""
         now = time.monotonic()
         with self._cond:
             for s in (s for ss in self._subs.values() for s in ss if not s.received):
                 s.last_rx_s = now  # overdue counts from the start of spinning, not from setup
-        next_status_s, last_kinds, stuck_since, down_since = now, None, None, None
+        watch = _Watch(next_status_s=now)
         while True:
-            self._pub_sock.update()
-            now = time.monotonic()
-            busy = self._busy
-            stuck = busy if busy is not None and now - busy[1] > self.STUCK_AFTER_S else None
-            if stuck is not None and stuck != stuck_since:
-                self._stuck_count += 1
-                self.log.error("%s stuck for %.1f s (watchdog; reported in NodeStatus)", stuck[0], now - stuck[1])
-            elif stuck is None and stuck_since is not None:
-                self.log.warning("%s returned after %.1f s", stuck_since[0], now - stuck_since[1])
-            stuck_since = stuck
-            down = self._pub_sock.down_since_s
-            if down is not None and down_since is None:
-                self.log.warning("forwarder %s gone; reconnecting", self.address.url)
-            elif down is None and down_since is not None:
-                self.log.info("forwarder %s back after %.1f s (reconnect %d); latched messages re-sent",
-                              self.address.url, now - down_since, self._pub_sock.reconnects)
-            down_since = down
-            kinds = (self.state, self.message, [kind for _, kind, _ in self._faults(now)])
-            if now >= next_status_s or kinds != last_kinds:
-                self._publish_status()
-                next_status_s, last_kinds = now + self.STATUS_PERIOD_S, kinds
+            try:
+                self._watch_once(watch)
+            except Exception as exc:  # the watchdog outlives whatever one round met
+                self._log_once(f"status:{type(exc).__name__}", logging.ERROR,
+                               f"status thread: {type(exc).__name__}: {exc} (going on; repeats not logged)",
+                               exc_info=True)
             if self._stop.wait(self.WATCH_PERIOD_S):
                 return
+
+    def _watch_once(self, watch: _Watch) -> None:
+        """One round of the status thread; `watch` holds what the rounds share."""
+        self._pub_sock.update()
+        now = time.monotonic()
+        busy = self._busy
+        stuck = busy if busy is not None and now - busy[1] > self.STUCK_AFTER_S else None
+        if stuck is not None and stuck != watch.stuck_since:
+            self._stuck_count += 1
+            self.log.error("%s stuck for %.1f s (watchdog; reported in NodeStatus)", stuck[0], now - stuck[1])
+        elif stuck is None and watch.stuck_since is not None:
+            self.log.warning("%s returned after %.1f s", watch.stuck_since[0], now - watch.stuck_since[1])
+        watch.stuck_since = stuck
+        down = self._pub_sock.down_since_s
+        if down is not None and watch.down_since is None:
+            self.log.warning("forwarder %s gone; reconnecting", self.address.url)
+        elif down is None and watch.down_since is not None:
+            self.log.info("forwarder %s back after %.1f s (reconnect %d); latched messages re-sent",
+                          self.address.url, now - watch.down_since, self._pub_sock.reconnects)
+        watch.down_since = down
+        kinds = (self.state, self.message, [kind for _, kind, _ in self._faults(now)])
+        if now >= watch.next_status_s or kinds != watch.last_kinds:
+            watch.next_status_s, watch.last_kinds = now + self.STATUS_PERIOD_S, kinds
+            self._publish_status()
+
+
+@dataclass
+class _Watch:
+    """What the status thread's rounds share: when the next NodeStatus is due (monotonic s), the
+    health last published, and the stuck callback and forwarder outage last seen."""
+
+    next_status_s: float
+    last_kinds: tuple | None = None
+    stuck_since: tuple[str, float] | None = None
+    down_since: float | None = None
 
 
 def launch_started_ns() -> int:

@@ -29,6 +29,7 @@ at chance on unseen objects) or a checkpoint path."""
 from __future__ import annotations
 
 import collections
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -42,6 +43,7 @@ from nodes.node import Node
 if TYPE_CHECKING:  # torch is imported only where a model is used
     from fv_algos.trial_net import TrialModel
 
+DEVICE_RE = re.compile(r"cpu|mps|(cuda|xpu)(:\d+)?")  # the torch devices a model can run on
 IMAGE_BUFFER = 64  # camera images kept for the fields still to come (trial models), frames
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "fv_algos" / "weights"
 
@@ -70,7 +72,7 @@ class SlipDetectorParams:
     threshold: float = 0.5  # P(slip) above which the state is slip
     hysteresis: float = 0.0  # slip turns on above threshold + h and off below threshold - h
     threads: int = 1  # torch threads for inference
-    device: str = "cpu"  # cpu | cuda
+    device: str = "cpu"  # cpu | cuda | cuda:N | mps | xpu | xpu:N (a window model; a trial model runs on the cpu)
     input_timeout_s: float = 2.0  # warn in NodeStatus after this long without a field (0 = never)
 
     def __post_init__(self) -> None:
@@ -80,6 +82,10 @@ class SlipDetectorParams:
             raise ValueError(f"hysteresis {self.hysteresis} must be >= 0 and keep threshold +/- h inside (0, 1)")
         if self.threads < 1:
             raise ValueError(f"threads {self.threads} must be >= 1")
+        if not DEVICE_RE.fullmatch(self.device):  # checked by name: torch is not imported to check a launch file
+            raise ValueError(f"device {self.device!r} is not cpu, cuda, cuda:N, mps, xpu or xpu:N")
+        if self.input_timeout_s < 0:
+            raise ValueError(f"input_timeout_s {self.input_timeout_s} must be > 0, or 0 for never")
         try:  # a misspelt model is refused before a launch starts (fv launch --check), not respawned for good
             model_path(self.model)
         except FileNotFoundError as exc:
@@ -101,7 +107,7 @@ class SlipDetectorNode(Node):
         path = model_path(p.model)
         self.slip = False
         self.slip_pub = self.publisher("slip", SlipState)
-        self.counters.update(decisions=0, invalid_windows=0, skipped=0)
+        self.counters.update(decisions=0, invalid_windows=0, skipped=0, empty_references=0)
         trial_model = read_trial_model(path)
         if trial_model is not None:
             self.setup_grasp(trial_model)
@@ -155,8 +161,20 @@ class SlipDetectorNode(Node):
             self.slip = False
 
     def on_window_reference(self, msg: MarkerArray) -> None:
-        """The camera's frame width, which the window model's fields are rescaled from."""
-        self.frame_width_px = msg.width or None
+        """The camera's frame width, which the window model's fields are rescaled from (a reference
+        without markers is none: see `usable_reference`)."""
+        if self.usable_reference(msg):
+            self.frame_width_px = msg.width
+
+    def usable_reference(self, msg: MarkerArray) -> bool:
+        """False, with a warning and counted in empty_references, for a reference without markers (a
+        camera that saw no skin, or a message from elsewhere): it gives no grasp to judge, and its width
+        no frame width (the decoder refuses a width <= 0)."""
+        if len(msg.ref_px):
+            return True
+        self.counters["empty_references"] += 1
+        self.warn(f"a /markers/reference without markers from {msg.node!r} ignored (empty_references)")
+        return False
 
     def on_field(self, msg: DisplacementField) -> None:
         cfg = self.classifier.config
@@ -181,9 +199,10 @@ class SlipDetectorNode(Node):
             try:
                 probability = self.classifier.predict(np.stack([f for _, f, _ in self.window]), self.frame_width_px)
             except ValueError as exc:  # non-finite field values: flag the window, keep running
-                self.warn(f"window rejected: {exc}")
+                self.warn(f"window rejected: {exc}", kind="window rejected")
                 valid = False
         if valid:
+            self.clear_warning()  # a window judged: whatever was wrong before is over
             self.decide(probability)
         else:
             self.counters["invalid_windows"] += 1
@@ -195,7 +214,9 @@ class SlipDetectorNode(Node):
             self.images.popitem(last=False)
 
     def on_reference(self, msg: MarkerArray) -> None:
-        """A new reference: a new grasp starts at its frame."""
+        """A new reference: a new grasp starts at its frame (not at one without markers)."""
+        if not self.usable_reference(msg):
+            return
         self.grasp_start_ns = msg.stamp_ns
         self.reference_markers = len(msg.ref_px)
         self.judge.reset()
@@ -220,6 +241,7 @@ class SlipDetectorNode(Node):
         if image.encoding == "mono8":
             raise ValueError("the trial model needs colour camera images (bgr8 or rgb8), got mono8: "
                              "set the camera's encoding param")
+        self.clear_warning()  # a field the grasp takes: whatever was wrong before is over
         takes = self.judge.takes(msg.stamp_ns)
         if self.judge.slow_gaps > self.counters["slow_gaps"]:
             self.counters["slow_gaps"] = self.judge.slow_gaps

@@ -4,11 +4,15 @@ fingers of a gripper (`launch/gelsight_mini_pair.yaml`).
 Each input is a `SlipState` topic (`/left/slip`, `/right/slip`). On every state that comes in, the
 node publishes on `output` the vote of the inputs' latest states (`fv_algos.camera_vote.CameraVote`):
 P(slip) whose logit is the mean of theirs, what a trial model says of all the cameras of a grasp
-together, as `fv eval --trials` judges both cameras; slip when it reaches the threshold.
+together, as `fv eval --trials` judges both cameras; slip when it reaches the node's own `threshold`
+(the inputs' thresholds are not read: one input with threshold 0 made every vote slip).
 
 Left out of a vote, and named in the node's warning:
-- an input with no state within `stale_after_s` of the newest state (by capture stamp): a
-  camera that stopped; or none yet `stale_after_s` after the first input's first state;
+- an input with no state arrived for `stale_after_s` (by arrival on the node's monotonic clock, not
+  by capture stamp: a camera whose clock is behind still counts while its states come): a camera
+  that stopped; or none yet `stale_after_s` after the first input's first state;
+- a state stamped more than `stale_after_s` ahead of every input's clock and this host's
+  (`CameraVote.ahead_s`): refused, counted in `ahead`, and no vote published for it;
 - an input still on an earlier grasp: its grasp (window_stamps_ns[0], the tracker's reference)
   started more than `same_grasp_s` before the newest grasp of the inputs, and it has given a state
   `same_grasp_s` after that newest grasp started. Trackers that took their references far apart
@@ -20,12 +24,15 @@ model's invalid window) is left out as well; with no input left, the state publi
 (probability 0)."""
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
-from fv_algos.camera_vote import CameraAnswer, CameraVote, Vote
+from fv_algos.camera_vote import CameraAnswer, CameraVote, StampAhead, Vote
 from msgs import SlipState
+from nodes.bus import resolve_topic
 from nodes.node import Node
 
 
@@ -33,15 +40,26 @@ from nodes.node import Node
 class SlipFusionParams:
     inputs: list[str] = field(default_factory=lambda: ["/left/slip", "/right/slip"])  # SlipState topics
     output: str = "/slip"
-    stale_after_s: float = 1.0  # an input with no state this long before the newest is left out
+    threshold: float = 0.5  # the vote's P(slip) at or above which `output` says slip
+    stale_after_s: float = 1.0  # an input with no state arrived for this long is left out
     same_grasp_s: float = 1.0  # grasps that started further apart than this are different grasps
 
     def __post_init__(self) -> None:
-        if len(self.inputs) < 2 or len(set(self.inputs)) != len(self.inputs):
-            raise ValueError(f"inputs {self.inputs} must name two or more different topics")
-        if self.output in self.inputs:
-            raise ValueError(f"output {self.output!r} is also an input")
+        check_topics(self.inputs, self.output, resolve_topic)  # as a node without a namespace reads them
+        if not 0.0 < self.threshold < 1.0:
+            raise ValueError(f"threshold {self.threshold} must be in (0, 1)")
         CameraVote(self.inputs, self.stale_after_s, self.same_grasp_s)  # ValueError names a bad duration
+
+
+def check_topics(inputs: list[str], output: str, resolve: Callable[[str], str]) -> list[str]:
+    """The input topics as `resolve` reads them; ValueError unless they are two or more different
+    topics, `output` not among them (`left/slip` and `/left/slip` are one topic at the root)."""
+    names = [resolve(t) for t in inputs]
+    if len(names) < 2 or len(set(names)) != len(names):
+        raise ValueError(f"inputs {inputs} must name two or more different topics (they read {names})")
+    if resolve(output) in names:
+        raise ValueError(f"output {output!r} is also an input")
+    return names
 
 
 def _answer(msg: SlipState) -> CameraAnswer:
@@ -55,49 +73,65 @@ def _answer(msg: SlipState) -> CameraAnswer:
 class SlipFusion(Node):
     """The cameras' vote on `output` after every input state; counters `voted` (states published),
     `alone` (of them, votes of one input), `stale`, `earlier_grasp` and `switching` (inputs left out,
-    by why)."""
+    by why), `ahead` (states refused). `clock`: the monotonic clock (s) arrivals are read on,
+    `wall_clock` the wall clock (ns since the epoch) stamps are compared with."""
 
     Params = SlipFusionParams
 
     def setup(self) -> None:
         p = self.params
-        self.vote = CameraVote(p.inputs, p.stale_after_s, p.same_grasp_s)
+        inputs = check_topics(p.inputs, p.output, self.resolve)  # again with the namespace and remaps
+        self.clock: Callable[[], float] = time.monotonic
+        self.wall_clock: Callable[[], int] = time.time_ns
+        self.vote = CameraVote(inputs, p.stale_after_s, p.same_grasp_s)
         self.pub = self.publisher(p.output, SlipState)
-        self.counters.update(voted=0, alone=0, stale=0, earlier_grasp=0, switching=0)
-        for topic in p.inputs:
-            self.subscribe(topic, SlipState, lambda msg, topic=topic: self.on_state(topic, msg), depth=None)
+        self.counters.update(voted=0, alone=0, stale=0, earlier_grasp=0, switching=0, ahead=0)
+        for topic, name in zip(p.inputs, inputs):
+            self.subscribe(topic, SlipState, lambda msg, name=name: self.on_state(name, msg), depth=None)
 
     def on_state(self, topic: str, msg: SlipState) -> None:
-        vote = self.vote.update(topic, _answer(msg))
-        self._report(vote)
+        """Vote with `msg`, the newest state of the input `topic` (its resolved name), and publish."""
+        now_s = self.clock()
+        try:
+            vote = self.vote.update(topic, _answer(msg), now_s, self.wall_clock())
+        except StampAhead as exc:
+            self.counters["ahead"] += 1
+            self.warn(f"{topic}: state refused, stamped {exc.ahead_s:.1f} s ahead of every input's clock and "
+                      f"this host's (stale_after_s {self.params.stale_after_s} s; counter ahead)",
+                      kind=f"{topic}: ahead")
+            return
+        self._report(vote, now_s)
         stamps = np.array([vote.first_ns, vote.last_ns], np.int64)
+        threshold = self.params.threshold
         if vote.probability is None:
-            state = SlipState(stamp_ns=msg.stamp_ns, threshold=msg.threshold, model=msg.model, valid=False,
+            state = SlipState(stamp_ns=msg.stamp_ns, threshold=threshold, model=msg.model, valid=False,
                               window_stamps_ns=stamps)
         else:
             state = SlipState(stamp_ns=msg.stamp_ns, probability=vote.probability,
-                              slip=vote.probability >= msg.threshold, threshold=msg.threshold, model=msg.model,
+                              slip=vote.probability >= threshold, threshold=threshold, model=msg.model,
                               window_stamps_ns=stamps)
         self.pub.publish(state)
 
-    def _report(self, vote: Vote) -> None:
-        """Count the vote and the inputs left out of it, and name them in the node's warning."""
+    def _report(self, vote: Vote, now_s: float) -> None:
+        """Count the vote (taken at `now_s`, the node's clock) and the inputs left out of it, and name
+        them in the node's warning."""
         self.counters["voted"] += 1
         self.counters["alone"] += len(vote.voters) == 1
         self.counters["switching"] += sum(reason == "switching grasp" for reason in vote.left_out.values())
         why = []
-        for topic, reason in vote.faults().items():
+        faults = vote.faults()
+        for topic, reason in faults.items():
             if reason == "no answer yet":
                 why.append(f"{topic}: no state yet")
             elif reason == "stale":
                 self.counters["stale"] += 1
-                why.append(f"{topic}: no state for {self.params.stale_after_s} s")
+                why.append(f"{topic}: no state for {now_s - self.vote.arrived_s[topic]:.1f} s")
             else:
                 self.counters["earlier_grasp"] += 1
                 ahead = (vote.newest_grasp_ns - self.vote.latest[topic].grasp_start_ns) / 1e9
                 why.append(f"{topic}: on an earlier grasp ({ahead:.1f} s before the newest; "
                            f"one message on /tracker/reset starts every camera's grasp together)")
         if why:
-            self.warn("; ".join(why))
+            self.warn("; ".join(why), kind="; ".join(f"{topic}: {reason}" for topic, reason in faults.items()))
         else:
             self.clear_warning()

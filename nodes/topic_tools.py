@@ -3,7 +3,8 @@
 Topics and nodes are discovered from the latched `NodeStatus` messages on `/status`:
 the forwarder replays each node's latest one to a new subscriber, and each lists the
 node's publishes / subscribes. A status older than `STALE_AFTER_S` belongs to a node
-that is gone and is ignored.
+that is gone and is ignored; one that cannot be decoded (a malformed latched status published by
+hand) is skipped, named on stderr.
 """
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from nodes.arg_types import positive_float
+from nodes.arg_types import positive_float, positive_int
 
 STATUS_TOPIC = "/status"
 STALE_AFTER_S = 3.0
@@ -41,7 +42,10 @@ def discover(wait_s: float = DISCOVERY_S) -> dict[str, Any]:
     deadline = time.monotonic() + wait_s
     with TopicReader([STATUS_TOPIC]) as reader:
         while (remaining := deadline - time.monotonic()) > 0:
+            malformed = reader.malformed
             item = reader.recv(remaining)
+            if reader.malformed != malformed:
+                print(f"fv: skipped a bad status: {reader.last_malformed}", file=sys.stderr)
             if item is not None and item.msg.TYPE == "NodeStatus":
                 found[item.msg.node] = item.msg
     now_ns = time.time_ns()
@@ -340,6 +344,17 @@ def _pub(args: argparse.Namespace) -> int:
 
 
 # -- command line ----------------------------------------------------------------------
+def window_size(text: str) -> int:
+    """--window: the messages a statistic covers, 2 or more (a rate or a spread needs two; 0 gave 0.0 Hz)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 2:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number >= 2")
+    return value
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     topic = sub.add_parser("topic", help="inspect and publish topics (list, info, echo, hz, bw, delay, pub)")
     verbs = topic.add_subparsers(dest="verb", required=True, metavar="VERB")
@@ -360,7 +375,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     verbs.choices["list"].add_argument("-t", "--show-types", action="store_true", help="show message types")
 
     p = verb("echo", "print messages (one JSON object per line with --json)", _echo)
-    p.add_argument("--count", "-n", type=int, default=None, help="stop after N messages")
+    p.add_argument("--count", "-n", type=positive_int, default=None, help="stop after N messages")
     p.add_argument("--once", action="store_true", help="print one message and exit")
     p.add_argument("--timeout", type=positive_float, default=None, help="exit 1 when no message comes for S seconds")
     p.add_argument("--no-arr", action="store_true", help="leave array fields out")
@@ -370,7 +385,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                   ("bw", "bandwidth (bytes of header and arrays)", _bw),
                                   ("delay", "delay of receive time after the header stamp_ns", _delay)):
         p = verb(name, help_text, func)
-        p.add_argument("--window", "-w", type=int, default=10_000, help="messages the statistics cover")
+        p.add_argument("--window", "-w", type=window_size, default=10_000, help="messages the statistics cover (>= 2)")
         p.add_argument("--duration", type=positive_float, default=None,
                        help="measure for S seconds, print once and exit (default: print every second)")
 
@@ -379,7 +394,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("type", help="message type, e.g. SlipState")
     p.add_argument("values", nargs="?", default="", help="fields as YAML, e.g. '{slip: true}'")
     p.add_argument("--rate", "-r", type=positive_float, default=1.0, help="messages per second (default 1)")
-    p.add_argument("--count", "--times", "-t", type=int, default=None, help="publish N messages, then exit")
+    p.add_argument("--count", "--times", "-t", type=positive_int, default=None, help="publish N messages, then exit")
     p.add_argument("--once", "-1", action="store_true", help="publish one message and exit")
     p.add_argument("--latched", action="store_true", help="latched: late subscribers get the last message")
     p.add_argument("--wait-matching", type=float, default=1.0,

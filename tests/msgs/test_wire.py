@@ -174,5 +174,61 @@ def test_garbage_header_and_unknown_type() -> None:
 
 @pytest.mark.parametrize("cls", [type(m) for m in _examples() if m.ARRAYS], ids=lambda c: c.TYPE)
 def test_empty_arrays_round_trip(cls: type) -> None:
-    msg = cls(width=1, height=1) if cls is CameraInfo else cls()
+    msg = cls(width=1, height=1) if cls in (CameraInfo, MarkerArray) else cls()
     assert _equal(msgs.decode(_frames(msg), "/t"), msg)
+
+
+@pytest.mark.parametrize("width, height", [(0, 480), (640, 0), (-640, 480)])
+def test_marker_array_without_a_positive_image_size_is_refused(width: int, height: int) -> None:
+    """`width: 0` on /markers/reference stopped /slip until /tracker/reset; -640 was taken."""
+    with pytest.raises(MessageError, match="not a positive image size") as err:
+        msgs.decode(_frames(MarkerArray(width=width, height=height)), "/markers/reference")
+    assert err.value.field == "width/height"
+
+
+@pytest.mark.parametrize("name, value", [("seq", -1), ("seq", 2**63), ("stamp_ns", -5), ("stamp_ns", 2**64 - 1),
+                                         ("pub_ns", 2**63)])
+def test_header_ints_outside_int64_are_refused_by_name(name: str, value: int) -> None:
+    """A seq of 2**63 - 1 let a node's gap count overflow msgpack: its status thread died."""
+    frames = _with_header(SlipState(), **{name: value})
+    for decode in (lambda: msgs.decode_header(frames[0], "/slip"), lambda: msgs.decode(frames, "/slip")):
+        with pytest.raises(MessageError, match=r"not in \[0, 2\*\*63\)") as err:
+            decode()
+        assert err.value.field == name
+    with pytest.raises(ValueError, match=f"{name}: "):
+        SlipState(**{name: value}).validate()
+    assert msgs.decode(_with_header(SlipState(), **{name: 2**63 - 1}), "/slip")  # the largest int64 is fine
+
+
+@pytest.mark.parametrize("threshold", [-1.0, 1.5, float("nan")])
+def test_slip_state_threshold_outside_0_1_is_refused(threshold: float) -> None:
+    with pytest.raises(ValueError, match="threshold: "):
+        SlipState(threshold=threshold).validate()
+    if threshold == threshold:  # NaN never reaches validate on the wire: the float check refuses it first
+        with pytest.raises(MessageError) as err:
+            msgs.decode(_frames(SlipState(threshold=threshold)), "/slip")
+        assert err.value.field == "threshold"
+
+
+@pytest.mark.parametrize("changes, field", [
+    ({"publishes": ["x"]}, "publishes"),
+    ({"subscribes": [["/a", "B", "C"]]}, "subscribes"),
+    ({"subscribes": [["/a", 3]]}, "subscribes"),
+    ({"counters": {"lost": "many"}}, "counters"),
+    ({"state": "fine"}, "state"),
+    ({"stamp_ns": 4_000_000_000_000_000_000}, "stamp_ns"),
+])
+def test_a_malformed_node_status_is_refused(changes: dict, field: str) -> None:
+    """A latched status with `publishes: [x]` broke `fv topic list` for everyone on the bus."""
+    with pytest.raises(MessageError) as err:
+        msgs.decode(_frames(NodeStatus(**changes)), "/status")
+    assert err.value.field == field
+
+
+@pytest.mark.parametrize("name, value, text", [("slip", 1, "1 is not a bool"), ("model", b"x", "b'x' is not a str"),
+                                               ("probability", "x", "'x' is not a finite float")])
+def test_scalar_type_errors_say_what_was_expected(name: str, value: object, text: str) -> None:
+    header = msgpack.unpackb(_frames(SlipState())[0])
+    header["fields"][name] = value
+    with pytest.raises(MessageError, match=text):
+        msgs.decode([msgpack.packb(header, use_bin_type=True), np.zeros(0, np.int64).tobytes()], "/slip")

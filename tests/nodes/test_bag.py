@@ -78,7 +78,7 @@ def test_payload_splits_back_into_the_frames_without_copy(rng: np.random.Generat
     image = Image(data=rng.integers(0, 255, (7, 9, 3), dtype=np.uint8), encoding="bgr8")
     for msg in (image,
                 MarkerArray(ref_px=np.ones((4, 2), np.float32), cur_px=np.zeros((4, 2), np.float32),
-                            valid=np.ones(4, bool), frames_since_seen=np.zeros(4, np.int32)),
+                            valid=np.ones(4, bool), frames_since_seen=np.zeros(4, np.int32), width=640, height=480),
                 SlipState(probability=0.25, frame_id="x" * 1500)):  # header longer than one probe
         frames = msgs.encode(msg)
         payload = join_frames(frames)

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 import pytest
 
+import msgs
 from msgs import CameraInfo, Image, SlipState
 from nodes.bus import PublisherSocket, TopicReader
 from nodes.camera_sources import FolderSource, SourceError, VideoFileSource
@@ -225,6 +226,45 @@ def test_input_that_stops_is_reported_and_clears(bus: Bus) -> None:
         feeding.set()
         st = wait_status("consumer", lambda st: st.state == "ok", 3.0)
         assert st.message == ""
+
+
+class Flaky(Node):
+    """Its first NodeStatus cannot be encoded (a counter too large for msgpack, as a seq of 2**63 - 1
+    once made the gap count)."""
+
+    STATUS_PERIOD_S = 0.2
+
+    def setup(self) -> None:
+        self.counters["huge"] = 2**64
+
+    def _publish_status(self) -> None:
+        try:
+            super()._publish_status()
+        finally:
+            self.counters.pop("huge", None)
+
+
+def test_the_status_thread_outlives_an_exception(bus: Bus, caplog: pytest.LogCaptureFixture) -> None:
+    """The status thread died of the OverflowError: the node dropped out of `fv node list`."""
+    with spinning(Flaky("flaky")):
+        st = wait_status("flaky", timeout_s=3.0)
+        assert "huge" not in st.counters
+    assert any("status thread: OverflowError" in r.getMessage() for r in caplog.records)
+
+
+def test_absurd_sequence_numbers_leave_the_status_thread_running(bus: Bus) -> None:
+    """seq 0, 2**63 - 1, 0, ... on a subscribed topic: the gap count overflowed msgpack in the status."""
+    with spinning(Consumer("seqs")):
+        wait_status("seqs", timeout_s=3.0)
+        sock = PublisherSocket("seqkill")
+        assert sock.wait_connected(2.0)
+        for n in (0, 2**63 - 1, 0, 2**63 - 1, 0, 2**63 - 1):
+            sock.publish_raw("/feed", "seqkill", False, msgs.encode(SlipState(seq=n, stamp_ns=time.time_ns())))
+            time.sleep(0.02)
+        sock.close()
+        st = wait_status("seqs", lambda st: st.rate_hz > 0, timeout_s=3.0)  # after the six
+        later = wait_status("seqs", lambda s: s.stamp_ns > st.stamp_ns + 0.5e9, timeout_s=3.0)
+        assert later.gaps == 0
 
 
 # -- the forwarder restarted ---------------------------------------------------------------

@@ -50,7 +50,7 @@ def _malformed_messages(rng: random.Random, count: int) -> list[list[bytes]]:
         SlipState(probability=0.3, window_stamps_ns=np.arange(10)),
         Image(data=rs.integers(0, 256, (8, 8), dtype=np.uint8)),
         MarkerArray(ref_px=np.ones((4, 2), np.float32), cur_px=np.ones((4, 2), np.float32),
-                    valid=np.ones(4, bool), frames_since_seen=np.zeros(4, np.int32)),
+                    valid=np.ones(4, bool), frames_since_seen=np.zeros(4, np.int32), width=8, height=8),
         DisplacementField(field=np.ones((3, 3, 3), np.float32), grid_x_px=np.arange(3.0), grid_y_px=np.arange(3.0)),
     ]
     out = []
@@ -71,7 +71,8 @@ def _malformed_messages(rng: random.Random, count: int) -> list[list[bytes]]:
         else:  # a header field changed to nonsense
             header = msgpack.unpackb(frames[0])
             key, value = rng.choice([("version", 2), ("fields", {"bogus": 1}), ("arrays", [["x", "<f4", [1]]]),
-                                     ("type", "Nope"), ("seq", "7"), ("stamp_ns", 1.5)])
+                                     ("type", "Nope"), ("seq", "7"), ("stamp_ns", 1.5), ("seq", -1),
+                                     ("stamp_ns", 2**63), ("pub_ns", 2**64 - 1)])
             header[key] = value if key != "fields" else {**header["fields"], **value}
             frames[0] = msgpack.packb(header, use_bin_type=True)
         out.append([envelope("/fuzz", "fuzzer", False), *frames])

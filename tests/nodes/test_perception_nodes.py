@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
+from pathlib import Path
 
+import numpy as np
+import pytest
+
+from msgs import MarkerArray
 from nodes.bus import TopicReader
-from tests.nodes.conftest import REPO
+from tests.nodes.conftest import REPO, run_fv
 
 
 def test_sim_press_reaches_field_and_contact(bus, spawn) -> None:
@@ -124,3 +128,45 @@ def test_tracker_of_a_new_launch_takes_its_own_reference(bus, spawn, monkeypatch
     status = wait_status("tracker", lambda st: st.counters.get("references") == 1)
     assert status.counters["resumed"] == 0
     camera.close()
+
+
+def _markers(n: int) -> MarkerArray:
+    ref = np.random.default_rng(n).random((n, 2)).astype(np.float32) * 300
+    return MarkerArray(stamp_ns=1, ref_px=ref, cur_px=ref, valid=np.ones(n, bool),
+                       frames_since_seen=np.zeros(n, np.int32), width=320, height=240)
+
+
+def test_the_interpolator_refuses_more_markers_than_max_markers() -> None:
+    """3000 markers stalled the interpolator 19 s (an N^3 solve per reference); more than max_markers
+    are refused with a warning, and the next good MarkerArray clears it."""
+    from nodes.interpolator import InterpolatorNode
+    node = InterpolatorNode("interpolator", {"max_markers": 50})
+    fields = []
+    try:
+        node.setup()
+        node.field_pub.publish = fields.append
+        node.contact_pub.publish = lambda msg: None
+        node.on_markers(_markers(51))
+        assert not fields and node.counters["too_many_markers"] == 1
+        assert node.state == "warn" and "51 markers" in node.message and "max_markers 50" in node.message
+        node.on_markers(_markers(40))
+        assert len(fields) == 1 and node.state == "ok"
+    finally:
+        node.close()
+
+
+@pytest.mark.parametrize("node, params, says", [
+    ("interpolator", "{kernel: bogus}", "'bogus'"),
+    ("interpolator", "{input_timeout_s: -1}", "input_timeout_s -1.0 must be > 0"),
+    ("slip_detector", "{device: gpu}", "device 'gpu'"),
+    ("slip_detector", "{input_timeout_s: -1}", "input_timeout_s -1.0 must be > 0"),
+    ("slip_fusion", "{inputs: [left/slip, /left/slip]}", "two or more different topics"),
+])
+def test_launch_check_refuses_bad_params_by_file_node_and_value(tmp_path: Path, node: str, params: str,
+                                                               says: str) -> None:
+    """`fv launch --check` passed these; the launch then respawned the node for good."""
+    launch = tmp_path / "bad.yaml"
+    launch.write_text(f"nodes:\n  - kind: {node}\n    params: {params}\n")
+    result = run_fv("launch", "--check", str(launch))
+    assert result.returncode == 2, result.stdout
+    assert f"{launch}:3: nodes[0] ({node}).params" in result.stderr and says in result.stderr, result.stderr

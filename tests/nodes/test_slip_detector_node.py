@@ -25,6 +25,13 @@ def _field(stamp_ns: int, value: float, grid: int = 30) -> DisplacementField:
     return DisplacementField(stamp_ns=stamp_ns, field=field, grid_x_px=axis, grid_y_px=axis)
 
 
+def _reference(stamp_ns: int, width: int, markers: int = 40) -> MarkerArray:
+    """A tracker's reference of `markers` markers in a `width` px wide 4:3 frame."""
+    ref = np.zeros((markers, 2), np.float32)
+    return MarkerArray(stamp_ns=stamp_ns, ref_px=ref, cur_px=ref, valid=np.ones(markers, bool),
+                       frames_since_seen=np.zeros(markers, np.int32), width=width, height=width * 3 // 4)
+
+
 def test_unknown_model_name_lists_the_shipped_ones() -> None:
     with pytest.raises(FileNotFoundError, match="gelsight") as error:
         model_path("no_such_model")
@@ -62,7 +69,7 @@ def test_decisions_per_field_with_window_stamps(bus, spawn) -> None:
             time.sleep(0.05)
         while not pub.has_subscribers("/markers/reference") and time.monotonic() < deadline:
             time.sleep(0.05)
-        pub.publish("/markers/reference", MarkerArray(stamp_ns=900_000_000, width=320, height=240), latched=True)
+        pub.publish("/markers/reference", _reference(900_000_000, 320), latched=True)
         time.sleep(0.3)
         stamps = [1_000_000_000 + i * 66_000_000 for i in range(14)]
         for i, stamp in enumerate(stamps):
@@ -101,7 +108,7 @@ def test_window_model_reads_fields_at_its_training_frame_width() -> None:
             node.on_field(_field(i, 1.0))
         assert not published and node.counters["no_width"] == 1 and "/markers/reference" in node.message
         for width, scale in ((640, 1.0), (320, 0.5), (1280, 2.0)):
-            node.on_window_reference(MarkerArray(stamp_ns=1, width=width, height=width * 3 // 4))
+            node.on_window_reference(_reference(1, width))
             node.window.clear()
             for i in range(10):
                 node.on_field(_field(10 + i, 0.8 * i * scale))
@@ -252,3 +259,61 @@ def test_tracker_reset_starts_a_new_grasp(bus_env, spawn, isd_data: Path) -> Non
     assert new, "no new grasp after /tracker/reset"
     assert later[new[0]].msg.stamp_ns == starts[new[0]] > start  # the new grasp starts at its reference frame
     assert len(set(starts[new[0]:])) == 1
+
+
+def test_a_reference_without_markers_is_ignored() -> None:
+    """`fv topic pub /markers/reference MarkerArray '{width: 1}'` (no markers) set a window model's frame
+    width: P(slip) read the fields 640-fold; a trial model started a grasp at it."""
+    from nodes.slip_detector import SlipDetectorNode
+    window = SlipDetectorNode("slip_detector", {"model": "sim_fast"})
+    trial = SlipDetectorNode("slip_detector", {"model": "gelsight_online"})
+    try:
+        window.setup()
+        window.on_window_reference(_reference(1, 640))
+        window.on_window_reference(_reference(2, 1, markers=0))
+        assert window.frame_width_px == 640 and window.counters["empty_references"] == 1
+        assert window.state == "warn" and "without markers" in window.message
+        trial.setup()
+        trial.on_reference(_reference(5, 320))
+        trial.on_reference(_reference(9, 320, markers=0))
+        assert trial.grasp_start_ns == 5 and trial.counters["grasps"] == 1
+    finally:
+        window.close()
+        trial.close()
+
+
+def test_a_warning_clears_when_good_windows_come_and_is_logged_once_per_kind(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """After one window with non-finite values the warning stayed for the node's life; one log line per
+    count of non-finite values (51 lines for 40 fields) flooded the log."""
+    from nodes.slip_detector import SlipDetectorNode
+    node = SlipDetectorNode("slip_detector", {"model": "sim_fast"})
+    try:
+        node.setup()
+        node.publish_state = lambda *args: None
+        node.on_window_reference(_reference(1, 640))
+        for k in range(1, 15):
+            bad = _field(k, 0.1)
+            bad.field.reshape(-1)[:k] = np.nan
+            node.on_field(bad)
+        assert node.state == "warn" and node.message.startswith("window rejected")
+        assert sum("window rejected" in r.getMessage() for r in caplog.records) == 1
+        for k in range(15, 25):
+            node.on_field(_field(k, 0.1))
+        assert node.state == "ok" and node.message == ""
+    finally:
+        node.close()
+
+
+@pytest.mark.parametrize("params, message", [
+    ({"device": "gpu"}, "device 'gpu' is not cpu, cuda"),
+    ({"device": "cuda:x"}, "device 'cuda:x'"),
+    ({"input_timeout_s": -1.0}, "input_timeout_s -1.0 must be > 0"),
+])
+def test_bad_params_are_refused_before_start(params: dict, message: str) -> None:
+    """`fv launch --check` passed them; the launched node then respawned for good."""
+    from nodes.slip_detector import SlipDetectorParams
+    with pytest.raises(ValueError, match=message):
+        SlipDetectorParams(**params)
+    for ok in ("cpu", "cuda", "cuda:1", "mps"):
+        assert SlipDetectorParams(device=ok).device == ok

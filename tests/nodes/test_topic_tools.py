@@ -5,11 +5,12 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 
 import pytest
 
-from msgs import SlipState
-from nodes.bus import TopicReader
+from msgs import NodeStatus, SlipState
+from nodes.bus import PublisherSocket, TopicReader
 from nodes.topic_tools import build_message
 from tests.nodes.conftest import REPO, Bus, run_fv, wait_status
 
@@ -111,6 +112,10 @@ def test_measures_of_too_few_messages_are_null_and_no_bus_is_an_error(bus_env: B
     ("Image", "{data: [[1, 2], [3]]}", "data"),
     ("Slip", "{}", "unknown message type"),
     ("SlipState", "[1, 2]", "mapping"),
+    ("SlipState", "{stamp_ns: 1180591620717411303424}", r"stamp_ns: 1180591620717411303424 is not in \[0, 2\*\*63\)"),
+    ("SlipState", "{stamp_ns: -1}", "stamp_ns"),
+    ("SlipState", "{threshold: -1}", "threshold"),
+    ("MarkerArray", "{width: 0}", "width/height: 0x0"),
 ])
 def test_pub_fields_errors_name_the_field(type_name: str, text: str, match: str) -> None:
     with pytest.raises((ValueError, KeyError), match=match):
@@ -153,3 +158,36 @@ def test_hz_counts_a_played_bag_whose_messages_keep_their_recorded_pub_ns(bus: B
         thread.join()
         pub.close()
     assert 50 * 0.7 <= hz["rate_hz"] <= 50 * 1.2, hz
+
+
+@pytest.mark.parametrize("args, says", [
+    (("topic", "hz", "/slip", "--window", "0"), "--window/-w: '0' is not a whole number >= 2"),  # said 0.0 Hz
+    (("topic", "bw", "/slip", "-w", "1"), "'1' is not a whole number >= 2"),
+    (("topic", "echo", "/slip", "--count", "-1"), "--count/-n: -1 is not >= 1"),  # exited 0 silently
+    (("topic", "pub", "/tq", "SlipState", "{stamp_ns: 1180591620717411303424}"), "stamp_ns"),  # msgpack traceback
+])
+def test_bad_topic_arguments_are_usage_errors(args: tuple, says: str) -> None:
+    result = run_fv(*args)
+    assert result.returncode == 2 and says in result.stderr and "Traceback" not in result.stderr, result.stderr
+
+
+def test_a_malformed_latched_status_is_skipped_and_named(bus: Bus) -> None:
+    """`fv topic pub /status NodeStatus '{publishes: [x], ...}' --latched` broke `fv topic list` and
+    `fv topic info` for everyone on the bus ("not enough values to unpack")."""
+    good = PublisherSocket("good_node")
+    bad = PublisherSocket("bad_node")
+    assert good.wait_connected(2.0) and bad.wait_connected(2.0)
+    good.publish("/status", NodeStatus(stamp_ns=time.time_ns(), publishes=[["/g", "SlipState"]]),
+                 latched=True)
+    bad.publish("/status", NodeStatus(publishes=["x"], subscribes=[["/a", "B", "C"]]), latched=True)
+    try:
+        for args, shows in ((("topic", "list"), "/g"), (("topic", "info", "/g"), "good_node"),
+                            (("node", "list"), "good_node")):
+            result = run_fv(*args, "--wait", "0.5")
+            assert result.returncode == 0 and shows in result.stdout, result.stderr
+            assert "skipped a bad status" in result.stderr and "'bad_node'" in result.stderr, result.stderr
+            good.publish("/status", NodeStatus(stamp_ns=time.time_ns(), publishes=[["/g", "SlipState"]]),
+                         latched=True)  # alive: a status older than 3 s is a node gone
+    finally:
+        good.close()
+        bad.close()
