@@ -4,6 +4,12 @@ The frame number `reference_frame` (frame 0 of a real camera is often stale) bec
 reference: its markers are published latched on `/markers/reference`. Any message on
 `/tracker/reset` makes the next frame the new reference.
 
+A recording started after the tracker took its reference holds that reference (latched) but not
+its frame: replayed from its first frame (taken as the reference), the skin may be deformed there.
+With `recorded_reference`, a replay plays the recorded `/markers/reference` on that topic
+(`replay.yaml`, `replay_pair.yaml`), and the tracker tracks the first frame on against it when it is
+stamped no later than that frame.
+
 A tracker that restarts (respawned after a crash) while the skin may be deformed must not
 take a deformed frame as the reference: with `resume`, it first waits up to
 `resume_wait_s` for the latched `/markers/reference` of its previous process (same node
@@ -33,6 +39,7 @@ class TrackerNodeParams:
     resume: bool = True  # after a restart, adopt the previous process's latched reference
     resume_wait_s: float = 0.3  # how long to wait for it before taking a new reference
     input_timeout_s: float = 2.0  # warn in NodeStatus after this long without a frame (0 = never)
+    recorded_reference: str = ""  # a replay's topic for the reference its recording holds ("" = none; module doc)
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -65,6 +72,7 @@ class TrackerNode(Node):
         self.launch_ns = launch_started_ns()  # references published before it are an earlier session's
         self.resume_until = time.monotonic() + (p.resume_wait_s if p.resume else 0.0)
         self.inherited: MarkerArray | None = None
+        self.inherited_from = ""  # whose reference `inherited` is, for the log
         self.first_stamp_ns: int | None = None  # stamp of the first frame this process sees
         self.markers_pub = self.publisher("markers", MarkerArray)
         self.reference_pub = self.publisher("markers/reference", MarkerArray, latched=True)
@@ -72,6 +80,8 @@ class TrackerNode(Node):
         self.subscribe("/tracker/reset", None, self.on_reset, depth=1)
         if p.resume:
             self.subscribe("markers/reference", MarkerArray, self.on_reference, depth=1)
+        if p.recorded_reference:
+            self.subscribe(p.recorded_reference, MarkerArray, self.on_recorded_reference, depth=1)
         self.counters.update(references=0, resumed=0)
 
     def on_reset(self, _msg) -> None:
@@ -83,7 +93,14 @@ class TrackerNode(Node):
     def on_reference(self, msg: MarkerArray) -> None:
         """Keep the reference a previous process of this node published (latched), in this launch."""
         if self.needs_reference and msg.node == self.name and self.launch_ns <= msg.pub_ns < self.started_ns:
-            self.inherited = msg
+            self.inherited, self.inherited_from = msg, "the previous process's"
+
+    def on_recorded_reference(self, msg: MarkerArray) -> None:
+        """Keep the reference a replayed recording holds, for the first frame: the recording began after
+        the live tracker took it, and is tracked against it as live (stamped later, it belongs to a
+        frame of the recording, which this tracker takes itself)."""
+        if self.needs_reference and self.first_stamp_ns is None:
+            self.inherited, self.inherited_from = msg, "the recording's"
 
     def on_image(self, msg: Image) -> None:
         self.frames_seen += 1
@@ -95,7 +112,7 @@ class TrackerNode(Node):
                     and old.stamp_ns <= self.first_stamp_ns):  # a reference stamped later is another stream's
                 state = self.perception.resume(msg.data, old.ref_px)
                 self.counters["resumed"] += 1
-                self.log.info("resumed with the previous process's reference (%d markers)", len(old.ref_px))
+                self.log.info("tracking against %s reference (%d markers)", self.inherited_from, len(old.ref_px))
             elif time.monotonic() < self.resume_until or self.frames_seen <= self.params.reference_frame:
                 return
             else:

@@ -23,7 +23,7 @@ import yaml
 
 import msgs
 from msgs import CameraInfo, Image, SlipState
-from nodes.bag.reader import BagError, BagReader
+from nodes.bag.reader import BagError, BagReader, read_bag
 from nodes.bag.recorder import BagRecord
 from nodes.bag.player import BagPlay
 from nodes.bag.recover import recover
@@ -32,6 +32,7 @@ from nodes.bus import PublisherSocket, TopicReader
 from nodes.endpoints import BUS_ENV, BusAddress, bus_address
 from nodes.forwarder import ensure_forwarder
 from nodes.launch_file import load_launch
+from tests.nodes.conftest import wait_status
 from tests.nodes.test_bag import T0_NS, sample_messages, write_bag
 
 REPO = Path(__file__).resolve().parents[2]
@@ -60,8 +61,9 @@ def spawn(bus: BusAddress) -> Iterator[Spawn]:
     procs: list[subprocess.Popen] = []
 
     def start(*args: str, **popen_kwargs: object) -> subprocess.Popen:
+        streams = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, **popen_kwargs}
         proc = subprocess.Popen([sys.executable, "-m", "nodes.cli", *args], cwd=REPO, stdin=subprocess.DEVNULL,
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen_kwargs)
+                                text=True, **streams)
         procs.append(proc)
         return proc
 
@@ -413,3 +415,40 @@ def test_bench_bag_reports_completeness_and_cpu(bus: BusAddress, spawn: Spawn) -
     assert 0 < result["recorder_cpu_percent"] < 200 and result["fast_play"]["received"] == 120
     assert result["publish_s"] >= 1.9  # the payload rate is over the publishing time, which can exceed --duration
     assert result["payload_MBps"] == pytest.approx(result["payload_b"] / 1e6 / result["publish_s"])
+
+
+def test_a_recording_started_mid_session_replays_against_the_live_reference(bus: BusAddress, spawn: Spawn,
+                                                                           tmp_path: Path) -> None:
+    """A recording started while the skin was pressed holds the tracker's reference (latched) but not its
+    frame. replay.yaml took the bag's first frame, a pressed skin, as the reference, and 103 of 106 states
+    differed from the live ones (slip for the whole shear); it now plays the recorded reference to the
+    tracker, which tracks the bag against it as live."""
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
+    scene = REPO / "launch" / "scenes" / "press_shear_slide.yaml"
+    bag = tmp_path / "mid"
+    with TopicReader(["/slip"], bus) as reader:
+        live = spawn("launch", str(REPO / "launch" / "pipeline.yaml"), "fps:=15", f"scene:={scene}",
+                     "standby:=false", **quiet)
+        for k in range(25):  # 1.7 s of the scene: pressed, shearing
+            assert reader.recv(90.0 if k == 0 else 10.0) is not None, f"{k} live states"
+        recorder = spawn("bag", "record", "-a", "-x", "^/status$", "--compression", "none", "-o", str(bag), **quiet)
+        wait_status("bag_record", timeout_s=20.0)
+        for _ in range(45):
+            assert reader.recv(10.0) is not None
+    assert stop(recorder) == 0
+    stop(live)
+    recorded = {m.stamp_ns: m for m in (msg for _, msg, _ in read_bag(bag, topics=["/slip"]))}
+    last = max(recorded)
+    replayed: dict[int, SlipState] = {}
+    with TopicReader(["/slip"], bus) as reader:
+        spawn("launch", str(REPO / "launch" / "replay.yaml"), f"bag:={bag}", "fast:=true", "sync_topic:=/slip",
+              "standby:=false", **quiet)
+        while last not in replayed:
+            item = reader.recv(90.0 if not replayed else 10.0)
+            assert item is not None, f"the replay stopped after {len(replayed)} states"
+            replayed[item.msg.stamp_ns] = item.msg
+    common = sorted(set(recorded) & set(replayed))
+    assert len(common) >= 20
+    for stamp in common:
+        assert replayed[stamp].slip == recorded[stamp].slip
+        assert replayed[stamp].probability == pytest.approx(recorded[stamp].probability, abs=0.02)
