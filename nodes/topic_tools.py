@@ -219,6 +219,11 @@ def _stats(values: list[float]) -> dict[str, float]:
     return {"mean": float(a.mean()), "min": float(a.min()), "max": float(a.max()), "std": float(a.std())}
 
 
+def _shown(value: float, spec: str, unit: str, scale: float = 1.0) -> str:
+    """``value / scale`` formatted by ``spec`` with its ``unit``, or "n/a" for a figure without messages (NaN)."""
+    return "n/a" if math.isnan(value) else f"{format(value / scale, spec)}{unit}"
+
+
 def _hz(args: argparse.Namespace) -> int:
     stamps: list[int] = []
 
@@ -233,8 +238,8 @@ def _hz(args: argparse.Namespace) -> int:
         return {"rate_hz": rate, "min_s": s["min"], "max_s": s["max"], "std_s": s["std"], "window": len(periods)}
 
     return _measure(args, on_msg, report, lambda r: (
-        f"average rate: {r['rate_hz']:.3f}\n\tmin: {r['min_s']:.3f}s max: {r['max_s']:.3f}s "
-        f"std dev: {r['std_s']:.5f}s window: {r['window']}"))
+        f"average rate: {r['rate_hz']:.3f}\n\tmin: {_shown(r['min_s'], '.3f', 's')} max: {_shown(r['max_s'], '.3f', 's')} "
+        f"std dev: {_shown(r['std_s'], '.5f', 's')} window: {r['window']}"))
 
 
 def _bw(args: argparse.Namespace) -> int:
@@ -254,7 +259,8 @@ def _bw(args: argparse.Namespace) -> int:
 
     return _measure(args, on_msg, report, lambda r: (
         f"{r['bytes_per_s'] / 1e6:.3f} MB/s from {r['window']} messages\n\tMessage size mean: "
-        f"{r['mean_bytes'] / 1e3:.2f} KB min: {r['min_bytes'] / 1e3:.2f} KB max: {r['max_bytes'] / 1e3:.2f} KB"))
+        f"{_shown(r['mean_bytes'], '.2f', ' KB', 1e3)} min: {_shown(r['min_bytes'], '.2f', ' KB', 1e3)} "
+        f"max: {_shown(r['max_bytes'], '.2f', ' KB', 1e3)}"))
 
 
 def _delay(args: argparse.Namespace) -> int:
@@ -273,9 +279,10 @@ def _delay(args: argparse.Namespace) -> int:
                 "transport_ms": t["mean"], "transport_max_ms": t["max"], "window": len(transport)}
 
     return _measure(args, on_msg, report, lambda r: (
-        f"average delay (receive - stamp): {r['delay_ms']:.3f} ms\n\tmin: {r['delay_min_ms']:.3f} ms "
-        f"max: {r['delay_max_ms']:.3f} ms std dev: {r['delay_std_ms']:.3f} ms  transport (receive - publish): "
-        f"{r['transport_ms']:.3f} ms  window: {r['window']}"))
+        f"average delay (receive - stamp): {_shown(r['delay_ms'], '.3f', ' ms')}\n\tmin: "
+        f"{_shown(r['delay_min_ms'], '.3f', ' ms')} max: {_shown(r['delay_max_ms'], '.3f', ' ms')} std dev: "
+        f"{_shown(r['delay_std_ms'], '.3f', ' ms')}  transport (receive - publish): "
+        f"{_shown(r['transport_ms'], '.3f', ' ms')}  window: {r['window']}"))
 
 
 # -- pub -------------------------------------------------------------------------------

@@ -102,6 +102,9 @@ def test_measures_of_too_few_messages_are_null_and_no_bus_is_an_error(bus_env: B
     result = run_fv("topic", "hz", "/silent", "--duration", "0.5", "--json")
     report = json.loads(result.stdout)  # strict JSON: no NaN
     assert result.returncode == 0 and report["min_s"] is None and report["rate_hz"] == 0.0 and report["window"] == 0
+    for tool in ("hz", "bw", "delay"):  # as text: "min: nans max: nans std dev: nans"
+        text = run_fv("topic", tool, "/silent", "--duration", "0.3").stdout
+        assert "nan" not in text and "min: n/a max: n/a" in text, text
 
 
 @pytest.mark.parametrize("type_name, text, match", [
