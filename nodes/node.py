@@ -14,6 +14,9 @@ also the watchdog: besides the node's own `warn()`, the status reports
   longer than `STUCK_AFTER_S` (counted in counters["stuck_callbacks"]);
 - warn "no /camera/image for 2.1 s": a subscription made with `stale_after_s` got no
   message for that long (cleared when messages flow again);
+- error "on_field raised ValueError on its last 3 calls: ...": a callback or timer that raised on
+  `FAILING_AFTER` calls in a row, until it returns again (a node whose every callback failed
+  reported "ok" with its error count growing);
 - warn "forwarder ipc://... unreachable for 1.0 s": the bus forwarder went away (seen in
   the logs; the status itself cannot travel then). When it is back, latched messages are
   re-sent and counters["bus_reconnects"] counts it.
@@ -136,12 +139,14 @@ class Node:
     first RBF solve: 0.4 s idle, 2.4 s at a load average of 8); raise it in a node whose
     callbacks legitimately take longer.
     WATCH_PERIOD_S: how often the status thread checks the node's health (s).
+    FAILING_AFTER: calls in a row a callback has raised on when the status says it fails.
     """
 
     Params: ClassVar[type] = NoParams
     STATUS_PERIOD_S: ClassVar[float] = 1.0
     STUCK_AFTER_S: ClassVar[float] = 5.0
     WATCH_PERIOD_S: ClassVar[float] = 0.2
+    FAILING_AFTER: ClassVar[int] = 3
 
     def __init__(self, name: str, params: dict[str, Any] | None = None, *, namespace: str = "",
                  remap: dict[str, str] | None = None, address: BusAddress | None = None) -> None:
@@ -170,6 +175,7 @@ class Node:
         self._watcher: threading.Thread | None = None
         self._busy: tuple[str, float] | None = None  # (callback label, monotonic start) while one runs
         self._stuck_count = 0
+        self._failing: dict[str, tuple[int, str]] = {}  # callback -> (calls in a row that raised, the last error)
         self._ctl_addr = f"inproc://fv-node-{id(self)}"
         self._ctl_out = self.ctx.socket(zmq.PAIR)
         self._ctl_out.bind(self._ctl_addr)
@@ -365,25 +371,33 @@ class Node:
             except MessageError as exc:
                 self._malformed(exc)
                 continue
-            self._run(sub.callback, msg, label=f"callback {_name(sub.callback)} ({topic})")
+            self._run(sub.callback, msg, label=f"callback {_name(sub.callback)} ({topic})",
+                      timed=topic != STATUS_TOPIC)
 
-    def _run(self, fn: Callable, *args: Any, label: str) -> None:
-        """Call fn(*args), timing it for NodeStatus and showing it to the watchdog as
-        `label` while it runs; an exception is counted and logged once per kind, never raised."""
+    def _run(self, fn: Callable, *args: Any, label: str, timed: bool = True) -> None:
+        """Call fn(*args), timing it for NodeStatus (when `timed`: not the other nodes' statuses a node
+        may follow, which would add to its rate) and showing it to the watchdog as `label` while it
+        runs; an exception is counted and logged once per kind, never raised, and calls in a row that
+        raised are kept for the status (`FAILING_AFTER`)."""
         t0 = time.perf_counter()
         self._busy = (label, time.monotonic())
+        name = _name(fn)
         try:
             fn(*args)
         except Exception as exc:  # a node never dies on one bad callback
             self._stats.errors += 1
             self._totals["errors"] += 1
-            self._log_once(f"err:{type(exc).__name__}:{_name(fn)}", logging.ERROR,
-                           f"{_name(fn)} raised {type(exc).__name__}: {exc} (counted; repeats not logged)",
+            self._failing[name] = (self._failing.get(name, (0, ""))[0] + 1, f"{type(exc).__name__}: {exc}")
+            self._log_once(f"err:{type(exc).__name__}:{name}", logging.ERROR,
+                           f"{name} raised {type(exc).__name__}: {exc} (counted; repeats not logged)",
                            exc_info=True)
+        else:
+            self._failing.pop(name, None)
         finally:
             self._busy = None
-        self._stats.calls += 1
-        self._stats.proc_ms.append((time.perf_counter() - t0) * 1e3)
+        if timed:
+            self._stats.calls += 1
+            self._stats.proc_ms.append((time.perf_counter() - t0) * 1e3)
 
     def _malformed(self, exc: Exception) -> None:
         with self._cond:  # counted from the receiver and the executor thread
@@ -408,6 +422,8 @@ class Node:
         with self._cond:
             subs = [s for ss in self._subs.values() for s in ss]
         faults += [("warn", f"stale {s.topic}", text) for s in subs if (text := s.staleness(now_s)) is not None]
+        faults += [("error", f"failing {name}", f"{name} raised {error} on its last {calls} calls")
+                   for name, (calls, error) in list(self._failing.items()) if calls >= self.FAILING_AFTER]
         down_since = self._pub_sock.down_since_s
         if down_since is not None:
             faults.append(("warn", "bus", f"forwarder {self.address.url} unreachable for {now_s - down_since:.1f} s"))

@@ -209,6 +209,32 @@ def test_hung_callback_is_reported_by_the_watchdog(bus: Bus) -> None:
         assert st.message == "" and st.counters["stuck_callbacks"] == 1
 
 
+class Failing(Node):
+    """Its callback on /poke raises while `broken` is set."""
+
+    def setup(self) -> None:
+        self.broken = threading.Event()
+        self.broken.set()
+        self.subscribe("/poke", SlipState, self.on_poke, depth=1)
+        self.subscribe("/status", None, lambda _msg: None, depth=None)  # other nodes' statuses: not its rate
+
+    def on_poke(self, _msg: SlipState) -> None:
+        if self.broken.is_set():
+            raise ValueError("the trial model needs colour camera images")
+
+
+def test_a_callback_that_keeps_failing_puts_the_node_in_error(bus: Bus) -> None:
+    """A slip detector whose every call raised reported "ok" with 627 errors, and /slip stayed silent."""
+    node = Failing("failing")
+    with spinning(node), publishing("/poke", period_s=0.05):
+        st = wait_status("failing", lambda st: st.state == "error", 5.0)
+        assert st.message == ("on_poke raised ValueError: the trial model needs colour camera images on its last "
+                              f"{st.message.split('on its last ')[1]}") and st.errors >= Node.FAILING_AFTER
+        assert st.rate_hz < 30.0  # 20 pokes a second; its /status callbacks (several a second) are not counted
+        node.broken.clear()
+        assert wait_status("failing", lambda st: st.state == "ok", 5.0).message == ""
+
+
 class Consumer(Node):
     """/feed should stream (stale after 0.4 s); /cmd may stay quiet."""
 
