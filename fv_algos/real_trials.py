@@ -11,7 +11,8 @@ Each video goes through :class:`fv_algos.perception.Perception` frame by frame: 
 earlier frames are dropped. Only markers the tracker marks valid (measured and consistent with
 their neighbours this frame) feed the field, so markers that leave the view or blur do not
 poison it. Per frame we also keep the share of reference markers valid and the number of
-markers :func:`fv_algos.tracking.neighbour_consistency` flags (identity swaps / wrong matches).
+identity swaps / wrong matches detected: markers the tracker dropped as swaps (``TrackState.swapped``)
+plus valid markers :func:`fv_algos.tracking.neighbour_consistency` flags.
 
 Window labels and trial decisions live in :mod:`fv_algos.trial_eval`: a window of a slip trial
 takes the slip label only when the field is moving (its activity reaches a threshold), since a
@@ -44,7 +45,7 @@ from fv_algos import field as field_module
 from fv_algos.atomic_file import write_atomically
 from fv_algos.frame_crop import FrameCrop
 from fv_algos.perception import Perception, PerceptionParams
-from fv_algos.tracking import neighbour_consistency
+from fv_algos.tracking import TrackState, neighbour_consistency
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)
@@ -169,7 +170,7 @@ class VideoFields:
     fields: (F, H, W, 3) float16 px (dx, dy, magnitude); frame 0 is the reference (zeros).
     field_valid: (F,) bool, enough valid markers for a field (an invalid field is all zeros).
     valid_share: (F,) float32, share of the reference markers valid in each frame.
-    swaps: (F,) int32, valid markers flagged by neighbour_consistency in each frame.
+    swaps: (F,) int32, swaps detected in each frame (:func:`detected_swaps`).
     n_markers: markers found in the reference frame. seconds: wall time of decode + perception.
     width_px: width of the video's frames, px (the scale the fields are measured at).
     missing_frames: frames the video's container lists after the last one decoded (a truncated or
@@ -236,6 +237,13 @@ def frame_count(path: str | Path) -> int:
         capture.release()
 
 
+def detected_swaps(state: TrackState) -> int:
+    """Identity swaps / wrong matches detected in one frame: markers the tracker dropped as swaps
+    (``state.swapped``) plus valid markers that :func:`fv_algos.tracking.neighbour_consistency` flags."""
+    flagged = neighbour_consistency(state.reference_px, state.current_px, state.valid)
+    return int(np.count_nonzero(state.swapped) + np.count_nonzero(flagged))
+
+
 def video_fields(
     path: str | Path, params: PerceptionParams | None = None, reference_frame: int = 1, crop: FrameCrop | None = None
 ) -> VideoFields:
@@ -258,7 +266,7 @@ def video_fields(
         fields.append(dense.field)
         field_valid.append(dense.valid)
         shares.append(state.valid.mean())
-        swaps.append(int(neighbour_consistency(state.reference_px, state.current_px, state.valid).sum()))
+        swaps.append(detected_swaps(state))
     if not fields:
         raise ValueError(f"{path}: no frame at reference_frame={reference_frame}")
     return VideoFields(

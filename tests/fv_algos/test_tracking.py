@@ -157,6 +157,33 @@ def test_a_lattice_moved_by_one_pitch_is_not_taken_for_rest() -> None:
         assert np.abs(state.current_px - truth).max() < 1e-9, k
 
 
+@pytest.mark.parametrize("lost_rows", [3, 2])
+def test_a_chain_of_markers_each_on_its_neighbours_dot_is_undone_while_clutter_is_lost(
+    monkeypatch: pytest.MonkeyPatch, lost_rows: int
+) -> None:
+    """Transparent skin: the top rows stand for background clutter in the reference, gone now,
+    which keeps the skin from counting as back at rest. The skin is at rest, but the match puts
+    markers 136 and 137 on the dots of 137 and 138 (138 unmatched), consistent with each other,
+    while 136's own dot is free: both are swaps, dropped and reported, 136 because its dot is
+    free, then 137 because dropping 136 frees its dot. With 3 rows (19%) lost the check acts; with
+    2 (12.5%, below swap_lost_share) it does not, as on an opaque skin."""
+    keep = np.arange(lost_rows * 16, len(REF))
+    detection_of = np.full(len(REF), -1)
+    detection_of[keep] = np.arange(keep.size)
+    wrong = detection_of.copy()
+    wrong[[136, 137, 138]] = detection_of[[137, 138]].tolist() + [-1]
+    tracker = Tracker(_det(REF, None))
+    monkeypatch.setattr(tracker, "_match_assignment", lambda det, areas: wrong.copy())
+    state = tracker.step(_det(REF[keep], None))
+    if lost_rows == 2:
+        assert not state.swapped.any() and state.valid[[136, 137]].all()
+        return
+    assert np.flatnonzero(state.swapped).tolist() == [136, 137]
+    assert not state.valid[[136, 137, 138]].any()
+    assert state.valid.sum() == keep.size - 3
+    assert not neighbour_consistency(REF, state.current_px, state.valid).any()
+
+
 def test_paper_nearest_can_share_a_detection_assignment_cannot() -> None:
     midpoint = 0.5 * (REF[0] + REF[1])
     points = np.vstack([midpoint, REF[2:]])
@@ -270,6 +297,8 @@ def test_reference_reset_and_bad_input() -> None:
         TrackerParams(transport_edge_share=1.5)
     with pytest.raises(ValueError, match="rest_ratio"):
         TrackerParams(rest_ratio=0.5)  # half a pitch would reach the neighbours' reference positions
+    with pytest.raises(ValueError, match="swap_lost_share"):
+        TrackerParams(swap_lost_share=-0.1)
 
 
 def test_neighbour_consistency_flags_a_swap_not_a_smooth_field() -> None:
