@@ -51,6 +51,7 @@ def parse_remaps(items: list[str]) -> dict[str, str]:
 
 
 def _node(args: argparse.Namespace) -> int:
+    from nodes.bus import LINGER_MS
     from nodes.params import parse_assignments
     from nodes.registry import NODES, node_class
     if args.kind == "kinds":
@@ -66,9 +67,11 @@ def _node(args: argparse.Namespace) -> int:
         return 0
     node = cls(args.name or args.kind, params, namespace=args.ns, remap=parse_remaps(args.remap))
     node.spin()
-    # The node has stopped cleanly (sockets closed, status sent). Python's own teardown of torch and
-    # numpy took the slip detector past the launcher's grace time when a whole launch stopped at once
-    # on 2 cores (it was killed on every Ctrl-C): flush and leave without it.
+    # The node has stopped cleanly. Python's own teardown of torch and numpy took the slip detector past
+    # the launcher's grace time when a whole launch stopped at once on 2 cores (it was killed on every
+    # Ctrl-C): send what ZeroMQ still queues (its last frames and status, within the sockets' linger),
+    # flush, and leave without it.
+    node.ctx.destroy(linger=LINGER_MS)
     logging.shutdown()
     sys.stdout.flush()
     sys.stderr.flush()
