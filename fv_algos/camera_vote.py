@@ -43,8 +43,9 @@ class CameraAnswer:
 @dataclass(frozen=True)
 class Vote:
     """The vote after an answer: probability (None when no camera counts); newest_grasp_ns, the latest
-    grasp start of the fresh answers; first_ns, last_ns, the first grasp start and last judged stamp of
-    the cameras that count (with none: the newest grasp start and answer); voters; and why each other
+    grasp start of the fresh answers, on the caller's wall clock (:meth:`CameraVote.grasp_start_on_clock_ns`);
+    first_ns, last_ns, the first grasp start and last judged stamp of the cameras that count, as they
+    stamped them (with none: the newest grasp start and answer); voters; and why each other
     camera is left out, by name (an invalid answer is left out without a reason). Faults: "no answer
     yet" (none arrived ``stale_after_s`` after the first camera's first), "stale" (none arrived for
     ``stale_after_s``) or "earlier grasp" (still on one ``same_grasp_s`` after the newest grasp
@@ -94,8 +95,16 @@ class CameraVote:
         self.stale_after_ns, self.same_grasp_ns = stale_after_s * 1e9, same_grasp_s * 1e9
         self.latest: dict[str, CameraAnswer] = {}
         self.arrived_s: dict[str, float] = {}  # when each camera's latest answer arrived (caller's clock, s)
+        self.arrival_ns: dict[str, int] = {}  # the caller's wall clock then (ns)
         self.seen: dict[str, tuple[int, float]] = {}  # each camera's last stamp (refused or not) and its arrival
         self.first_s: float | None = None  # arrival of the first answer of any camera
+
+    def grasp_start_on_clock_ns(self, camera: str) -> int:
+        """When ``camera``'s current grasp started, on the caller's wall clock (ns): its grasp start
+        moved by the offset of its latest answer's arrival to its stamp (that camera's clock offset
+        and latency), so that cameras whose clocks differ compare grasps as the caller sees them."""
+        answer = self.latest[camera]
+        return answer.grasp_start_ns + self.arrival_ns[camera] - answer.stamp_ns
 
     def ahead_s(self, stamp_ns: int, arrived_s: float, clock_ns: int) -> float:
         """How far (s) ``stamp_ns``, arrived at ``arrived_s`` (monotonic s) when the caller's wall
@@ -118,10 +127,11 @@ class CameraVote:
         if ahead_s * 1e9 > self.stale_after_ns:
             raise StampAhead(camera, ahead_s)
         self.latest[camera], self.arrived_s[camera] = answer, arrived_s
+        self.arrival_ns[camera] = clock_ns
         self.first_s = arrived_s if self.first_s is None else self.first_s
         fresh = {c: a for c, a in self.latest.items() if (arrived_s - self.arrived_s[c]) * 1e9 <= self.stale_after_ns}
         now = max(a.stamp_ns for a in fresh.values())
-        grasp = max(a.grasp_start_ns for a in fresh.values())
+        grasp = max(self.grasp_start_on_clock_ns(c) for c in fresh)
         left_out, voters = {}, {}
         for name in self.cameras:
             if name not in self.latest:
@@ -129,8 +139,8 @@ class CameraVote:
                 left_out[name] = "no answer yet" if late else "starting"
             elif name not in fresh:
                 left_out[name] = "stale"
-            elif grasp - fresh[name].grasp_start_ns > self.same_grasp_ns:
-                late = fresh[name].stamp_ns - grasp > self.same_grasp_ns
+            elif grasp - self.grasp_start_on_clock_ns(name) > self.same_grasp_ns:
+                late = self.arrival_ns[name] - grasp > self.same_grasp_ns
                 left_out[name] = "earlier grasp" if late else "switching grasp"
             elif fresh[name].valid:
                 voters[name] = fresh[name]

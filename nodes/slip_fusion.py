@@ -128,7 +128,7 @@ class SlipFusion(Node):
                 why.append(f"{topic}: no state for {now_s - self.vote.arrived_s[topic]:.1f} s")
             else:
                 self.counters["earlier_grasp"] += 1
-                ahead = (vote.newest_grasp_ns - self.vote.latest[topic].grasp_start_ns) / 1e9
+                ahead = (vote.newest_grasp_ns - self.vote.grasp_start_on_clock_ns(topic)) / 1e9
                 why.append(f"{topic}: on an earlier grasp ({ahead:.1f} s before the newest; "
                            f"one message on /tracker/reset starts every camera's grasp together)")
         if why:

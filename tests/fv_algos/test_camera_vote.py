@@ -74,10 +74,27 @@ def test_staleness_is_judged_by_arrival_not_by_capture_stamps() -> None:
     for k in range(5):
         t = 10.0 + 0.033 * k
         _take(vote, "left", CameraAnswer(int(t * s), int(9.9 * s), int(t * s), 0.05), t)
-        both = _take(vote, "right", CameraAnswer(int((t - 2) * s), int(9.9 * s), int((t - 2) * s), 0.95), t)
-        assert both.voters == ("left", "right") and both.faults() == {}
+        both = _take(vote, "right", CameraAnswer(int((t - 2) * s), int(7.9 * s), int((t - 2) * s), 0.95), t)
+        assert both.voters == ("left", "right") and both.faults() == {}  # its grasp began 7.9 s by its clock
     alone = _take(vote, "left", CameraAnswer(int(10.2 * s), int(9.9 * s), int(10.2 * s), 0.05), 11.5)
     assert alone.faults() == {"right": "stale"} and alone.probability == pytest.approx(0.05)
+
+
+def test_cameras_whose_clocks_differ_compare_their_grasps_on_the_callers_clock() -> None:
+    """A finger whose clock runs 2 s behind starts its grasps 2 s behind by its stamps too: it was left
+    out as on an earlier grasp for good. A reset then starts both fingers' grasps together."""
+    from fv_algos.camera_vote import CameraAnswer, CameraVote
+    s = 1_000_000_000
+    vote = CameraVote(["left", "right"], stale_after_s=1.0, same_grasp_s=1.0)
+    for k in range(100):  # 3.3 s of answers
+        t = 10.0 + 0.033 * k
+        _take(vote, "left", CameraAnswer(int(t * s), int(9.9 * s), int(t * s), 0.05), t + 0.03)
+        both = _take(vote, "right", CameraAnswer(int((t - 2) * s), int(7.9 * s), int((t - 2) * s), 0.95), t + 0.05)
+        assert both.voters == ("left", "right") and both.left_out == {}, (k, both.left_out)
+    reset = _take(vote, "left", CameraAnswer(int(13.4 * s), int(13.4 * s), int(13.4 * s), 0.05), 13.43)
+    assert reset.left_out == {"right": "switching grasp"}  # its next frame starts its grasp too
+    again = _take(vote, "right", CameraAnswer(int(11.4 * s), int(11.4 * s), int(11.4 * s), 0.95), 13.45)
+    assert again.voters == ("left", "right")
 
 
 def test_an_answer_stamped_ahead_of_every_camera_is_refused() -> None:
