@@ -95,6 +95,19 @@ class SimSequence:
     width_px: int
 
 
+def fields_nbytes(config: SimDatasetConfig) -> int:
+    """Bytes the set's fields take while :func:`generate` stacks them, at most: every sequence's float32
+    fields (F, H, W, 3) once in the list of sequences and once stacked. A grasp counts the sequences of
+    its longest form (``GRASP_MOTION_S[-1]`` of scenario and a second and a half of press, shear, twist,
+    release and rest)."""
+    rows, cols = PerceptionParams.preset(config.preset).interpolation.grid_shape
+    per_draw = 1
+    if config.grasps:
+        frames = int(np.ceil((GRASP_MOTION_S[-1] + 1.6) * config.fps))
+        per_draw = max(0, (frames - config.n_frames) // GRASP_SEGMENT_STEP + 1)
+    return 2 * config.n_sequences * per_draw * config.n_frames * rows * cols * 3 * 4
+
+
 def kind_plan(n_sequences: int, seed: int) -> list[str]:
     """Scenario kind of every sequence: floor(S / 2) slip kinds and the rest no-slip kinds, each
     group cycling through its three kinds, in an order shuffled by ``seed``."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import time
 from pathlib import Path
@@ -148,10 +149,14 @@ def command_line(args: argparse.Namespace) -> str:
 def _dataset_sim(args: argparse.Namespace) -> int:
     from collections import Counter
 
-    from fv_algos.sim_dataset import SimDatasetConfig, generate
+    from fv_algos.sim_dataset import SimDatasetConfig, fields_nbytes, generate
     from fv_algos.slip.windows import save_sequences
     config = SimDatasetConfig(n_sequences=args.sequences, n_frames=args.frames, fps=args.fps, seed=args.seed,
                               preset=args.preset, grasps=args.grasps)
+    needed, available = fields_nbytes(config), os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    if needed > available:  # it simulated until the memory ran out
+        raise ValueError(f"--sequences {args.sequences} of {args.frames} frames need up to {needed / 1e9:.1f} GB "
+                         f"of fields in memory; {available / 1e9:.1f} GB is free: make fewer, in several sets")
     started = time.perf_counter()
     sequences = generate(config, workers=args.workers, progress=not args.no_progress)
     sequences.metadata["command"] = command_line(args)
@@ -234,8 +239,6 @@ def _split(sequences, split: str, window: int, test_fraction: float, seed: int):
 
 
 def _train(args: argparse.Namespace) -> int:
-    import os
-
     from fv_algos.slip import train as slip_train
     from fv_algos.slip.classifier import load_checkpoint
     from fv_algos.slip.models import ModelConfig, build_model, count_parameters

@@ -80,6 +80,12 @@ def test_numbers_and_outputs_that_cannot_work_are_refused_before_any_work(argv: 
     assert exit_.value.code == 2 and message in capsys.readouterr().err
 
 
+def test_a_data_set_larger_than_the_free_memory_is_refused_before_simulating(tmp_path: Path, capsys) -> None:
+    """`fv dataset sim --sequences 100000000000` simulated until the memory ran out."""
+    assert main(["dataset", "sim", "--sequences", "100000000000", "--out", str(tmp_path / "d.npz")]) == 2
+    assert "--sequences 100000000000 of 15 frames need up to 32400000.0 GB" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("argv, message", [
     (["bench", "judge", "--layers", "70"], "--layers 70: at most 12"),  # OverflowError
     (["bench", "soak", "--minutes", "0.1", "--sample", "100"], "needs two samples at least"),  # checks "passed"
