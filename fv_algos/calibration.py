@@ -24,8 +24,9 @@ IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".ti
 
 STARTING_HALF_FOV_RAD: tuple[float, ...] = (1.0, 1.25, 1.5)
 """Ray angles (rad) at half the image's longer side that `cv2.fisheye.calibrate` is started from: focal
-length max(W, H) / 2 / angle, principal point at the image centre. 1.0 is OpenCV's own start, from which
-a strong fisheye (fx near W / 3) can diverge or fail; the fit with the lowest RMS wins."""
+length max(W, H) / 2 / angle, principal point at the image centre; the fit with the lowest RMS wins.
+OpenCV's own start, max(W, H) / pi (pi / 2 rad), is not among them: from it a strong fisheye (fx near
+W / 3) diverged or failed on most small sets of clean views."""
 
 OUTLIER_FACTOR = 3.0
 """A view is dropped as an outlier only when its reprojection RMS is over `CalibrationParams.max_rms_px`

@@ -55,7 +55,7 @@ class CameraParams:
     start_after: list[str] = field(default_factory=list)  # node names to wait for before the first frame
     start_timeout_s: float = 30.0  # start anyway (warned) when they have not all reported by then
     exit_after_end_s: float = -1.0  # video / folder played once: exit (status 0) this long after its last frame,
-    # once the pipeline has judged it, so that a launch replaying a file ends (< 0: keep running)
+    # time for the pipeline to judge it, so that a launch replaying a file ends (< 0: keep running)
 
     def __post_init__(self) -> None:
         if self.source not in SOURCES:
@@ -208,7 +208,8 @@ class CameraNode(Node):
         if self.end_at is None:
             self.end_at = now + self.params.exit_after_end_s
         elif now >= self.end_at:
-            self.log.info("%s ended %.1f s ago: stopping", self.source.name, self.params.exit_after_end_s)
+            self.log.info("%s has ended (exit_after_end_s %g): stopping", self.source.name,
+                          self.params.exit_after_end_s)
             self.stop()
 
     def _lost(self, why: str) -> None:

@@ -14,7 +14,7 @@ also the watchdog: besides the node's own `warn()`, the status reports
   longer than `STUCK_AFTER_S` (counted in counters["stuck_callbacks"]);
 - warn "no /camera/image for 2.1 s": a subscription made with `stale_after_s` got no
   message for that long (cleared when messages flow again);
-- error "on_field raised ValueError on its last 3 calls: ...": a callback or timer that raised on
+- error "callback on_field (/field) raised on its last 3 calls: ValueError: ...": a callback or timer that raised on
   `FAILING_AFTER` calls in a row, until it returns again (a node whose every callback failed
   reported "ok" with its error count growing);
 - warn "forwarder ipc://... unreachable for 1.0 s": the bus forwarder went away (seen in
@@ -175,7 +175,7 @@ class Node:
         self._watcher: threading.Thread | None = None
         self._busy: tuple[str, float] | None = None  # (callback label, monotonic start) while one runs
         self._stuck_count = 0
-        self._failing: dict[str, tuple[int, str]] = {}  # callback -> (calls in a row that raised, the last error)
+        self._failing: dict[str, tuple[int, str]] = {}  # callback label -> (calls in a row that raised, the last error)
         self._ctl_addr = f"inproc://fv-node-{id(self)}"
         self._ctl_out = self.ctx.socket(zmq.PAIR)
         self._ctl_out.bind(self._ctl_addr)
@@ -387,12 +387,12 @@ class Node:
         except Exception as exc:  # a node never dies on one bad callback
             self._stats.errors += 1
             self._totals["errors"] += 1
-            self._failing[name] = (self._failing.get(name, (0, ""))[0] + 1, f"{type(exc).__name__}: {exc}")
+            self._failing[label] = (self._failing.get(label, (0, ""))[0] + 1, f"{type(exc).__name__}: {exc}")
             self._log_once(f"err:{type(exc).__name__}:{name}", logging.ERROR,
                            f"{name} raised {type(exc).__name__}: {exc} (counted; repeats not logged)",
                            exc_info=True)
         else:
-            self._failing.pop(name, None)
+            self._failing.pop(label, None)
         finally:
             self._busy = None
         if timed:
@@ -422,8 +422,8 @@ class Node:
         with self._cond:
             subs = [s for ss in self._subs.values() for s in ss]
         faults += [("warn", f"stale {s.topic}", text) for s in subs if (text := s.staleness(now_s)) is not None]
-        faults += [("error", f"failing {name}", f"{name} raised {error} on its last {calls} calls")
-                   for name, (calls, error) in list(self._failing.items()) if calls >= self.FAILING_AFTER]
+        faults += [("error", f"failing {label}", f"{label} raised on its last {calls} calls: {error}")
+                   for label, (calls, error) in list(self._failing.items()) if calls >= self.FAILING_AFTER]
         down_since = self._pub_sock.down_since_s
         if down_since is not None:
             faults.append(("warn", "bus", f"forwarder {self.address.url} unreachable for {now_s - down_since:.1f} s"))

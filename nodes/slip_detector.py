@@ -142,6 +142,7 @@ class SlipDetectorNode(Node):
         self.images: collections.OrderedDict[int, Image] = collections.OrderedDict()  # by stamp, oldest first
         self.grasp_start_ns: int | None = None
         self.reference_markers = 0
+        self.slow_gaps_before = 0  # the judge's slow gaps before the current grasp
         self.subscribe("camera/image", Image, self.on_image, depth=IMAGE_BUFFER)
         self.subscribe("markers/reference", MarkerArray, self.on_reference, depth=1)
         self.subscribe("field", DisplacementField, self.on_grasp_field, depth=IMAGE_BUFFER,
@@ -219,6 +220,7 @@ class SlipDetectorNode(Node):
             return
         self.grasp_start_ns = msg.stamp_ns
         self.reference_markers = len(msg.ref_px)
+        self.slow_gaps_before = self.judge.slow_gaps
         self.judge.reset()
         self.judged = None
         self.slip = False
@@ -241,12 +243,13 @@ class SlipDetectorNode(Node):
         if image.encoding == "mono8":
             raise ValueError("the trial model needs colour camera images (bgr8 or rgb8), got mono8: "
                              "set the camera's encoding param")
-        self.clear_warning()  # a field the grasp takes: whatever was wrong before is over
         takes = self.judge.takes(msg.stamp_ns)
-        if self.judge.slow_gaps > self.counters["slow_gaps"]:
-            self.counters["slow_gaps"] = self.judge.slow_gaps
+        self.counters["slow_gaps"] = self.judge.slow_gaps
+        if self.judge.slow_gaps > self.slow_gaps_before:  # said for the rest of the grasp, whose P(slip) it concerns
             self.warn("frames further apart than the trial model was trained on (a camera slower than the model's "
-                      "frame rate, or frames lost): its P(slip) is less sure (slow_gaps)")
+                      "frame rate, or frames lost): this grasp's P(slip) is less sure (slow_gaps)", kind="slow gaps")
+        else:
+            self.clear_warning()  # a field the grasp takes: whatever was wrong before is over
         if takes:
             valid_share = msg.n_markers / max(self.reference_markers, 1)
             self.judged = (self.judge.step(as_bgr(image.data, image.encoding), msg.field, valid_share), msg.stamp_ns)

@@ -96,10 +96,11 @@ class TrackerNode(Node):
             self.inherited, self.inherited_from = msg, "the previous process's"
 
     def on_recorded_reference(self, msg: MarkerArray) -> None:
-        """Keep the reference a replayed recording holds, for the first frame: the recording began after
-        the live tracker took it, and is tracked against it as live (stamped later, it belongs to a
-        frame of the recording, which this tracker takes itself)."""
-        if self.needs_reference and self.first_stamp_ns is None:
+        """Keep the reference a replayed recording holds when it is stamped no later than the first frame
+        (frames and references may be taken in either order): the recording began after the live tracker
+        took it, and is tracked against it as live. Stamped later, it belongs to a frame of the
+        recording, which this tracker takes itself."""
+        if self.needs_reference and (self.first_stamp_ns is None or msg.stamp_ns <= self.first_stamp_ns):
             self.inherited, self.inherited_from = msg, "the recording's"
 
     def on_image(self, msg: Image) -> None:

@@ -428,12 +428,13 @@ def solve_partial_slip(
         if np.linalg.cond(jac) > 1e12:  # Broyden's updates lost a direction: start again from the stick
             jac = stick.copy()
         delta = -np.linalg.lstsq(jac, residual, rcond=None)[0]
-        for _ in range(8):  # halve a step that makes the loads worse
+        for halvings in range(8):  # halve a step that makes the loads worse (the 8th is taken as it is)
+            if halvings:
+                delta = delta / 2.0
             q_try = inner(motion + delta, q)
             new_residual = _loads(q_try, rx, ry, area) - target
             if np.linalg.norm(new_residual / scale) < np.linalg.norm(residual / scale):
                 break
-            delta = delta / 2.0
         motion, q = motion + delta, q_try
         if delta @ delta > 0:
             jac = jac + np.outer(new_residual - residual - jac @ delta, delta) / float(delta @ delta)

@@ -320,7 +320,7 @@ def write_sequence(sensor: SimSensor, out_dir: str | Path, n_frames: int) -> int
     """
     if n_frames < 1:
         raise ValueError(f"n_frames must be >= 1, got {n_frames}")
-    out = Path(out_dir)
+    out = Path(out_dir).resolve()  # "." has no name to put ".partial" after
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise ValueError(f"{out} is not a new or empty folder")
     partial = out.with_name(out.name + ".partial")

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -63,10 +64,13 @@ def test_image_displacement_matches_marker_motion() -> None:
         truth.image_displacement_px(np.zeros((3, 3)))
 
 
-def test_write_sequence_and_preview(tmp_path) -> None:
+def test_write_sequence_and_preview(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
     sensor = SimSensor(scene_from_dict(SCENE), seed=0)
     out = tmp_path / "seq"
     assert write_sequence(sensor, out, 4) == 4
+    (tmp_path / "here").mkdir()
+    monkeypatch.chdir(tmp_path / "here")
+    assert write_sequence(SimSensor(scene_from_dict(SCENE), seed=0), Path("."), 1) == 1  # `fv sim --out .`
     assert len(list(out.glob("frame_*.png"))) == 4 and len(list(out.glob("preview_*.png"))) == 4
     data = np.load(out / "truth.npz")
     assert data["marker_displacement_mm"].shape == (4, 256, 3)

@@ -155,6 +155,35 @@ def test_a_camera_faster_than_the_trial_model_is_judged_at_the_model_rate() -> N
     assert all(published[k].probability == published[k - 1].probability for k in (1, 3, 5, 7))
 
 
+def test_a_slow_camera_is_warned_of_for_the_rest_of_its_grasp() -> None:
+    """The slow-gaps warning was cleared by the next field (33 ms later), so the status, read every
+    0.2 s, almost never showed it; it now stands until a grasp without slow gaps."""
+    from msgs import Image, MarkerArray
+    from nodes.slip_detector import SlipDetectorNode
+    node = SlipDetectorNode("slip_detector", {"model": "gelsight_online"})
+    rng = np.random.default_rng(0)
+
+    def frames(stamps_ms: list[int]) -> None:
+        for stamp in (t * 1_000_000 for t in stamps_ms):
+            node.on_image(Image(stamp_ns=stamp, encoding="bgr8", data=rng.integers(0, 255, (240, 320, 3), np.uint8)))
+            node.on_grasp_field(_field(stamp, 0.1))
+
+    def grasp(start_ms: int) -> None:
+        node.on_reference(MarkerArray(stamp_ns=start_ms * 1_000_000, ref_px=np.zeros((40, 2), np.float32),
+                                      width=320, height=240))
+    try:
+        node.setup()
+        node.slip_pub.publish = lambda _msg: None
+        grasp(0)
+        frames([0, 40, 80, 280, 320, 360])  # 200 ms without a frame for a 25 fps model, then the model's rate
+        assert node.state == "warn" and "slow_gaps" in node.message and node.counters["slow_gaps"] == 1
+        grasp(10_000)
+        frames([10_000, 10_040, 10_080])  # the next grasp, at the model's rate
+        assert node.state == "ok" and node.counters["slow_gaps"] == 1
+    finally:
+        node.close()
+
+
 def _offline_running_p_slip(video: Path, name: str, start: int) -> list[float]:
     """What `fv eval` computes of `video` with model `name` from reference frame `start`: the
     running P(slip) of the grasp after each judged frame."""
