@@ -21,7 +21,7 @@ import zmq
 
 import msgs
 from msgs import Message, MessageError
-from nodes.endpoints import BusAddress, bus_address, secure_client
+from nodes.endpoints import BusAddress, bus_address, curve_dir, secure_client
 
 LATCHED = b"L"
 VOLATILE = b"-"
@@ -83,12 +83,51 @@ def new_context() -> zmq.Context:
 def connect_client(sock: zmq.Socket, address: BusAddress, endpoint: str) -> None:
     """Configure `sock` for the bus (CURVE and heartbeats on TCP) and connect it to
     `endpoint`. ZeroMQ reconnects by itself after the forwarder restarts; the heartbeat
-    lets a TCP client notice a forwarder host that vanished without closing the connection."""
+    lets a TCP client notice a forwarder host that vanished without closing the connection.
+    On TCP a failed CURVE handshake is logged as an error (`_watch_handshake`)."""
     secure_client(sock, address)
     if address.is_tcp:
         sock.heartbeat_ivl = HEARTBEAT_IVL_MS
         sock.heartbeat_timeout = HEARTBEAT_TIMEOUT_MS
+        _watch_handshake(sock, address)
     sock.connect(endpoint)
+
+
+_REFUSED: set[str] = set()  # the bus URLs whose refused handshake this process has logged
+_HANDSHAKE_EVENTS = zmq.EVENT_HANDSHAKE_SUCCEEDED | zmq.EVENT_HANDSHAKE_FAILED_AUTH | \
+    zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL | zmq.EVENT_MONITOR_STOPPED
+
+
+def _watch_handshake(sock: zmq.Socket, address: BusAddress) -> None:
+    """Log, once, why the forwarder at `address` refuses `sock`'s CURVE handshake, from a thread that
+    watches it until the handshake succeeds or the socket closes: ZeroMQ retries it for good without a
+    word, so a host whose key the forwarder does not know received nothing and said nothing."""
+    from zmq.utils.monitor import recv_monitor_message
+
+    monitor = sock.get_monitor_socket(_HANDSHAKE_EVENTS)
+    keys = curve_dir()  # as the socket was given them
+
+    def watch() -> None:
+        try:
+            while True:
+                event = recv_monitor_message(monitor)["event"]
+                if event in (zmq.EVENT_HANDSHAKE_SUCCEEDED, zmq.EVENT_MONITOR_STOPPED):
+                    return
+                if address.url in _REFUSED:  # said once per bus, not once per socket
+                    return
+                _REFUSED.add(address.url)
+                why = ("it does not know this host's client key: copy that client.key into its authorized/ folder"
+                       if event == zmq.EVENT_HANDSHAKE_FAILED_AUTH else
+                       "this host's server.key is not that forwarder's: copy its server.key here")
+                log.error("the forwarder at %s refuses the CURVE handshake (FV_CURVE_DIR %s): %s; nothing "
+                          "passes until it is fixed", address.url, keys, why)
+                return
+        except zmq.ZMQError:  # the context went away
+            return
+        finally:
+            monitor.close(linger=0)
+
+    threading.Thread(target=watch, name="fv-curve-handshake", daemon=True).start()
 
 
 class PublisherSocket:

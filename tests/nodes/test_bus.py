@@ -110,7 +110,7 @@ def test_secret_keys_are_the_owners_alone_and_never_replaced(tmp_path) -> None:
     assert files["client.key_secret"].read_bytes() == before
 
 
-def test_tcp_needs_curve_keys(bus_env: Bus, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_tcp_needs_curve_keys(bus_env: Bus, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
     keys = bus_env.folder / "keys"
     make_keys(keys)
     stranger = bus_env.folder / "stranger"  # right server key, client key not authorised
@@ -137,6 +137,10 @@ def test_tcp_needs_curve_keys(bus_env: Bus, monkeypatch: pytest.MonkeyPatch) -> 
         assert got is not None and got.msg.probability == 0.5, "the client with the keys received nothing"
         assert unauthorised.recv(timeout_s=0.5) is None
         assert not plain.poll(200), "a client without CURVE keys received data"
+        refused = [r.getMessage() for r in caplog.records if "refuses the CURVE handshake" in r.getMessage()]
+        assert refused == [f"the forwarder at {tcp} refuses the CURVE handshake (FV_CURVE_DIR {stranger}): it does "
+                           "not know this host's client key: copy that client.key into its authorized/ folder; "
+                           "nothing passes until it is fixed"]  # it received nothing and said nothing
     finally:
         stop.set()
         thread.join()
