@@ -74,6 +74,7 @@ class SlipDetectorParams:
     threads: int = 1  # torch threads for inference
     device: str = "cpu"  # cpu | cuda | cuda:N | mps | xpu | xpu:N (a window model; a trial model runs on the cpu)
     input_timeout_s: float = 2.0  # warn in NodeStatus after this long without a field (0 = never)
+    window_gap_s: float = 1.0  # window model: a field stamped before the last or this long after it starts a new window
 
     def __post_init__(self) -> None:
         if not 0.0 < self.threshold < 1.0:
@@ -86,6 +87,8 @@ class SlipDetectorParams:
             raise ValueError(f"device {self.device!r} is not cpu, cuda, cuda:N, mps, xpu or xpu:N")
         if self.input_timeout_s < 0:
             raise ValueError(f"input_timeout_s {self.input_timeout_s} must be > 0, or 0 for never")
+        if self.window_gap_s <= 0:
+            raise ValueError(f"window_gap_s {self.window_gap_s} must be > 0")
         try:  # a misspelt model is refused before a launch starts (fv launch --check), not respawned for good
             model_path(self.model)
         except FileNotFoundError as exc:
@@ -121,7 +124,7 @@ class SlipDetectorNode(Node):
         cfg = self.classifier.config
         self.window: collections.deque = collections.deque(maxlen=cfg.window)
         self.frame_width_px: int | None = None  # of the tracker's reference frame
-        self.counters.update(no_width=0)
+        self.counters.update(no_width=0, window_restarts=0)
         if cfg.field_width_px:
             self.subscribe("markers/reference", MarkerArray, self.on_window_reference, depth=1)
         self.field_sub = self.subscribe("field", DisplacementField, self.on_field, depth=cfg.window,
@@ -182,6 +185,13 @@ class SlipDetectorNode(Node):
         if msg.field.shape[:2] != (cfg.grid, cfg.grid):
             raise ValueError(f"field grid {msg.field.shape[:2]} does not match the model's {cfg.grid}x{cfg.grid}: "
                              "set the interpolator's grid param")
+        if self.window and not 0 <= msg.stamp_ns - self.window[-1][0] <= self.params.window_gap_s * 1e9:
+            # not the next field of the window's stream (a bag replayed again, a stale field): a window of it
+            # would span that gap, with its stamps out of order
+            self.counters["window_restarts"] += 1
+            self.warn(f"field stamped {(msg.stamp_ns - self.window[-1][0]) / 1e9:+.3f} s from the last: a new "
+                      "window starts (window_restarts)", kind="window restart")
+            self.window.clear()
         self.window.append((msg.stamp_ns, msg.field, msg.valid))
         if len(self.window) < self.window.maxlen:
             return

@@ -118,6 +118,31 @@ def test_window_model_reads_fields_at_its_training_frame_width() -> None:
         node.close()
 
 
+def test_a_field_out_of_its_windows_stream_starts_a_new_window() -> None:
+    """One field stamped an hour before the others was judged with them: ten windows spanning 3600 s with
+    their stamps out of order, without a word. A bag looped back in time did the same."""
+    from nodes.slip_detector import SlipDetectorNode
+    node = SlipDetectorNode("slip_detector", {"model": "sim_fast"})
+    try:
+        node.setup()
+        node.on_window_reference(_reference(0, 640))
+        windows: list[np.ndarray] = []
+        node.publish_state = lambda msg, probability, stamps, valid: windows.append(stamps)
+        hour, frame = 3600 * 10**9, 66_000_000
+        start = 2 * hour
+        for stamp in [start + k * frame for k in range(12)] + [start - hour]:
+            node.on_field(_field(stamp, 0.5))
+        assert node.state == "warn" and node.message == ("field stamped -3600.726 s from the last: a new window "
+                                                         "starts (window_restarts)")
+        for stamp in [start + (12 + k) * frame for k in range(10)]:
+            node.on_field(_field(stamp, 0.5))
+        assert len(windows) == 3 + 1 and node.counters["window_restarts"] == 2  # back an hour, then forward again
+        assert all(np.all(np.diff(w) > 0) and w[-1] - w[0] < 10 * frame for w in windows)
+        assert node.state == "ok"  # cleared by the next window judged
+    finally:
+        node.close()
+
+
 def test_trial_model_refuses_grey_images_by_name() -> None:
     from msgs import Image
     from nodes.slip_detector import SlipDetectorNode
