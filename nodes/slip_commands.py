@@ -154,6 +154,8 @@ def _dataset_sim(args: argparse.Namespace) -> int:
     config = SimDatasetConfig(n_sequences=args.sequences, n_frames=args.frames, fps=args.fps, seed=args.seed,
                               preset=args.preset, grasps=args.grasps)
     needed, available = fields_nbytes(config), os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    if needed == 0:  # said after every grasp had been simulated
+        raise ValueError(f"--frames {args.frames}: every grasp is shorter at {args.fps:g} fps; give fewer frames")
     if needed > available:  # it simulated until the memory ran out
         raise ValueError(f"--sequences {args.sequences} of {args.frames} frames need up to {needed / 1e9:.1f} GB "
                          f"of fields in memory; {available / 1e9:.1f} GB is free: make fewer, in several sets")

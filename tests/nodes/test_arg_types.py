@@ -84,6 +84,8 @@ def test_a_data_set_larger_than_the_free_memory_is_refused_before_simulating(tmp
     """`fv dataset sim --sequences 100000000000` simulated until the memory ran out."""
     assert main(["dataset", "sim", "--sequences", "100000000000", "--out", str(tmp_path / "d.npz")]) == 2
     assert "--sequences 100000000000 of 15 frames need up to 32400000.0 GB" in capsys.readouterr().err
+    assert main(["dataset", "sim", "--grasps", "--frames", "100", "--fps", "5", "--out", str(tmp_path / "g.npz")]) == 2
+    assert "--frames 100: every grasp is shorter at 5 fps" in capsys.readouterr().err  # said after simulating them
 
 
 @pytest.mark.parametrize("argv, message", [
