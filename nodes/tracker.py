@@ -82,7 +82,7 @@ class TrackerNode(Node):
             self.subscribe("markers/reference", MarkerArray, self.on_reference, depth=1)
         if p.recorded_reference:
             self.subscribe(p.recorded_reference, MarkerArray, self.on_recorded_reference, depth=1)
-        self.counters.update(references=0, resumed=0)
+        self.counters.update(references=0, resumed=0, reference_retries=0)
 
     def on_reset(self, _msg) -> None:
         self.needs_reference = True
@@ -117,8 +117,15 @@ class TrackerNode(Node):
             elif time.monotonic() < self.resume_until or self.frames_seen <= self.params.reference_frame:
                 return
             else:
-                state = self.perception.reset(msg.data)
+                try:
+                    state = self.perception.reset(msg.data)
+                except ValueError as exc:  # a dark or empty frame (a camera starting): the next one is tried
+                    self.counters["reference_retries"] += 1
+                    self.warn(f"no reference in this frame ({exc}): taking the next (reference_retries)",
+                              kind="no reference")
+                    return
                 self.counters["references"] += 1
+                self.clear_warning()
             self.needs_reference = False
             self.inherited = None
             self.reference_pub.publish(marker_array(state, msg))

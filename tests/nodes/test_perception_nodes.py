@@ -136,6 +136,31 @@ def _markers(n: int) -> MarkerArray:
                        frames_since_seen=np.zeros(n, np.int32), width=320, height=240)
 
 
+def test_a_dark_first_frame_is_no_reference_and_the_next_is_taken() -> None:
+    """A black frame at the start (a camera warming up) raised in the tracker's callback, logged with its
+    traceback; it is now warned and counted, and the next frame with markers becomes the reference."""
+    from fv_algos.sim.scene import scene_from_dict
+    from fv_algos.sim.sensor import SimSensor
+    from msgs import Image
+    from nodes.tracker import TrackerNode
+    sensor = SimSensor(scene_from_dict({"object": {"shape": "sphere"}, "fps": 10,
+                                        "steps": [{"action": "hold", "duration_s": 0.2}]}), seed=0)
+    rest = sensor.renderer.render(np.column_stack([sensor.markers_ref_mm, np.zeros(len(sensor.markers_ref_mm))])).image
+    node = TrackerNode("tracker", {"reference_frame": 0, "resume": False})
+    references: list = []
+    try:
+        node.setup()
+        node.reference_pub.publish = references.append
+        node.markers_pub.publish = lambda _msg: None
+        node.on_image(Image(stamp_ns=1, encoding="mono8", data=np.zeros_like(rest)))
+        assert node.counters["reference_retries"] == 1 and node.state == "warn" and not references
+        assert "no reference in this frame (reference frame shows 0 consistent marker blobs" in node.message
+        node.on_image(Image(stamp_ns=2, encoding="mono8", data=rest))
+        assert len(references) == 1 and node.counters["references"] == 1 and node.state == "ok"
+    finally:
+        node.close()
+
+
 def test_the_interpolator_refuses_more_markers_than_max_markers() -> None:
     """3000 markers stalled the interpolator 19 s (an N^3 solve per reference); more than max_markers
     are refused with a warning, and the next good MarkerArray clears it."""
