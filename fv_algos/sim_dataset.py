@@ -139,11 +139,15 @@ def _scenario_of_kind(rng: np.random.Generator, kind: str, config: SimDatasetCon
     """A random scenario of ``kind`` whose mechanics' truth is what its label says: a slip kind slips on
     every frame from ``SLIP_FROM_FRAME`` on, so that every window of it holds slip; a no-slip kind never
     slips. A draw that misses (e.g. an "incipient" shear on a bottle cap's lip or an edge, whose slip zone
-    stays under half the contact: truth "stick") is drawn again from ``rng``."""
+    stays under half the contact: truth "stick"), or whose mechanics stop with an error, is drawn again
+    from ``rng``."""
     params = SensorParams()
     for _ in range(MAX_DRAWS):
         scene = random_scenario(rng, kind, config.n_frames, config.fps, frozenset(config.render_effects))
-        slip = np.array([frame.state.is_slip for frame in SceneRunner(scene, params.skin, params.contact)])
+        try:
+            slip = np.array([frame.state.is_slip for frame in SceneRunner(scene, params.skin, params.contact)])
+        except ValueError:  # mechanics the scene cannot play (an object slid off the skin): drawn again
+            continue
         if slip[SLIP_FROM_FRAME:].all() if kind in SLIP_KINDS else not slip.any():
             return scene
     raise RuntimeError(f"no {kind} scenario in {MAX_DRAWS} draws slipped as its label says")

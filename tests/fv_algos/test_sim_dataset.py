@@ -109,3 +109,19 @@ def test_a_sequence_slips_as_its_label_says() -> None:
     kind = kind_plan(config.n_sequences, config.seed)[70]
     sequence = simulate_sequence(config, 70, kind)
     assert kind == "incipient" and sequence.label == 1 and sequence.frame_slip[SLIP_FROM_FRAME:].all()
+
+
+def test_a_draw_whose_mechanics_stop_is_drawn_again(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A scenario the mechanics refuse (e.g. an object slid off the skin) ended the whole generation."""
+    import fv_algos.sim_dataset as sim_dataset
+    real = sim_dataset.SceneRunner
+    calls = []
+
+    def refusing_first(scene, skin, contact):
+        calls.append(scene)
+        if len(calls) == 1:
+            raise ValueError("frame 9 (t = 0.600 s): the object's centre (12.10, 0.00) mm has left the skin")
+        return real(scene, skin, contact)
+    monkeypatch.setattr(sim_dataset, "SceneRunner", refusing_first)
+    scene = sim_dataset._scenario_of_kind(np.random.default_rng([0, 1]), "translational", SimDatasetConfig())
+    assert len(calls) == 2 and scene is calls[1] and scene != calls[0]
