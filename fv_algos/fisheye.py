@@ -14,7 +14,7 @@ Without the lens distortion (`lens=False`) the pinhole part alone is used:
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from functools import cached_property
 from pathlib import Path
@@ -23,9 +23,13 @@ import cv2
 import numpy as np
 
 from fv_algos.atomic_file import write_atomically
+from fv_algos.frame_crop import FrameCrop
 
 DEFAULT_CAMERA_DISTANCE_MM = 15.0
 """Distance from the camera centre to the undeformed skin plane of the default sensor, mm."""
+
+ASPECT_TOLERANCE = 0.01
+"""Relative difference of width / height taken as the same aspect ratio (`FisheyeCamera.for_size`)."""
 
 _NEWTON_ITERATIONS = 30
 _NEWTON_TOLERANCE = 1e-12
@@ -231,6 +235,25 @@ class FisheyeCamera:
         return cv2.fisheye.estimateNewCameraMatrixForUndistortRectify(
             self.K, self.D, self.size, np.eye(3), balance=balance
         )
+
+    def for_size(self, width: int, height: int) -> FisheyeCamera:
+        """This camera (calibrated on its own width x height frames) for frames of width x height px:
+        itself when the sizes match, else its matrix and RMS scaled to the new resolution (the
+        distortion acts on normalised coordinates and stays).
+
+        Raises:
+            ValueError: the aspect ratios differ (another camera, or a cropped mode); both sizes named.
+        """
+        if self.size == (width, height):
+            return self
+        if abs(width * self.height / (height * self.width) - 1.0) > ASPECT_TOLERANCE:
+            raise ValueError(
+                f"calibration for {self.width}x{self.height} frames does not fit the source's {width}x{height} "
+                "frames (another aspect ratio: another camera or a cropped mode); calibrate at this size"
+            )
+        K, _, _ = FrameCrop(size=(width, height)).camera_matrix(self.K, self.width, self.height)
+        rms_px = None if self.rms_px is None else self.rms_px * width / self.width
+        return replace(self, K=K, width=width, height=height, rms_px=rms_px)
 
     def undistort_maps(self, balance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """Maps for `cv2.remap(image, map1, map2, cv2.INTER_LINEAR)` that undistort a frame.

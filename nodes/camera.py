@@ -14,7 +14,7 @@ after `start_timeout_s` it starts anyway, warned."""
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -29,7 +29,6 @@ from nodes.start_gate import StartGate
 
 SOURCES = ("sim", "video", "folder", "v4l2")
 ENCODINGS = ("mono8", "bgr8")
-ASPECT_TOLERANCE = 0.01  # relative difference of width / height taken as the same aspect ratio
 
 
 @dataclass
@@ -91,26 +90,6 @@ def make_source(p: CameraParams) -> FrameSource:
     return SimSource(p.scene, p.seed, p.fps, p.prerender)
 
 
-def calibration_for_size(camera: FisheyeCamera, width: int, height: int) -> FisheyeCamera:
-    """`camera` (calibrated on its own width x height frames) for frames of width x height px: itself
-    when the sizes match, else its matrix and RMS scaled to the new resolution (the distortion acts
-    on normalised coordinates and stays).
-
-    Raises:
-        ValueError: the aspect ratios differ (another camera, or a cropped mode); both sizes named.
-    """
-    if camera.size == (width, height):
-        return camera
-    if abs(width * camera.height / (height * camera.width) - 1.0) > ASPECT_TOLERANCE:
-        raise ValueError(
-            f"calibration for {camera.width}x{camera.height} frames does not fit the source's {width}x{height} "
-            "frames (another aspect ratio: another camera or a cropped mode); calibrate at this size"
-        )
-    K, _, _ = FrameCrop(size=(width, height)).camera_matrix(camera.K, camera.width, camera.height)
-    rms_px = None if camera.rms_px is None else camera.rms_px * width / camera.width
-    return replace(camera, K=K, width=width, height=height, rms_px=rms_px)
-
-
 class CameraNode(Node):
     """Publishes frames at `fps` from the configured source."""
 
@@ -136,7 +115,7 @@ class CameraNode(Node):
         self.timer(1.0 / rate, self.tick)
 
     def _load_calibration(self) -> FisheyeCamera | None:
-        """The calibration file's camera fitted to the source's frames (`calibration_for_size`, with
+        """The calibration file's camera fitted to the source's frames (`FisheyeCamera.for_size`, with
         the size of a first frame read here and held to be published first), the simulator's own
         camera, or None.
 
@@ -152,7 +131,7 @@ class CameraNode(Node):
             raise SourceError(f"{self.source.name}: no frame to check the calibration's "
                               f"{camera.width}x{camera.height} against")
         height, width = self.held_frame.image.shape[:2]
-        fitted = calibration_for_size(camera, width, height)
+        fitted = camera.for_size(width, height)
         if fitted is not camera:
             self.log.warning("calibration %s is for %dx%d frames: its matrix is scaled by %.3g to the source's "
                              "%dx%d frames", self.params.calibration, camera.width, camera.height,

@@ -502,6 +502,7 @@ class ContactModel:
         self.params = params if params is not None else ContactParams()
         self.grid = SurfaceGrid(skin.mechanics_cells, skin.size_mm / skin.mechanics_cells)
         self.halfspace = HalfSpace(self.grid, skin.material)
+        self._soft_halfspaces: dict[float, HalfSpace] = {}  # by contact modulus E*, MPa (`_normal_halfspace`)
         self._mesh = self.grid.mesh_mm()
         self._warm_full: NormalSolution | None = None
         self._warm_reduced: NormalSolution | None = None
@@ -537,7 +538,10 @@ class ContactModel:
         skin_modulus = skin.youngs_modulus_mpa / (1.0 - skin.poisson_ratio**2)
         if contact_modulus_mpa >= skin_modulus / (1.0 + 1e-3):
             return self.halfspace
-        return HalfSpace(self.grid, Elastomer(contact_modulus_mpa * (1.0 - skin.poisson_ratio**2), skin.poisson_ratio))
+        if contact_modulus_mpa not in self._soft_halfspaces:  # built once per object, not every frame
+            material = Elastomer(contact_modulus_mpa * (1.0 - skin.poisson_ratio**2), skin.poisson_ratio)
+            self._soft_halfspaces[contact_modulus_mpa] = HalfSpace(self.grid, material)
+        return self._soft_halfspaces[contact_modulus_mpa]
 
     def solve(
         self,

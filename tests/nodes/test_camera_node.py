@@ -116,16 +116,15 @@ def test_undistorted_frames_come_with_their_pinhole_matrix_and_no_distortion(bus
 def test_a_calibration_at_another_resolution_is_scaled_to_the_frames() -> None:
     """Pixels of the 640x480 calibration map to the 160x120 frames' pixel centres: (u + 0.5) / 4 - 0.5."""
     from fv_algos.fisheye import FisheyeCamera
-    from nodes.camera import calibration_for_size
     camera = FisheyeCamera(K=np.array([[305.0, 0.0, 326.0], [0.0, 298.0, 235.0], [0.0, 0.0, 1.0]]),
                            D=np.array([-0.03, 0.01, -0.002, 0.0]), width=640, height=480, rms_px=0.2)
-    assert calibration_for_size(camera, 640, 480) is camera
-    small = calibration_for_size(camera, 160, 120)
+    assert camera.for_size(640, 480) is camera
+    small = camera.for_size(160, 120)
     assert small.size == (160, 120) and small.rms_px == pytest.approx(0.05)
     points = np.random.default_rng(0).uniform([-10.0, -8.0, 5.0], [10.0, 8.0, 20.0], (50, 3))
     np.testing.assert_allclose(small.project(points), (camera.project(points) + 0.5) / 4 - 0.5, atol=1e-9)
     with pytest.raises(ValueError, match=r"calibration for 640x480 frames does not fit the source's 160x90 frames"):
-        calibration_for_size(camera, 160, 90)
+        camera.for_size(160, 90)
 
 
 def test_undistorted_video_at_half_the_calibrations_resolution_comes_whole(bus, spawn, tmp_path: Path) -> None:
@@ -144,8 +143,7 @@ def test_undistorted_video_at_half_the_calibrations_resolution_comes_whole(bus, 
     assert msg.data.shape == (120, 160)
     assert msg.data[10:-10, 10:-10].min() > 0  # the undistorted frame fills the view (no black border)
     assert (info.width, info.height) == (160, 120)
-    from nodes.camera import calibration_for_size
-    np.testing.assert_allclose(info.K, calibration_for_size(camera, 160, 120).undistorted_camera_matrix())
+    np.testing.assert_allclose(info.K, camera.for_size(160, 120).undistorted_camera_matrix())
 
 
 def test_a_calibration_of_another_aspect_ratio_is_refused_at_start(bus, tmp_path: Path) -> None:
