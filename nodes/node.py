@@ -5,7 +5,10 @@ Threading model: one receiver thread drains the node's SUB socket into per-subsc
 queues (so ZeroMQ buffers never fill and a slow callback never slows a publisher), and
 `spin()` runs callbacks and timers one at a time on the calling thread. A queue of depth
 N keeps the last N messages (depth 1 = latest only, for camera frames) and counts what
-it drops; depth None keeps all (up to `KEEP_ALL_CAP`).
+it drops; depth None keeps all (up to `KEEP_ALL_CAP`). Queued messages are handled in the
+order they arrived, whatever their topic (as one callback queue): a message that causes
+another (a tracker's new reference, then the field of that frame through the interpolator)
+is handled first, and no topic starves another.
 
 A third thread, the status thread, publishes `NodeStatus` every `STATUS_PERIOD_S` and at
 once when the node's health changes, so a node whose callback hangs still reports. It is
@@ -160,7 +163,7 @@ class Node:
         self._pub_sock = PublisherSocket(name, self.address, self.ctx)
         self._publishers: list[Publisher] = []
         self._subs: dict[str, list[Subscription]] = {}
-        self._ready_order: collections.deque[Subscription] = collections.deque()
+        self._arrivals = 0  # messages queued so far: each queued message carries its arrival number
         self._timers: list[Timer] = []
         self._cond = threading.Condition()
         self._stop = threading.Event()
@@ -204,7 +207,6 @@ class Node:
         with self._cond:
             first = sub.topic not in self._subs
             self._subs.setdefault(sub.topic, []).append(sub)
-            self._ready_order.append(sub)
         if first and self._receiver is not None and self._receiver.is_alive():
             self._ctl_out.send_string("sub " + sub.topic)
         return sub
@@ -325,10 +327,11 @@ class Node:
                 return
             targets = list(self._subs.get(topic, ())) + list(self._subs.get(ALL_TOPICS, ()))
             now = time.monotonic()
+            self._arrivals += 1
             for s in targets:
                 s.received += 1
                 s.last_rx_s = now
-                s.queue.append((topic, frames[1:]))
+                s.queue.append((self._arrivals, topic, frames[1:]))
                 limit = s.depth or KEEP_ALL_CAP
                 while len(s.queue) > limit:
                     s.queue.popleft()
@@ -346,12 +349,11 @@ class Node:
                 if due is not None and due.next_s <= now:
                     due.next_s = max(due.next_s + due.period_s, now)
                     return due
-                for _ in range(len(self._ready_order)):
-                    s = self._ready_order[0]
-                    self._ready_order.rotate(-1)  # round robin: a busy topic cannot starve the others
-                    if s.queue:
-                        topic, frames = s.queue.popleft()
-                        return s, topic, frames
+                waiting = [s for subs in self._subs.values() for s in subs if s.queue]
+                if waiting:  # the message that arrived first, of any topic
+                    s = min(waiting, key=lambda s: s.queue[0][0])
+                    _, topic, frames = s.queue.popleft()
+                    return s, topic, frames
                 self._cond.wait(None if due is None else due.next_s - now)
         return None
 

@@ -11,7 +11,8 @@ newest window is judged: the skipped decisions are counted, and latency stays on
 A trial model (`gelsight_online`, `gelsight_trial`) judges the whole grasp so far: a grasp
 starts at the tracker's reference (`/markers/reference`, latched: a new one after
 `/tracker/reset`), and every field of it, with the camera image of the same stamp (`/camera/image`), updates the
-running P(slip) of the grasp (`fv_algos.grasp_judge`). Its SlipState's window_stamps_ns
+running P(slip) of the grasp (`fv_algos.grasp_judge`); a field stamped before the grasp's reference (none
+yet, or one of the grasp before) is left out, counted in before_grasp. Its SlipState's window_stamps_ns
 holds the grasp's first stamp and that of its last frame judged: a camera faster than the model's
 frame rate (`fv_algos.frame_rate`) has only the frames a camera at that rate would have filmed judged,
 and the others repeat the grasp's P(slip) so far (counted in rate_skipped). That answer is the grasp's outcome so far, to be
@@ -150,7 +151,7 @@ class SlipDetectorNode(Node):
         self.subscribe("markers/reference", MarkerArray, self.on_reference, depth=1)
         self.subscribe("field", DisplacementField, self.on_grasp_field, depth=IMAGE_BUFFER,
                        stale_after_s=p.input_timeout_s or None)
-        self.counters.update(grasps=0, unmatched_fields=0, rate_skipped=0, slow_gaps=0)
+        self.counters.update(grasps=0, before_grasp=0, unmatched_fields=0, rate_skipped=0, slow_gaps=0)
         self.log.info("model %s: trial model, judges each grasp from the tracker's reference on (trained with "
                       "the reference at frame %d of each video: give the tracker reference_frame %d), at %g fps "
                       "(a faster camera's frames are picked at that rate)",
@@ -238,7 +239,8 @@ class SlipDetectorNode(Node):
 
     def on_grasp_field(self, msg: DisplacementField) -> None:
         if self.grasp_start_ns is None or msg.stamp_ns < self.grasp_start_ns:
-            return  # no reference yet, or a field of the grasp before the current one
+            self.counters["before_grasp"] += 1  # no reference yet, or a field of the grasp before the current one
+            return
         image = self.images.pop(msg.stamp_ns, None)
         while self.images and next(iter(self.images)) < msg.stamp_ns:
             self.images.popitem(last=False)

@@ -12,6 +12,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from contextlib import contextmanager
 from typing import Callable, Iterator
 
 import pytest
@@ -20,6 +21,7 @@ from msgs import NodeStatus
 from nodes.bus import TopicReader
 from nodes.endpoints import BUS_ENV, BusAddress, bus_address
 from nodes.forwarder import Forwarder
+from nodes.node import Node
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -101,6 +103,19 @@ def spawn(bus_env: Bus) -> Iterator[Callable[..., subprocess.Popen]]:
     yield start
     for proc in procs:
         kill_group(proc)
+
+
+@contextmanager
+def spinning(node: Node) -> Iterator[Node]:
+    """Run `node` in a thread of the test process; stop it at the end."""
+    thread = threading.Thread(target=node.spin, kwargs={"install_signals": False}, daemon=True)
+    thread.start()
+    try:
+        yield node
+    finally:
+        node.stop()
+        thread.join(5.0)
+        assert not thread.is_alive(), f"node {node.name} did not stop"
 
 
 def run_fv(*args: str, timeout_s: float = 10.0) -> subprocess.CompletedProcess:

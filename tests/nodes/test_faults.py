@@ -24,26 +24,13 @@ from nodes.camera_sources import FolderSource, SourceError, VideoFileSource
 from nodes.forwarder import ping
 from nodes.launcher import Launch
 from nodes.node import Node
-from tests.nodes.conftest import Bus, pid_alive, wait_status
+from tests.nodes.conftest import Bus, pid_alive, spinning, wait_status
 
 RECOVERY_S = 2.0  # a killed node's output is back within this, on an idle machine
 IDLE_COLD_START_S = 0.9  # the tracker's cold start (Python, imports, setup) on an idle 2-core machine
 
 
 # -- helpers -----------------------------------------------------------------------------
-@contextmanager
-def spinning(node: Node) -> Iterator[Node]:
-    """Run `node` in a thread of the test process; stop it at the end."""
-    thread = threading.Thread(target=node.spin, kwargs={"install_signals": False}, daemon=True)
-    thread.start()
-    try:
-        yield node
-    finally:
-        node.stop()
-        thread.join(5.0)
-        assert not thread.is_alive(), f"node {node.name} did not stop"
-
-
 @contextmanager
 def publishing(topic: str, period_s: float = 0.05) -> Iterator[threading.Event]:
     """Publish SlipState on `topic` from a thread while the yielded event is set."""
