@@ -223,9 +223,10 @@ def _offline_running_p_slip(video: Path, name: str, start: int) -> list[float]:
 
 
 def _launched_running_p_slip(spawn, n: int, *launch_args: str) -> list[SlipState]:
-    """The first `n` SlipStates of `fv launch launch/video.yaml ARGS...`."""
+    """The first `n` SlipStates of `fv launch launch/video.yaml ARGS...`, without standby spares (their
+    imports at start, beside the nodes', could make a loaded 2-core machine drop a frame)."""
     with TopicReader(["/slip"]) as reader:
-        spawn("launch", str(REPO / "launch" / "video.yaml"), *launch_args)
+        spawn("launch", str(REPO / "launch" / "video.yaml"), *launch_args, "standby:=false")
         states = [reader.recv(60.0 if k == 0 else 10.0) for k in range(n)]
     assert all(s is not None for s in states), f"{sum(s is not None for s in states)} of {n} decisions"
     return [s.msg for s in states]
@@ -285,7 +286,8 @@ def test_both_fingers_voted_on_slip_give_the_trial_score_of_fv_eval(bus_env, spa
     n = sum(len(a) for a in alone)
     last: dict[str, SlipState] = {}
     with TopicReader(["/slip", "/left/slip", "/right/slip"]) as reader:
-        spawn("launch", str(REPO / "launch" / "video_pair.yaml"), f"left:={videos[0]}", f"right:={videos[1]}")
+        spawn("launch", str(REPO / "launch" / "video_pair.yaml"), f"left:={videos[0]}", f"right:={videos[1]}",
+              "standby:=false")  # as _launched_running_p_slip
         for k in range(2 * n):
             item = reader.recv(90.0 if k == 0 else 10.0)
             assert item is not None, f"{k} of {2 * n} states"
