@@ -15,7 +15,7 @@ ENCODING_CHANNELS = {"mono8": 1, "bgr8": 3, "rgb8": 3}
 class Image(Message):
     """One camera frame.
 
-    data: (H, W) uint8 for "mono8", (H, W, 3) uint8 for "bgr8" / "rgb8".
+    data: (H, W) uint8 for "mono8", (H, W, 3) uint8 for "bgr8" / "rgb8", H and W > 0.
     stamp_ns is the capture time of the frame.
     """
 
@@ -35,6 +35,8 @@ class Image(Message):
             raise ValueError(f"data: shape {self.data.shape} does not match encoding {self.encoding!r}")
         if self.data.dtype != np.uint8:
             raise ValueError(f"data: dtype {self.data.dtype} is not uint8")
+        if not self.data.size:
+            raise ValueError(f"data: shape {self.data.shape} holds no pixels")
 
     @property
     def width(self) -> int:

@@ -172,10 +172,20 @@ def test_garbage_header_and_unknown_type() -> None:
         msgs.decode([], "/t")
 
 
-@pytest.mark.parametrize("cls", [type(m) for m in _examples() if m.ARRAYS], ids=lambda c: c.TYPE)
+@pytest.mark.parametrize("cls", [type(m) for m in _examples() if m.ARRAYS and not isinstance(m, Image)],
+                         ids=lambda c: c.TYPE)
 def test_empty_arrays_round_trip(cls: type) -> None:
     msg = cls(width=1, height=1) if cls in (CameraInfo, MarkerArray) else cls()
     assert _equal(msgs.decode(_frames(msg), "/t"), msg)
+
+
+@pytest.mark.parametrize("shape", [(0, 0), (0, 320, 3), (240, 0, 3)])
+def test_image_without_pixels_is_refused(shape: tuple[int, ...]) -> None:
+    """A 0x0 frame went through to the tracker, whose callback raised on it."""
+    data = np.zeros(shape, np.uint8)
+    with pytest.raises(MessageError, match="holds no pixels") as err:
+        msgs.decode(_frames(Image(encoding="mono8" if len(shape) == 2 else "bgr8", data=data)), "/camera/image")
+    assert err.value.field == "data"
 
 
 @pytest.mark.parametrize("width, height", [(0, 480), (640, 0), (-640, 480)])
