@@ -27,6 +27,7 @@ also the watchdog: besides the node's own `warn()`, the status reports
 from __future__ import annotations
 
 import collections
+import itertools
 import logging
 import os
 import signal
@@ -77,6 +78,10 @@ class Publisher:
     def has_subscribers(self) -> bool:
         return self._sock.has_subscribers(self.topic)
 
+
+# numbers the nodes' inproc control addresses in this process: the id() of a node never closed (its control
+# socket still bound) was given to the next node, whose bind then failed
+_CONTROL_IDS = itertools.count()
 
 class Subscription:
     """A callback on one topic with its queue (depth None = keep all).
@@ -179,7 +184,7 @@ class Node:
         self._busy: tuple[str, float] | None = None  # (callback label, monotonic start) while one runs
         self._stuck_count = 0
         self._failing: dict[str, tuple[int, str]] = {}  # callback label -> (calls in a row that raised, the last error)
-        self._ctl_addr = f"inproc://fv-node-{id(self)}"
+        self._ctl_addr = f"inproc://fv-node-{next(_CONTROL_IDS)}"
         self._ctl_out = self.ctx.socket(zmq.PAIR)
         self._ctl_out.bind(self._ctl_addr)
         self._started = time.monotonic()

@@ -3,6 +3,7 @@ messages are counted and never crash a node, params come from defaults, launch f
 and --param."""
 from __future__ import annotations
 
+import gc
 import random
 import threading
 import time
@@ -172,3 +173,18 @@ def test_messages_of_different_topics_are_handled_in_the_order_they_arrived(bus:
         _until(lambda: len(node.handled) == node.subs["/a"].received + 4, 5.0, "the node did not handle them")
         pub.close()
     assert [h for h in node.handled if h[1]] == sent
+
+
+def test_nodes_never_closed_do_not_block_the_next_ones(bus: Bus) -> None:
+    """A node dropped without close() keeps its control socket bound; the next node got the same inproc
+    address (from the dropped one's id()) and failed to start: `Address already in use`."""
+    left_open = []
+    try:
+        for k in range(20):
+            node = Node(f"dropped{k}")
+            left_open += [node._ctl_out, node._pub_sock]  # as a node never closed: they stay open
+            del node
+            gc.collect()
+    finally:
+        for sock in left_open:
+            sock.close()
