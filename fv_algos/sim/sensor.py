@@ -8,6 +8,7 @@ markers and displacement arrows over a frame.
 from __future__ import annotations
 
 import json
+import secrets
 import shutil
 import time
 from collections.abc import Iterator
@@ -306,9 +307,10 @@ def preview_image(frame: SimFrame, arrow_scale: float = 5.0) -> np.ndarray:
 
 def write_sequence(sensor: SimSensor, out_dir: str | Path, n_frames: int) -> int:
     """Write the first `n_frames` frames (fewer when the scene ends first) as PNG plus ground truth for
-    inspection, into a new or empty folder `out_dir`. The files are written to `out_dir` + ".partial" and
-    the folder renamed once all are there, so a failure (e.g. a scene that slides its object off the
-    skin) leaves no folder of some frames without their truth; it removes the partial folder.
+    inspection, into a new or empty folder `out_dir`. The files are written to a new folder of its own
+    beside it (`out_dir` + ".partial-" + a random suffix) and that folder renamed once all are there, so a
+    failure (e.g. a scene that slides its object off the skin) leaves no folder of some frames without
+    their truth; it removes its own partial folder, and never a folder it did not make.
 
     Files: frame_%05d.png, preview_%05d.png, truth.npz (stamp_s (T,), markers_ref_mm
     (N, 2), marker_displacement_mm (T, N, 3), markers_px (T, N, 2), visible (T, N),
@@ -320,12 +322,11 @@ def write_sequence(sensor: SimSensor, out_dir: str | Path, n_frames: int) -> int
     """
     if n_frames < 1:
         raise ValueError(f"n_frames must be >= 1, got {n_frames}")
-    out = Path(out_dir).resolve()  # "." has no name to put ".partial" after
+    out = Path(out_dir).resolve()  # "." has no name to put ".partial-" after
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise ValueError(f"{out} is not a new or empty folder")
-    partial = out.with_name(out.name + ".partial")
-    shutil.rmtree(partial, ignore_errors=True)  # an earlier run's, killed before it could remove it
-    partial.mkdir(parents=True)
+    partial = out.with_name(f"{out.name}.partial-{secrets.token_hex(4)}")
+    partial.mkdir(parents=True)  # a new name: a folder that exists (someone else's) is never taken or removed
     try:
         written = _write_frames(sensor, partial, n_frames)
         if out.exists():

@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fv_algos.atomic_file import write_atomically
+
 DATASET_FORMAT = "fv-slip-sequences"
 DATASET_FORMAT_VERSION = 1
 FLOAT16_MAX = float(np.finfo(np.float16).max)
@@ -106,20 +108,21 @@ class SequenceSet:
 
 
 def save_sequences(path: str | Path, sequences: SequenceSet) -> Path:
-    """Write ``sequences`` to one compressed ``.npz`` (suffix added if missing); returns the path."""
+    """Write ``sequences`` to one compressed ``.npz``, whole or not at all; returns the path. A name
+    without that suffix gets it added (``sim.v1`` -> ``sim.v1.npz``: two such names never share a file)."""
     path = Path(path)
     if path.suffix != ".npz":
-        path = path.with_suffix(".npz")
+        path = path.with_name(path.name + ".npz")
     meta = {"format": DATASET_FORMAT, "format_version": DATASET_FORMAT_VERSION, "user": sequences.metadata}
     frame_labels = {} if sequences.frame_labels is None else {"frame_labels": sequences.frame_labels}
-    np.savez_compressed(
-        path,
+    write_atomically(path, lambda tmp: np.savez_compressed(
+        tmp,
         fields=sequences.fields,
         labels=sequences.labels,
         object_ids=sequences.object_ids,
         metadata=np.array(json.dumps(meta)),
         **frame_labels,
-    )
+    ))
     return path
 
 

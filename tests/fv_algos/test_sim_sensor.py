@@ -67,7 +67,11 @@ def test_image_displacement_matches_marker_motion() -> None:
 def test_write_sequence_and_preview(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
     sensor = SimSensor(scene_from_dict(SCENE), seed=0)
     out = tmp_path / "seq"
+    (tmp_path / "seq.partial").mkdir()  # the user's own folder of that name is neither taken nor removed
+    (tmp_path / "seq.partial" / "notes.txt").write_text("mine")
     assert write_sequence(sensor, out, 4) == 4
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["seq", "seq.partial"]
+    assert (tmp_path / "seq.partial" / "notes.txt").read_text() == "mine"
     (tmp_path / "here").mkdir()
     monkeypatch.chdir(tmp_path / "here")
     assert write_sequence(SimSensor(scene_from_dict(SCENE), seed=0), Path("."), 1) == 1  # `fv sim --out .`

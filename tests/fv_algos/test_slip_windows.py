@@ -110,6 +110,18 @@ def test_save_load_round_trip(sequences: SequenceSet, tmp_path: Path) -> None:
     assert path.stat().st_size < raw_bytes / 2
 
 
+def test_save_adds_the_suffix_and_leaves_nothing_else(sequences: SequenceSet, tmp_path: Path) -> None:
+    """`sim.v1` and `sim.v2` are two files (the suffix replaced, both were `sim.npz`), and a save leaves
+    no temporary file beside them."""
+    first = save_sequences(tmp_path / "sim.v1", sequences)
+    second = save_sequences(tmp_path / "sim.v2", SequenceSet(sequences.fields[:2], sequences.labels[:2],
+                                                             sequences.object_ids[:2]))
+    assert (first.name, second.name) == ("sim.v1.npz", "sim.v2.npz")
+    assert len(load_sequences(first).labels) == len(sequences.labels)
+    assert len(load_sequences(second).labels) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sim.v1.npz", "sim.v2.npz"]
+
+
 def test_load_errors_are_clear(sequences: SequenceSet, tmp_path: Path) -> None:
     with pytest.raises(FileNotFoundError, match="not found"):
         load_sequences(tmp_path / "missing.npz")
