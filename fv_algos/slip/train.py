@@ -182,7 +182,8 @@ def data_gain(config: ModelConfig, data: Split) -> float:
 
 def _score(model: nn.Module, data: Split, rows: np.ndarray, device: torch.device, amp: torch.dtype | None,
            batch: int = 128) -> tuple[float, float]:
-    """Mean cross-entropy and accuracy of ``model`` on window rows (forward under autocast ``amp``)."""
+    """Mean cross-entropy and accuracy of ``model`` on window rows (forward under autocast ``amp``); a window
+    whose logits are not finite counts as wrong (argmax would call it class 0)."""
     gain = data_gain(model.config, data)
     model.eval()
     loss_sum, correct = 0.0, 0
@@ -193,7 +194,7 @@ def _score(model: nn.Module, data: Split, rows: np.ndarray, device: torch.device
                 logits = model(to_model_input(x, gain).to(device)).float()
             target = torch.as_tensor(y, device=device)
             loss_sum += float(F.cross_entropy(logits, target, reduction="sum"))
-            correct += int((logits.argmax(1) == target).sum())
+            correct += int(((logits.argmax(1) == target) & torch.isfinite(logits).all(1)).sum())  # NaN: wrong
     model.train()
     return loss_sum / rows.size, correct / rows.size
 
@@ -254,6 +255,10 @@ def train(config: TrainConfig, data: Split, resume: str | Path | None = None) ->
             group["lr"] = lr_at(config, step)
         optimizer.step()
         step += 1
+        if not all(bool(torch.isfinite(p).all()) for p in model.parameters()):  # the same on every DDP rank
+            kept = f"; {checkpoint_path} keeps step {history[-1]['step']}" if checkpoint_path is not None else ""
+            raise ValueError(f"training diverged at step {step}: loss {float(loss.detach()):.3g} and parameters "
+                             f"no longer finite (lr {config.lr:g}: try a lower one, or grad_clip){kept}")
         train_time += time.perf_counter() - t0
         train_cpu += (time.process_time() - c0) / threads
         loss_sum += float(loss.detach()) * rows.size

@@ -214,3 +214,14 @@ def test_ddp_two_cpu_ranks_stay_identical(split: Split, tmp_path: Path) -> None:
     single = model_from_checkpoint(load_checkpoint(tmp_path / "single" / "checkpoint.pt"))
     for (name, a), b in zip(single.state_dict().items(), ddp_model.state_dict().values()):
         assert torch.allclose(a, b, atol=1e-5), name
+
+
+def test_a_diverging_run_stops_with_an_error_instead_of_scoring_nan_as_no_slip(split: Split, tmp_path: Path) -> None:
+    """NaN logits' argmax is class 0: a NaN model was scored at the test set's no-slip share (1.0 on an
+    all-held test set) and saved; the run now stops at the first step whose parameters are not finite."""
+    with pytest.raises(ValueError, match=r"training diverged at step \d+: .*lr 1e\+30") as error:
+        train(_config(tmp_path, lr=1e30, steps=20, eval_every=1, warmup_steps=0), split)
+    if (tmp_path / "checkpoint.pt").exists():  # written at a step before it diverged: finite weights
+        assert "keeps step" in str(error.value)
+        state = load_checkpoint(tmp_path / "checkpoint.pt").model_state
+        assert all(bool(torch.isfinite(t).all()) for t in state.values())
