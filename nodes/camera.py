@@ -69,6 +69,10 @@ class CameraParams:
             self.path = str(Path(self.path).expanduser())  # a shell leaves the ~ of video:=~/clip.avi as it is
             if not (Path(self.path).is_file() if self.source == "video" else Path(self.path).is_dir()):
                 raise ValueError(f"{self.source} {self.path}: no such {'file' if self.source == 'video' else 'folder'}")
+        if self.source == "sim":  # a missing or bad scene: refused before a launch starts, not respawned
+            from nodes.sim_source import read_scene
+            self.scene = str(Path(self.scene).expanduser()) if self.scene else ""
+            read_scene(self.scene, self.prerender)
         if self.undistort and not self.calibration and self.source != "sim":
             raise ValueError("undistort needs a calibration file")
         if self.start_timeout_s < 0:

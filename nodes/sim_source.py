@@ -4,9 +4,22 @@ from __future__ import annotations
 import time
 from typing import Iterator
 
-from fv_algos.sim.scene import load_scene
+from fv_algos.sim.scene import Scene, load_scene
 from fv_algos.sim.sensor import SimFrame, SimSensor
 from nodes.camera_sources import Frame, SourceError
+
+
+def read_scene(scene_path: str, prerender: bool = False) -> Scene | None:
+    """The scene of the file ``scene_path`` ("": random scenarios, None); ValueError naming it when it
+    cannot be read or is no valid scene, or when ``prerender`` comes without one (random scenarios never
+    end). The camera's params call it too, so `fv launch --check` refuses what the source would."""
+    name = f"sim {scene_path or 'random scenarios'}"
+    if prerender and not scene_path:
+        raise ValueError(f"{name}: prerender needs a scene file (random scenarios never end)")
+    try:
+        return load_scene(scene_path) if scene_path else None
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{name}: {exc}") from None
 
 
 class SimSource:
@@ -24,12 +37,10 @@ class SimSource:
         self.fps = fps
         self.prerender = prerender
         self.name = f"sim {scene_path or 'random scenarios'}"
-        if prerender and not scene_path:
-            raise SourceError(f"{self.name}: prerender needs a scene file (random scenarios never end)")
         try:
-            scene = load_scene(scene_path) if scene_path else None
-        except (OSError, ValueError) as exc:
-            raise SourceError(f"{self.name}: {exc}") from None
+            scene = read_scene(scene_path, prerender)
+        except ValueError as exc:
+            raise SourceError(str(exc)) from None
         self.sensor = SimSensor(scene, seed=seed, loop_fps=fps)
         self.camera = self.sensor.camera
         self._frames: Iterator[SimFrame] | None = None

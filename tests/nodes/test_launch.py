@@ -194,6 +194,8 @@ def test_both_fingers_start_together_and_their_slips_are_the_fusion_inputs(name:
     ("video_pair.yaml", {"left": "a.avi", "right": "b.av"}, "video b.av: no such file"),
     ("video.yaml", {"video": "clip.avi", "model": "gelsite_online"}, "model 'gelsite_online' is neither a shipped"),
     ("pipeline.yaml", {"threads": 0}, "threads 0 must be >= 1"),
+    ("pipeline.yaml", {"scene": "nope.yaml"}, "sim nope.yaml: .*No such file"),  # the camera respawned for good
+    ("pipeline.yaml", {"prerender": True}, "prerender needs a scene file"),
 ])
 @pytest.mark.usefixtures("video_files")
 def test_a_misspelt_video_or_model_is_refused_before_anything_starts(name: str, args: dict, error: str) -> None:
