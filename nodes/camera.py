@@ -1,7 +1,8 @@
 """The `camera` node: frames from the simulator, a video file, a folder of images or a
 V4L2 device, published as `Image` on `/camera/image` with capture stamps, plus a latched
 `CameraInfo` on `/camera/info`. `crop` and `size` cut a share off each border of every frame
-and resize the rest (after `undistort`; `CameraInfo` describes the frames as published). A
+and resize the rest (after `undistort`; `CameraInfo` describes the frames as published); a crop that
+leaves nothing of the source's frames is refused at start, the frame size named. A
 `calibration` made at another resolution of the same aspect ratio is scaled to the source's
 frames (logged once); one of another aspect ratio is refused at start, both sizes named. A
 lost source is reported in NodeStatus and reopened with backoff; a source that cannot be
@@ -110,6 +111,9 @@ class CameraNode(Node):
         self.fisheye = self._load_calibration()
         self.maps = self.fisheye.undistort_maps() if (p.undistort and self.fisheye) else None
         self.crop = FrameCrop.from_lists(p.crop, p.size)
+        if self.crop is not None:  # a crop that leaves nothing of the frames: refused at start, not every frame
+            height, width = self._first_frame("the crop").image.shape[:2]
+            self.crop.window(width, height)
         self._publish_info()
         rate = p.fps or getattr(self.source, "file_fps", 0.0) or 30.0
         self.backoff_s = 0.0
@@ -130,17 +134,22 @@ class CameraNode(Node):
         if not self.params.calibration:
             return getattr(self.source, "camera", None)
         camera = FisheyeCamera.load(self.params.calibration)
-        self.held_frame = self.source.read()
-        if self.held_frame is None:
-            raise SourceError(f"{self.source.name}: no frame to check the calibration's "
-                              f"{camera.width}x{camera.height} against")
-        height, width = self.held_frame.image.shape[:2]
+        height, width = self._first_frame(f"the calibration's {camera.width}x{camera.height}").image.shape[:2]
         fitted = camera.for_size(width, height)
         if fitted is not camera:
             self.log.warning("calibration %s is for %dx%d frames: its matrix is scaled by %.3g to the source's "
                              "%dx%d frames", self.params.calibration, camera.width, camera.height,
                              width / camera.width, width, height)
         return fitted
+
+    def _first_frame(self, what: str) -> Frame:
+        """The source's first frame, read once and held to be published first; SourceError when the
+        source gives none (``what`` names what needed it)."""
+        if self.held_frame is None:
+            self.held_frame = self.source.read()
+            if self.held_frame is None:
+                raise SourceError(f"{self.source.name}: no frame to check {what} against")
+        return self.held_frame
 
     def _publish_info(self) -> None:
         """The camera model of the frames as published: undistorted frames are a pinhole camera

@@ -158,6 +158,17 @@ def test_a_calibration_of_another_aspect_ratio_is_refused_at_start(bus, tmp_path
     assert "640x360" in result.stderr and "160x120" in result.stderr and "Traceback" not in result.stderr
 
 
+def test_a_crop_that_leaves_nothing_is_refused_at_start(bus, tmp_path: Path) -> None:
+    """It passed the params' check (every share < 0.5), then raised on every frame, published none and the
+    launch ended with status 0."""
+    video = tmp_path / "clip.avi"
+    _write_video(video)
+    result = run_fv("node", "camera", "-p", "source=video", "-p", f"path={video}", "-p", "crop=[0.499]",
+                    timeout_s=20)
+    assert result.returncode == 2
+    assert "leaves nothing of a 160x120 frame" in result.stderr and "Traceback" not in result.stderr
+
+
 def test_a_video_is_cropped_frame_by_frame(bus, spawn, tmp_path: Path) -> None:
     from fv_algos.frame_crop import FrameCrop
     video = tmp_path / "clip.avi"
