@@ -79,12 +79,23 @@ class Perception:
         self.marker: MarkerParams | None = params.marker
         self.tracker: Tracker | None = None
         self.interpolator: FieldInterpolator | None = None
+        self.frame_shape: tuple[int, int] | None = None  # (H, W) px of the reference frame
         self.timings_ms: dict[str, float] = {}
 
     def detect(self, image: np.ndarray) -> Detections:
-        """Detections of one frame with the configured detector (needs `self.marker`)."""
+        """Detections of one frame with the configured detector (needs `self.marker`); ValueError naming
+        both sizes for a frame of another size than the reference's (its markers would be matched to
+        positions of another image: a wrong field, taken as valid)."""
         if self.marker is None:
             raise ValueError("marker parameters unknown: call reset() with a reference frame first")
+        if self.frame_shape is not None and image.shape[:2] != self.frame_shape:
+            (h, w), (h0, w0) = image.shape[:2], self.frame_shape
+            raise ValueError(f"a {w}x{h} frame, but the reference is {w0}x{h0}: take a new reference")
+        return self._detect_any(image)
+
+    def _detect_any(self, image: np.ndarray) -> Detections:
+        """:meth:`detect` of a frame of any size (a new reference's)."""
+        assert self.marker is not None
         if self.params.detector == "blob":
             return detect_blobs(image, self.marker, self.params.detection)
         return detect_fast(image, self.marker, self.params.detection)
@@ -98,12 +109,13 @@ class Perception:
             self.marker = estimate_marker_params(reference_image)
         assert self.marker is not None
         reference = drop_border_markers(
-            self.detect(reference_image), reference_image.shape, 0.5 * self.marker.diameter_px + 1.0
+            self._detect_any(reference_image), reference_image.shape, 0.5 * self.marker.diameter_px + 1.0
         )
         if len(reference) < 3:
             raise ValueError(f"reference frame shows {len(reference)} markers, need >= 3")
         self.tracker = Tracker(reference, self.params.tracking)
         self.interpolator = FieldInterpolator(reference.centres_px, self.params.interpolation)
+        self.frame_shape = reference_image.shape[:2]
         return self.tracker.state
 
     def resume(self, image: np.ndarray, reference_px: np.ndarray) -> TrackState:
@@ -119,10 +131,11 @@ class Perception:
             raise ValueError(f"reference_px: need >= 3 finite markers, got shape {ref.shape}")
         if self.params.marker is None:
             self.marker = estimate_marker_params(image)
-        detections = self.detect(image)
+        detections = self._detect_any(image)
         area = float(np.median(detections.areas_px2)) if len(detections) else 1.0
         self.tracker = Tracker(Detections(ref, np.full(ref.shape[0], area)), self.params.tracking)
         self.interpolator = FieldInterpolator(ref, self.params.interpolation)
+        self.frame_shape = image.shape[:2]  # the caller's reference was taken on frames of this size
         return self.tracker.step(detections)
 
     def step(self, image: np.ndarray) -> tuple[TrackState, DisplacementField]:

@@ -2,7 +2,9 @@
 
 The frame number `reference_frame` (frame 0 of a real camera is often stale) becomes the
 reference: its markers are published latched on `/markers/reference`. Any message on
-`/tracker/reset` makes the next frame the new reference.
+`/tracker/reset` makes the next frame the new reference. A frame of another size than the
+reference's (a camera reopened in another mode) is dropped, warned of and counted (`other_size`)
+until then: its markers would be matched to positions of another image.
 
 A recording started after the tracker took its reference holds that reference (latched) but not
 its frame: replayed from its first frame (taken as the reference), the skin may be deformed there.
@@ -82,7 +84,7 @@ class TrackerNode(Node):
             self.subscribe("markers/reference", MarkerArray, self.on_reference, depth=1)
         if p.recorded_reference:
             self.subscribe(p.recorded_reference, MarkerArray, self.on_recorded_reference, depth=1)
-        self.counters.update(references=0, resumed=0, reference_retries=0)
+        self.counters.update(references=0, resumed=0, reference_retries=0, other_size=0)
 
     def on_reset(self, _msg) -> None:
         self.needs_reference = True
@@ -129,7 +131,12 @@ class TrackerNode(Node):
             self.needs_reference = False
             self.inherited = None
             self.reference_pub.publish(marker_array(state, msg))
-        tracker = self.perception.tracker
-        state = tracker.step(self.perception.detect(msg.data))
+        try:
+            detections = self.perception.detect(msg.data)
+        except ValueError as exc:  # a camera reopened at another size: its markers are not the reference's
+            self.counters["other_size"] += 1
+            self.warn(f"frame dropped: {exc} (publish on /tracker/reset) (other_size)", kind="other size")
+            return
+        state = self.perception.tracker.step(detections)
         self.markers_pub.publish(marker_array(state, msg))
         self.counters["valid_markers"] = int(state.valid.sum())

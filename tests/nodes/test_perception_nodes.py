@@ -161,6 +161,39 @@ def test_a_dark_first_frame_is_no_reference_and_the_next_is_taken() -> None:
         node.close()
 
 
+def test_a_frame_of_another_size_is_dropped_until_a_new_reference() -> None:
+    """A camera reopened at another size: its frame was tracked against the reference's marker positions
+    into a wrong field taken as valid (8 of 70 markers valid, |d| 35 px with the skin at rest). It is now
+    dropped, warned and counted; after /tracker/reset a frame of the new size is the reference."""
+    import cv2
+    from fv_algos.sim.scene import scene_from_dict
+    from fv_algos.sim.sensor import SimSensor
+    from msgs import Image
+    from nodes.tracker import TrackerNode
+    sensor = SimSensor(scene_from_dict({"object": {"shape": "sphere"}, "fps": 10,
+                                        "steps": [{"action": "hold", "duration_s": 0.2}]}), seed=0)
+    rest = sensor.renderer.render(np.column_stack([sensor.markers_ref_mm, np.zeros(len(sensor.markers_ref_mm))])).image
+    big = cv2.resize(rest, (rest.shape[1] * 2, rest.shape[0] * 2))
+    node = TrackerNode("tracker", {"reference_frame": 0, "resume": False})
+    references: list = []
+    markers: list = []
+    try:
+        node.setup()
+        node.reference_pub.publish = references.append
+        node.markers_pub.publish = markers.append
+        node.on_image(Image(stamp_ns=1, encoding="mono8", data=rest))
+        node.on_image(Image(stamp_ns=2, encoding="mono8", data=big))
+        assert len(markers) == 1 and node.counters["other_size"] == 1 and node.state == "warn"
+        h, w = rest.shape[:2]
+        assert f"a {2 * w}x{2 * h} frame, but the reference is {w}x{h}" in node.message
+        node.on_reset(None)
+        node.on_image(Image(stamp_ns=3, encoding="mono8", data=big))
+        assert len(references) == 2 and (references[-1].width, references[-1].height) == (2 * w, 2 * h)
+        assert len(markers) == 2 and node.state == "ok" and markers[-1].valid.all()
+    finally:
+        node.close()
+
+
 def test_the_interpolator_refuses_more_markers_than_max_markers() -> None:
     """3000 markers stalled the interpolator 19 s (an N^3 solve per reference); more than max_markers
     are refused with a warning, and the next good MarkerArray clears it."""
