@@ -112,8 +112,10 @@ class CameraNode(Node):
         self.maps = self.fisheye.undistort_maps() if (p.undistort and self.fisheye) else None
         self.crop = FrameCrop.from_lists(p.crop, p.size)
         if self.crop is not None:  # a crop that leaves nothing of the frames: refused at start, not every frame
-            height, width = self._first_frame("the crop").image.shape[:2]
+            height, width = self._first_frame("checking the crop").image.shape[:2]
             self.crop.window(width, height)
+        if p.source in ("video", "folder"):  # one without a frame (an empty video) is refused at start
+            self._first_frame("playing it")
         self._publish_info()
         rate = p.fps or getattr(self.source, "file_fps", 0.0) or 30.0
         self.backoff_s = 0.0
@@ -134,7 +136,8 @@ class CameraNode(Node):
         if not self.params.calibration:
             return getattr(self.source, "camera", None)
         camera = FisheyeCamera.load(self.params.calibration)
-        height, width = self._first_frame(f"the calibration's {camera.width}x{camera.height}").image.shape[:2]
+        height, width = self._first_frame(f"checking the calibration's {camera.width}x{camera.height}") \
+            .image.shape[:2]
         fitted = camera.for_size(width, height)
         if fitted is not camera:
             self.log.warning("calibration %s is for %dx%d frames: its matrix is scaled by %.3g to the source's "
@@ -142,13 +145,13 @@ class CameraNode(Node):
                              width / camera.width, width, height)
         return fitted
 
-    def _first_frame(self, what: str) -> Frame:
+    def _first_frame(self, need: str) -> Frame:
         """The source's first frame, read once and held to be published first; SourceError when the
-        source gives none (``what`` names what needed it)."""
+        source gives none (``need`` names what needed it)."""
         if self.held_frame is None:
             self.held_frame = self.source.read()
             if self.held_frame is None:
-                raise SourceError(f"{self.source.name}: no frame to check {what} against")
+                raise SourceError(f"{self.source.name}: no frame, and {need} needs one")
         return self.held_frame
 
     def _publish_info(self) -> None:
@@ -185,7 +188,7 @@ class CameraNode(Node):
         self.held_frame = None
         if frame is None:
             if getattr(self.source, "finished", False):
-                self.warn(f"{self.source.name}: end of input")
+                self.warn(f"{self.source.name}: end of input after {self.counters['frames']} frames")
                 self._after_end()
                 return
             self._lost(f"{self.source.name}: no frame")

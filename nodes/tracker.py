@@ -116,7 +116,12 @@ class TrackerNode(Node):
                 state = self.perception.resume(msg.data, old.ref_px)
                 self.counters["resumed"] += 1
                 self.log.info("tracking against %s reference (%d markers)", self.inherited_from, len(old.ref_px))
-            elif time.monotonic() < self.resume_until or self.frames_seen <= self.params.reference_frame:
+            elif time.monotonic() < self.resume_until:
+                return
+            elif self.frames_seen <= self.params.reference_frame:
+                if self.frames_seen == 1:  # a video shorter than that is never tracked: say why
+                    self.log.info("frames before frame %d (reference_frame) are not tracked",
+                                  self.params.reference_frame)
                 return
             else:
                 try:

@@ -169,6 +169,15 @@ def test_a_crop_that_leaves_nothing_is_refused_at_start(bus, tmp_path: Path) -> 
     assert "leaves nothing of a 160x120 frame" in result.stderr and "Traceback" not in result.stderr
 
 
+def test_a_video_without_frames_is_refused_at_start(bus, tmp_path: Path) -> None:
+    """It started, said "end of input" and ended the launch with status 0, having published nothing."""
+    video = tmp_path / "empty.avi"
+    cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 25, (160, 120)).release()
+    result = run_fv("node", "camera", "-p", "source=video", "-p", f"path={video}", timeout_s=20)
+    assert result.returncode == 2
+    assert f"video {video}: no frame, and playing it needs one" in result.stderr
+
+
 def test_a_video_is_cropped_frame_by_frame(bus, spawn, tmp_path: Path) -> None:
     from fv_algos.frame_crop import FrameCrop
     video = tmp_path / "clip.avi"
