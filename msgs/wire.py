@@ -22,6 +22,7 @@ import numpy as np
 from msgs.message import HEADER_FIELDS, HEADER_INTS, Message, MessageError, header_int_problem
 
 MAX_NDIM = 8
+HEADER_KINDS: dict[str, type] = {"seq": int, "stamp_ns": int, "pub_ns": int, "frame_id": str, "node": str}
 
 _REGISTRY: dict[str, type[Message]] = {}
 
@@ -90,9 +91,8 @@ def decode_header(frame: Any, topic: str = "?") -> dict[str, Any]:
     if header.get("version") != cls.VERSION:
         raise MessageError(topic, type_name, "version",
                            f"wire version {header.get('version')!r}, this software reads {cls.VERSION}")
-    for name, kind in (("seq", int), ("stamp_ns", int), ("pub_ns", int), ("frame_id", str), ("node", str),
-                       ("fields", dict), ("arrays", list)):
-        if not isinstance(header.get(name), kind) or isinstance(header.get(name), bool):
+    for name, kind in (*HEADER_KINDS.items(), ("fields", dict), ("arrays", list)):
+        if not _is_kind(header.get(name), kind):
             raise MessageError(topic, type_name, name, f"missing or not {kind.__name__}")
     for name in HEADER_INTS:
         reason = header_int_problem(header[name])
@@ -137,17 +137,7 @@ def decode(frames: Iterable[Any], topic: str = "?") -> Message:
     type_name = header["type"]
     cls = _REGISTRY[type_name]
     kwargs: dict[str, Any] = {name: header[name] for name in HEADER_FIELDS}
-    fields = header["fields"]
-    for name, default in _defaults(cls).items():
-        if name not in fields:
-            raise MessageError(topic, type_name, name, "missing")
-        try:
-            kwargs[name] = _check_scalar(cls, name, fields[name], default)
-        except TypeError as exc:
-            raise MessageError(topic, type_name, name, str(exc)) from None
-    extra = set(fields) - set(_defaults(cls))
-    if extra:
-        raise MessageError(topic, type_name, sorted(map(str, extra))[0], "unknown field")
+    kwargs.update(_scalar_values(cls, header["fields"], topic))
     specs = header["arrays"]
     if [s[0] if isinstance(s, list) and s else None for s in specs] != list(cls.ARRAYS):
         raise MessageError(topic, type_name, "arrays", f"expected arrays {list(cls.ARRAYS)}, got {specs!r:.200}")
@@ -157,12 +147,65 @@ def decode(frames: Iterable[Any], topic: str = "?") -> Message:
     for spec, frame in zip(specs, frames[1:]):
         kwargs[spec[0]] = _decode_array(topic, type_name, spec, frame)
     msg = cls(**kwargs)
+    _validate(msg, topic)
+    return msg
+
+
+def check_message(msg: Message) -> None:
+    """Check a message about to be sent as `decode` checks it on arrival (header kinds, scalar field
+    types, `validate()`), so that a message every subscriber would drop as malformed is refused where it
+    is made. A numpy scalar (np.bool_, np.floating, np.integer...) of a non-array field is replaced, in
+    place, by its plain Python value, as msgpack sends only those; so is an int of a float field by its
+    float, as decoding gives it. ValueError "Type.field: reason" (`SlipState.probability: 1.5 is not in
+    [0, 1]`), as `fv topic pub` says it.
+
+    Not on the nodes' publish path: `encode` stays free of per-message checks.
+    """
+    try:
+        for f in dataclasses.fields(msg):
+            value = getattr(msg, f.name)
+            if f.name not in msg.ARRAYS and isinstance(value, np.generic):
+                setattr(msg, f.name, value.item())
+        for name, kind in HEADER_KINDS.items():
+            if not _is_kind(getattr(msg, name), kind):
+                raise MessageError("?", msg.TYPE, name, f"{getattr(msg, name)!r:.40} is not {kind.__name__}")
+        for name, value in _scalar_values(type(msg), msg.scalar_fields()).items():
+            setattr(msg, name, value)
+        _validate(msg)
+    except MessageError as exc:
+        raise ValueError(f"{exc.type_name}.{exc.field}: {exc.reason}") from None
+
+
+def _is_kind(value: Any, kind: type) -> bool:
+    """`value` is a `kind` (a bool is no int)."""
+    return isinstance(value, kind) and not isinstance(value, bool)
+
+
+def _scalar_values(cls: type[Message], fields: dict[str, Any], topic: str = "?") -> dict[str, Any]:
+    """The scalar (non-header, non-array) fields of a `cls` message from `fields` ({name: value}), checked
+    and as decoded (an int of a float field as a float); MessageError for a missing, mistyped or unknown one."""
+    defaults = _defaults(cls)
+    values = {}
+    for name, default in defaults.items():
+        if name not in fields:
+            raise MessageError(topic, cls.TYPE, name, "missing")
+        try:
+            values[name] = _check_scalar(cls, name, fields[name], default)
+        except TypeError as exc:
+            raise MessageError(topic, cls.TYPE, name, str(exc)) from None
+    extra = set(fields) - set(defaults)
+    if extra:
+        raise MessageError(topic, cls.TYPE, sorted(map(str, extra))[0], "unknown field")
+    return values
+
+
+def _validate(msg: Message, topic: str = "?") -> None:
+    """`msg.validate()`, its ValueError("field: reason") raised as a MessageError naming the field."""
     try:
         msg.validate()
     except ValueError as exc:
         field, _, reason = str(exc).partition(": ")
-        raise MessageError(topic, type_name, field, reason or str(exc)) from None
-    return msg
+        raise MessageError(topic, msg.TYPE, field, reason or str(exc)) from None
 
 
 def _decode_array(topic: str, type_name: str, spec: list, frame: Any) -> np.ndarray:

@@ -40,6 +40,7 @@ from abc import ABC, abstractmethod
 from typing import Callable, Iterator, TypeVar
 
 from msgs import CameraInfo, ContactSummary, DisplacementField, Image, MarkerArray, Message, NodeStatus, SlipState
+from msgs.wire import check_message
 from nodes.bus import PublisherSocket, TopicReader
 from nodes.endpoints import BusAddress
 
@@ -175,7 +176,8 @@ class Listener(_Closing):
     """Calls `callback(msg)` for each message of `topic` from a background thread until
     `close()`. A callback that raises is logged and counted in `errors`; a message of another type
     or that cannot be decoded is dropped and counted in `wrong_type` or `malformed` (see
-    `Subscription`); the thread goes on."""
+    `Subscription`); the thread goes on. What `subscribe` refuses (a topic without its leading '/', a TCP
+    bus without `FV_CURVE_DIR`) raises here, in the caller's thread, before any thread starts."""
 
     def __init__(self, topic: str, callback: Callable[[Message], object], msg_type: type[Message] | None = None,
                  *, latest: bool = False, address: BusAddress | None = None) -> None:
@@ -186,16 +188,14 @@ class Listener(_Closing):
         self.wrong_type = 0
         self.malformed = 0
         self._stop = threading.Event()
-        self._ready = threading.Event()
-        self._args = (topic, msg_type, latest, address)
-        self._thread = threading.Thread(target=self._loop, name=f"listen-{topic}", daemon=True)
+        # built here so that its errors reach the caller; from start() on, only the thread uses its socket
+        # (ZeroMQ allows moving a socket to another thread across a memory barrier, which start() is)
+        sub = Subscription(topic, msg_type, latest=latest, address=address)
+        self._thread = threading.Thread(target=self._loop, args=(sub,), name=f"listen-{topic}", daemon=True)
         self._thread.start()
-        self._ready.wait(2.0)
 
-    def _loop(self) -> None:
-        topic, msg_type, latest, address = self._args
-        with Subscription(topic, msg_type, latest=latest, address=address) as sub:  # sockets stay in one thread
-            self._ready.set()
+    def _loop(self, sub: Subscription) -> None:
+        with sub:
             while not self._stop.is_set():
                 msg = sub.recv(POLL_S)
                 self.wrong_type, self.malformed = sub.wrong_type, sub.malformed
@@ -206,7 +206,7 @@ class Listener(_Closing):
                     self.callback(msg)
                 except Exception:  # robot code keeps listening; the error is logged and counted
                     self.errors += 1
-                    log.exception("callback for %s raised", topic)
+                    log.exception("callback for %s raised", self.topic)
 
     def close(self, timeout_s: float = 1.0) -> None:
         self._stop.set()
@@ -226,7 +226,8 @@ class Publisher(_Closing):
     """Publishes robot-code messages on `topic` (close() it, or use it as a context manager).
 
     It waits up to `connect_timeout_s` for the bus to take its messages (TimeoutError naming the
-    bus when none answers): a message sent before that would be lost without a word.
+    bus when none answers): a message sent before that would be lost without a word. `publish` checks
+    each message as subscribers will (`check_message`): one they would drop as malformed raises here.
     """
 
     def __init__(self, topic: str, *, name: str = "robot", latched: bool = False, connect_timeout_s: float = 2.0,
@@ -241,6 +242,10 @@ class Publisher(_Closing):
                                "(is a launch running on this FV_BUS?)")
 
     def publish(self, msg: Message) -> None:
+        """Send `msg` (stamped with seq, pub_ns and node); ValueError "Type.field: reason" for a message
+        subscribers would drop (`SlipState.probability: 1.5 is not in [0, 1]`). A numpy scalar of a
+        scalar field is sent, and left on `msg`, as its plain Python value."""
+        check_message(msg)
         self._sock.publish(self.topic, msg, self.latched)
 
     def close(self) -> None:

@@ -10,6 +10,7 @@ import pytest
 import msgs
 from msgs import (CameraInfo, ContactSummary, DisplacementField, Image, MarkerArray, MessageError, NodeStatus,
                   SlipState)
+from msgs.wire import check_message
 
 
 def _examples() -> list[msgs.Message]:
@@ -242,3 +243,60 @@ def test_scalar_type_errors_say_what_was_expected(name: str, value: object, text
     header["fields"][name] = value
     with pytest.raises(MessageError, match=text):
         msgs.decode([msgpack.packb(header, use_bin_type=True), np.zeros(0, np.int64).tobytes()], "/slip")
+
+
+@pytest.mark.parametrize("msg", _examples(), ids=lambda m: m.TYPE)
+def test_check_message_passes_every_decodable_message_unchanged(msg: msgs.Message) -> None:
+    before = dataclasses.replace(msg)
+    check_message(msg)
+    assert _equal(msg, before)
+
+
+@pytest.mark.parametrize("msg, field", [
+    (SlipState(probability=1.5), "probability"),
+    (SlipState(threshold=float("nan")), "threshold"),
+    (SlipState(slip=1), "slip"),
+    (DisplacementField(n_markers=True), "n_markers"),
+    (SlipState(model=b"x"), "model"),
+    (SlipState(frame_id=5), "frame_id"),
+    (SlipState(stamp_ns=-5), "stamp_ns"),
+    (MarkerArray(width=0, height=480), "width/height"),
+    (Image(data=np.zeros((0, 4), np.uint8)), "data"),
+    (NodeStatus(state="fine"), "state"),
+    (NodeStatus(counters={"lost": "many"}), "counters"),
+], ids=lambda x: x if isinstance(x, str) else type(x).__name__)
+def test_check_message_refuses_what_decode_refuses_naming_type_and_field(msg: msgs.Message, field: str) -> None:
+    """`advertise(...).publish(SlipState(probability=1.5))` returned normally and every subscriber dropped
+    the message as malformed: the sender's check is the decoder's, with the same field named."""
+    with pytest.raises(MessageError) as decoded:
+        msgs.decode(_frames(msg), "/t")
+    assert decoded.value.field == field
+    with pytest.raises(ValueError, match=f"^{msg.TYPE}.{field}: ") as checked:
+        check_message(msg)
+    assert not isinstance(checked.value, MessageError)
+    if field != "frame_id":  # decode_header words that one "missing or not str"
+        assert str(checked.value) == f"{msg.TYPE}.{field}: {decoded.value.reason}"
+
+
+def test_check_message_error_reads_as_fv_topic_pub_says_it() -> None:
+    with pytest.raises(ValueError, match=r"^SlipState\.probability: 1\.5 is not in \[0, 1\]$"):
+        check_message(SlipState(probability=1.5))
+
+
+def test_check_message_sends_numpy_scalars_as_python_values() -> None:
+    """`SlipState(slip=np.bool_(True))` failed in msgpack ("can not serialize 'numpy.bool' object"),
+    naming no field."""
+    msg = SlipState(slip=np.bool_(True), probability=np.float32(0.75), threshold=np.float64(0.5),
+                    stamp_ns=np.int64(5), model=np.str_("m"))
+    check_message(msg)
+    assert [type(v) for v in (msg.slip, msg.probability, msg.threshold, msg.stamp_ns, msg.model)] == \
+        [bool, float, float, int, str]
+    out = msgs.decode(_frames(msg), "/slip")
+    assert (out.slip, out.probability, out.threshold, out.stamp_ns, out.model) == (True, 0.75, 0.5, 5, "m")
+    field = DisplacementField(n_markers=np.uint16(7), valid=np.bool_(False))
+    check_message(field)
+    assert (type(field.n_markers), type(field.valid)) == (int, bool)
+    with pytest.raises(ValueError, match=r"^SlipState\.probability: .* is not a finite float"):
+        check_message(SlipState(probability=np.complex64(1j)))
+    with pytest.raises(ValueError, match=r"^SlipState\.slip: 1 is not a bool"):
+        check_message(SlipState(slip=np.int8(1)))

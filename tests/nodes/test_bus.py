@@ -230,6 +230,47 @@ def test_client_reset_grasp_reaches_the_trackers_and_needs_a_bus(bus: Bus, bus_e
         reset_grasp(connect_timeout_s=0.3)
 
 
+def test_client_publish_refuses_what_subscribers_would_drop(bus: Bus) -> None:
+    """`publish(SlipState(probability=1.5))` returned normally and every subscriber dropped it as
+    malformed; `SlipState(slip=np.bool_(True))` failed in msgpack naming no field."""
+    import numpy as np
+
+    from nodes.client import advertise
+
+    with TopicReader(["/my/slip"]) as reader, advertise("/my/slip") as pub:
+        with pytest.raises(ValueError, match=r"^SlipState\.probability: 1\.5 is not in \[0, 1\]$"):
+            pub.publish(SlipState(probability=1.5))
+        with pytest.raises(ValueError, match=r"^SlipState\.slip: 1 is not a bool"):
+            pub.publish(SlipState(slip=np.int64(1)))
+        for _ in range(40):  # until the reader's subscription has reached the forwarder
+            pub.publish(SlipState(slip=np.bool_(True), probability=np.float32(0.75), stamp_ns=np.int64(5)))
+            if (got := reader.recv(0.05)) is not None:
+                break
+        assert got is not None and (got.msg.slip, got.msg.probability, got.msg.stamp_ns) == (True, 0.75, 5)
+        assert reader.malformed == 0
+
+
+@pytest.mark.parametrize("bad", ["topic", "tcp bus without keys"])
+def test_client_listen_raises_what_subscribe_raises(bus_env: Bus, monkeypatch: pytest.MonkeyPatch, bad: str) -> None:
+    """`listen("slip", print)` and a TCP bus without FV_CURVE_DIR returned after 2 s with the listener's
+    thread dead (a traceback on stderr the only sign): the robot went on with nothing watching for slip."""
+    from nodes.client import listen, subscribe
+
+    topic, error, match = "slip", ValueError, "topic 'slip': must start with '/'"
+    if bad != "topic":
+        topic, error, match = "/slip", RuntimeError, CURVE_ENV
+        monkeypatch.setenv("FV_BUS", "tcp://127.0.0.1:17600")
+        monkeypatch.delenv(CURVE_ENV, raising=False)
+    with pytest.raises(error, match=match):
+        subscribe(topic)
+    threads = set(threading.enumerate())
+    start = time.monotonic()
+    with pytest.raises(error, match=match):
+        listen(topic, print)
+    assert time.monotonic() - start < 1.0
+    assert set(threading.enumerate()) <= threads, "a listener thread was started"
+
+
 def test_malformed_frames_are_counted_by_a_reader(bus: Bus) -> None:
     raw = zmq.Context.instance().socket(zmq.PUB)
     raw.linger = 0
