@@ -25,8 +25,8 @@ import msgpack
 import zmq
 from zmq.auth.thread import ThreadAuthenticator
 
-from nodes.bus import LATCHED, LINGER_MS, new_context
-from nodes.endpoints import BUS_ENV, BusAddress, bus_address, secure_client, secure_server
+from nodes.bus import LATCHED, LINGER_MS, connect_client, new_context
+from nodes.endpoints import BUS_ENV, BusAddress, bus_address, secure_server
 
 log = logging.getLogger("fv.forwarder")
 FWD_HWM = 200
@@ -141,8 +141,7 @@ def ping(address: BusAddress | None = None, timeout_s: float = 0.3) -> dict | No
     sock = ctx.socket(zmq.REQ)
     sock.linger = 0
     try:
-        secure_client(sock, address)
-        sock.connect(address.ctl)
+        connect_client(sock, address, address.ctl)  # on TCP a refused CURVE handshake is logged, not silent
         sock.send(b"ping")
         if sock.poll(int(timeout_s * 1000)):
             return msgpack.unpackb(sock.recv())

@@ -28,16 +28,22 @@ SMALL_ARRAY = 32
 
 
 # -- discovery -----------------------------------------------------------------------
-def discover(wait_s: float = DISCOVERY_S) -> dict[str, Any]:
-    """{node name: its latest NodeStatus} of the nodes alive now (status not stale)."""
-    from nodes.bus import TopicReader
-
+def require_forwarder(wait_s: float = DISCOVERY_S) -> None:
+    """RuntimeError naming the bus when no forwarder answers on it within max(``wait_s``, 0.3) s: a tool
+    would otherwise wait for messages for good, or report an empty list or a rate of 0 Hz as a finding."""
     from nodes.endpoints import bus_address
     from nodes.forwarder import ping
 
     address = bus_address()
-    if ping(address, max(wait_s, 0.3)) is None:  # else an empty list would read "nothing runs"
+    if ping(address, max(wait_s, 0.3)) is None:
         raise RuntimeError(f"no forwarder answers on {address.url}: no launch runs on this bus (FV_BUS)")
+
+
+def discover(wait_s: float = DISCOVERY_S) -> dict[str, Any]:
+    """{node name: its latest NodeStatus} of the nodes alive now (status not stale)."""
+    from nodes.bus import TopicReader
+
+    require_forwarder(wait_s)
     found: dict[str, Any] = {}
     deadline = time.monotonic() + wait_s
     with TopicReader([STATUS_TOPIC]) as reader:
@@ -166,6 +172,7 @@ def _echo(args: argparse.Namespace) -> int:
     arrays = "none" if args.no_arr else "full" if args.full_arrays else "summary"
     count = 1 if args.once else args.count
     shown = 0
+    require_forwarder()
     with TopicReader([args.topic]) as reader:
         while count is None or shown < count:
             item = reader.recv(args.timeout)
@@ -189,6 +196,7 @@ def _measure(args: argparse.Namespace, on_msg: Callable[[list, dict, int], None]
     from msgs import decode_header
     from nodes.bus import TopicReader
 
+    require_forwarder()
     start_ns = time.time_ns()
     end = None if args.duration is None else time.monotonic() + args.duration
     next_print = time.monotonic() + 1.0

@@ -11,8 +11,8 @@ import zmq
 import msgs
 from msgs import CameraInfo, NodeStatus, SlipState
 from nodes.bus import PublisherSocket, SeqTracker, TopicReader, envelope, parse_envelope
-from nodes.endpoints import CURVE_ENV, bus_address, make_keys
-from tests.nodes.conftest import Bus
+from nodes.endpoints import BUS_ENV, CURVE_ENV, bus_address, make_keys
+from tests.nodes.conftest import Bus, run_fv
 
 
 def _publish_until(stop: threading.Event, sock: PublisherSocket, items: list[tuple[str, object]],
@@ -146,6 +146,23 @@ def test_tcp_needs_curve_keys(bus_env: Bus, monkeypatch: pytest.MonkeyPatch, cap
         thread.join()
         for sock in (authorised, unauthorised, plain, pub):
             sock.close()
+
+
+def test_a_tool_refused_by_the_forwarder_says_why(bus_env: Bus, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`fv topic list` with a client key the forwarder does not know said only that no launch runs."""
+    keys, stranger = bus_env.folder / "keys", bus_env.folder / "stranger"
+    make_keys(keys)
+    make_keys(stranger)
+    (stranger / "server.key").write_bytes((keys / "server.key").read_bytes())
+    tcp = f"tcp://127.0.0.1:{_free_port_base()}"
+    bus_env.start_forwarder(tcp_url=tcp, keys=keys)
+    monkeypatch.setenv(BUS_ENV, tcp)
+    monkeypatch.setenv(CURVE_ENV, str(stranger))
+    result = run_fv("topic", "list", timeout_s=20)
+    assert result.returncode == 2
+    assert f"the forwarder at {tcp} refuses the CURVE handshake (FV_CURVE_DIR {stranger})" in result.stderr
+    monkeypatch.setenv(CURVE_ENV, str(keys))
+    assert "refuses" not in run_fv("topic", "list", timeout_s=20).stderr
 
 
 def test_tcp_forwarder_refuses_to_start_without_keys(bus_env: Bus) -> None:

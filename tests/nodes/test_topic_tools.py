@@ -98,6 +98,9 @@ def test_measures_of_too_few_messages_are_null_and_no_bus_is_an_error(bus_env: B
         for group in ("topic", "node"):
             result = run_fv(group, verb, "--json")
             assert result.returncode == 2 and "no forwarder answers on ipc://" in result.stderr, result.stderr
+    for tool in (["echo", "/slip", "--count", "1"], *([v, "/slip", "--duration", "0.3"] for v in ("hz", "bw", "delay"))):
+        result = run_fv("topic", *tool, timeout_s=20)  # echo waited for good; hz / bw / delay reported 0 Hz, status 0
+        assert result.returncode == 2 and "no forwarder answers on ipc://" in result.stderr, (tool, result.stderr)
     bus_env.start_forwarder()
     result = run_fv("topic", "hz", "/silent", "--duration", "0.5", "--json")
     report = json.loads(result.stdout)  # strict JSON: no NaN
