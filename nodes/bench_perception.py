@@ -313,7 +313,7 @@ def write_report(result: dict[str, Any], out: Path) -> list[Path]:
 def add_parser(kinds: argparse._SubParsersAction, name: str) -> None:
     """Add the benchmark as `fv bench NAME` to the `fv bench` group's sub-parsers."""
     p = kinds.add_parser(name, help="speed and accuracy of perception configurations on simulated scenes")
-    p.add_argument("--frames", type=int, default=1000, help="frames per scene at most (default: whole scenes)")
+    p.add_argument("--frames", type=int, default=1000, help="frames per scene at most (default 1000: every scene whole)")
     p.add_argument("--repeats", type=int, default=3, help="timed runs of every scene and configuration")
     p.add_argument("--quick", action="store_true", help="4 frames per scene, 1 repeat (a smoke test)")
     p.add_argument("--config", action="append", metavar="NAME",
