@@ -91,7 +91,10 @@ def build_params(cls: type, overrides: dict[str, Any], where: str = "params") ->
 
 
 def _type_name(tp: Any) -> str:
-    return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
+    """`tp` as written in the params dataclass: `float`, `list[int]` (a generic's __name__ is its origin's)."""
+    if typing.get_origin(tp) is None and hasattr(tp, "__name__"):
+        return tp.__name__
+    return str(tp).replace("typing.", "")
 
 
 def parse_assignments(items: list[str], where: str = "--param") -> dict[str, str]:

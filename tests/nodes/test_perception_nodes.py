@@ -219,6 +219,7 @@ def test_the_interpolator_refuses_more_markers_than_max_markers() -> None:
     ("slip_detector", "{device: gpu}", "device 'gpu'"),
     ("slip_detector", "{input_timeout_s: -1}", "input_timeout_s -1.0 must be > 0"),
     ("slip_fusion", "{inputs: [left/slip, /left/slip]}", "two or more different topics"),
+    ("camera", "{size: [320.7, 240.2]}", "is not of type list[int]"),  # it said 'not of type list' of a list
 ])
 def test_launch_check_refuses_bad_params_by_file_node_and_value(tmp_path: Path, node: str, params: str,
                                                                says: str) -> None:
