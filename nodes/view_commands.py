@@ -65,7 +65,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--bag", required=True, help="bag folder or .mcap file")
     p.add_argument("--out", "-o", type=output_file, required=True,
                    help="output: x.mp4 (mp4v) or x.avi (MJPG) video, or x.png / x.jpg still")
-    p.add_argument("--fps", type=non_negative_float, default=0.0, help="video frame rate (default: the camera's capture rate)")
+    p.add_argument("--fps", type=non_negative_float, default=None,
+                   help="video frame rate (default, or 0: the camera's capture rate)")
     p.add_argument("--start", type=non_negative_float, default=None, metavar="S", help="video: skip the first S seconds of the bag")
     p.add_argument("--duration", type=positive_float, default=None, metavar="S",
                    help="video: S seconds of the bag (default: to the end)")
@@ -83,8 +84,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _view(args: argparse.Namespace) -> int:
     still = args.out.suffix.lower() in STILL_SUFFIXES
-    if still and (args.start is not None or args.duration is not None):
-        raise ValueError("--start / --duration choose a video's span; a still takes --at S")
+    if still and (args.start is not None or args.duration is not None or args.fps is not None):
+        raise ValueError("--start / --duration / --fps are a video's; a still takes --at S")
     if not still and args.at is not None:
         raise ValueError("--at picks a still's frame (--out x.png); a video takes --start S --duration S")
     style = ViewStyle(args.height, args.history, args.arrow_scale, args.field_range)
@@ -93,8 +94,8 @@ def _view(args: argparse.Namespace) -> int:
         size = write_still(args.bag, args.out, args.at or 0.0, style, topics)
         print(f"wrote a {size[0]}x{size[1]} px still to {args.out}")
         return 0
-    count, size, fps = write_video(args.bag, args.out, style, topics, fps=args.fps, start_s=args.start or 0.0,
-                                   duration_s=args.duration or 0.0)
+    count, size, fps = write_video(args.bag, args.out, style, topics, fps=args.fps or 0.0,
+                                   start_s=args.start or 0.0, duration_s=args.duration or 0.0)
     print(f"wrote {count} frames ({size[0]}x{size[1]} px, {fps:.3g} fps) to {args.out}")
     return 0
 

@@ -92,6 +92,7 @@ def test_missing_topics_become_labelled_panels(tmp_path: Path) -> None:
     (["--bag", "{bag}", "--out", "{tmp}/x.gif"], "use .mp4 or .avi"),
     (["--bag", "{bag}", "--out", "{tmp}/x.png", "--at", "99"], "99 s is outside the bag"),
     (["--bag", "{bag}", "--out", "{tmp}/x.png", "--start", "1"], "a still takes --at"),
+    (["--bag", "{bag}", "--out", "{tmp}/x.png", "--fps", "10"], "a still takes --at"),  # it was ignored
     (["--bag", "{bag}", "--out", "{tmp}/x.mp4", "--at", "1"], "a video takes --start"),
     (["--bag", "{bag}", "--out", "{tmp}/x.mp4", "--start", "30"], "outside the bag"),
 ])
