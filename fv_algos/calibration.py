@@ -217,9 +217,9 @@ def _not_found_error(n_found: int, n_views: int, rejected: dict[str, str], param
              for why, names in by_reason.items()]
     cols, rows = params.board.inner_corners
     return ValueError(
-        f"chessboard found in {n_found} of {n_views} views, need at least {params.min_views}; rejected: "
-        f"{'; '.join(parts)}. The board size counts INNER corners: {cols}x{rows} is a board of "
-        f"{cols + 1}x{rows + 1} squares"
+        f"chessboard found in {n_found} of {n_views} views, need at least {params.min_views}"
+        f"{'; rejected: ' + '; '.join(parts) if parts else ''}. The board size counts INNER corners: {cols}x{rows} "
+        f"is a board of {cols + 1}x{rows + 1} squares"
     )
 
 

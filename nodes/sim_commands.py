@@ -80,12 +80,18 @@ WORST_VIEWS_SHOWN = 3  # views named in the text report, worst RMS first
 
 def _calibration_views(args: argparse.Namespace) -> list[tuple[str, object]]:
     """The (name, (H, W) uint8 image) views of --images, or of every --every-th frame of --video."""
-    from fv_algos.calibration import load_images, load_video_frames
+    from fv_algos.calibration import CalibrationParams, load_images, load_video_frames
     if args.images is not None:
         if args.every is not None:
             raise ValueError("--every applies to --video only: --images uses every image of the folder")
         return load_images(args.images)
-    return load_video_frames(args.video, DEFAULT_EVERY if args.every is None else args.every)
+    every = DEFAULT_EVERY if args.every is None else args.every
+    views = load_video_frames(args.video, every)
+    needed = CalibrationParams().min_views
+    if len(views) < needed:  # else it failed as boards not found, with the board size as the hint
+        raise ValueError(f"--every {every} took {len(views)} frame(s) of {args.video}, fewer than the {needed} views "
+                         "a calibration needs: give a smaller --every")
+    return views
 
 
 def _calibrate(args: argparse.Namespace) -> int:

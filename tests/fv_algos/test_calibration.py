@@ -278,3 +278,22 @@ def test_fv_calibrate_refuses_every_without_a_video_or_below_one(tmp_path: Path,
     with pytest.raises(SystemExit) as exit_:
         main(["calibrate", "--video", str(video), "--every", "0", "--out", out])
     assert exit_.value.code == 2 and "argument --every: 0 is not >= 1" in capsys.readouterr().err
+
+
+def test_fv_calibrate_says_when_every_leaves_too_few_frames(tmp_path: Path, capsys) -> None:
+    """An 8-frame video at the default --every 10 gave 'chessboard found in 1 of 1 views ...; rejected: .',
+    pointing at the board size."""
+    from nodes.cli import main
+    video = tmp_path / "boards.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (64, 48), False)
+    for _ in range(8):
+        writer.write(np.full((48, 64), 128, np.uint8))
+    writer.release()
+    assert main(["calibrate", "--video", str(video), "--out", str(tmp_path / "c.json")]) == 2
+    err = capsys.readouterr().err
+    assert "--every 10 took 1 frame(s)" in err and "give a smaller --every" in err
+
+
+def test_too_few_boards_found_names_no_empty_rejection_list() -> None:
+    from fv_algos.calibration import _not_found_error
+    assert "rejected" not in str(_not_found_error(1, 1, {}, CalibrationParams()))
