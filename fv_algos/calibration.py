@@ -369,7 +369,7 @@ def image_files(folder: str | Path, suffixes: tuple[str, ...] = IMAGE_SUFFIXES) 
     """
     folder = Path(folder)
     if not folder.is_dir():
-        raise ValueError(f"image folder {folder} does not exist")
+        raise ValueError(f"image folder {folder} {'is a file, not a folder' if folder.exists() else 'does not exist'}")
     paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in suffixes and p.is_file())
     if not paths:
         raise ValueError(f"image folder {folder} holds no file ending in {', '.join(suffixes)}")

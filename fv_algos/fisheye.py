@@ -242,10 +242,13 @@ class FisheyeCamera:
         distortion acts on normalised coordinates and stays).
 
         Raises:
-            ValueError: the aspect ratios differ (another camera, or a cropped mode); both sizes named.
+            ValueError: a size below 1 px, or the aspect ratios differ (another camera, or a cropped mode);
+                both sizes named.
         """
         if self.size == (width, height):
             return self
+        if min(width, height) < 1:
+            raise ValueError(f"frames of {width}x{height} px: both sides must be >= 1 px")
         if abs(width * self.height / (height * self.width) - 1.0) > ASPECT_TOLERANCE:
             raise ValueError(
                 f"calibration for {self.width}x{self.height} frames does not fit the source's {width}x{height} "

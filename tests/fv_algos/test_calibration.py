@@ -126,6 +126,8 @@ def test_load_images_errors(tmp_path: Path) -> None:
     (tmp_path / "broken.png").write_bytes(b"not a png")
     with pytest.raises(ValueError, match="cannot be decoded"):
         load_images(tmp_path)
+    with pytest.raises(ValueError, match="broken.png is a file, not a folder"):  # it said "does not exist"
+        load_images(tmp_path / "broken.png")
 
 
 def test_load_video_frames_takes_every_kth_frame(tmp_path: Path) -> None:

@@ -203,3 +203,9 @@ def test_undistort_maps_send_pinhole_pixels_to_their_fisheye_pixels(balance: flo
 def test_undistort_maps_reject_bad_balance() -> None:
     with pytest.raises(ValueError, match="balance"):
         GENERAL.undistort_maps(1.5)
+
+
+def test_for_size_refuses_an_empty_frame() -> None:
+    """for_size(0, 0) raised a bare ZeroDivisionError."""
+    with pytest.raises(ValueError, match="0x0 px: both sides must be >= 1 px"):
+        FisheyeCamera.default().for_size(0, 0)
