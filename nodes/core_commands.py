@@ -60,7 +60,7 @@ def _node(args: argparse.Namespace) -> int:
     if args.kind == "list":
         from nodes.topic_tools import node_list
         return node_list(args)
-    params = json.loads(args.params_json) if args.params_json else {}
+    params = _json_params(args.params_json)
     params.update(parse_assignments(args.param))
     cls = node_class(args.kind)
     if args.standby and not _wait_for_takeover(cls):
@@ -78,19 +78,40 @@ def _node(args: argparse.Namespace) -> int:
     os._exit(0)
 
 
-def _wait_for_takeover(cls: type) -> bool:
+_JSON_KINDS = {list: "a list", str: "a string", bool: "a boolean", int: "a number", float: "a number",
+               type(None): "null"}
+
+
+def _json_params(text: str) -> dict:
+    """The params of `--params-json TEXT` ({} for ""); ValueError naming the flag when TEXT is not
+    JSON or not a JSON object."""
+    if not text:
+        return {}
+    try:
+        params = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"--params-json is not JSON: {exc}") from None
+    if not isinstance(params, dict):
+        raise ValueError(f"--params-json must be a JSON object (got {_JSON_KINDS[type(params)]})")
+    return params
+
+
+def _wait_for_takeover(cls: type, check_s: float = 0.5) -> bool:
     """Preload `cls`, print STANDBY_READY and block: True on SIGUSR1 (take over), False on
-    SIGTERM / SIGINT (the launch is stopping)."""
+    SIGTERM / SIGINT (the launch is stopping) or when the launcher has died (checked every
+    `check_s` seconds)."""
     import signal
 
-    from nodes.node import STANDBY_READY
+    from nodes.node import STANDBY_READY, launcher_gone
     cls.preload()
     signals = {signal.SIGUSR1, signal.SIGTERM, signal.SIGINT}
     signal.pthread_sigmask(signal.SIG_BLOCK, signals)
     print(STANDBY_READY, flush=True)
-    received = signal.sigwait(signals)
+    received = None
+    while received is None and not launcher_gone():
+        received = signal.sigtimedwait(signals, check_s)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, signals)
-    return received == signal.SIGUSR1
+    return received is not None and received.si_signo == signal.SIGUSR1
 
 
 def _keys(args: argparse.Namespace) -> int:

@@ -1,10 +1,12 @@
 """Run a launch file: start the forwarder when none runs, one process per node, prefix
 their output with the node name, respawn what should respawn, and stop everything on
-Ctrl-C, SIGTERM or the exit of a required node (`fv launch FILE [name:=value ...]`).
+Ctrl-C, SIGTERM, SIGHUP (its terminal closed) or the exit of a required node
+(`fv launch FILE [name:=value ...]`).
 
 Each node runs in its own process group, so a terminal's Ctrl-C reaches only the
 launcher, which then stops the nodes in order: SIGTERM to each group, SIGKILL after
-`GRACE_S`, then the forwarder it started.
+`GRACE_S`, then the forwarder it started. A launcher killed outright (SIGKILL) cannot: its
+nodes and spares stop by themselves when they see it gone (`LAUNCHER_PID_ENV`).
 
 The launcher supervises the forwarder it started (restarted when it dies; nodes
 reconnect by themselves and re-send their latched messages). A launch that found another's
@@ -34,7 +36,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from nodes.launch_file import NodeSpec, load_launch, parse_arg_overrides
-from nodes.node import LAUNCH_ENV, STANDBY_READY
+from nodes.node import LAUNCH_ENV, LAUNCHER_PID_ENV, STANDBY_READY
 
 GRACE_S = 1.2
 NAMESAKE_WAIT_S = 0.5  # how long a launch on a running bus listens for the NodeStatus of namesakes
@@ -46,6 +48,7 @@ POLL_S = 0.05
 STATUS_PERIOD_S = 1.0  # the launcher's own NodeStatus period
 SILENT_AFTER_S = 3.0  # a running node whose NodeStatus stopped this long is reported (nodes send one per second)
 STATUS_TOPIC = "/status"
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)  # each stops the launch (SIGHUP: terminal closed)
 
 
 @dataclass
@@ -109,12 +112,17 @@ class Launch:
 
     # -- output ----------------------------------------------------------------------
     def say(self, text: str, who: str = "launch") -> None:
-        """Write one line prefixed by `[who]` (whole lines, never interleaved)."""
+        """Write one line prefixed by `[who]` (whole lines, never interleaved); dropped when the
+        output is gone (a closed terminal: EIO), so the nodes' output is still drained and the
+        launch still stops them."""
         prefix = f"[{who}] "
         line = text if text.startswith(prefix) else prefix + text
         with self._out_lock:
-            self.output.write(line.rstrip("\n") + "\n")
-            self.output.flush()
+            try:
+                self.output.write(line.rstrip("\n") + "\n")
+                self.output.flush()
+            except OSError:
+                pass
 
     def _pump(self, name: str, stream: TextIO, child: Child | None = None) -> None:
         """Echo a process's output; for a spare (`child` given) note its STANDBY_READY line."""
@@ -127,7 +135,8 @@ class Launch:
 
     # -- processes -------------------------------------------------------------------
     def _popen(self, spec: NodeSpec, *extra: str) -> subprocess.Popen:
-        env = {**os.environ, "PYTHONUNBUFFERED": "1", LAUNCH_ENV: str(self._started_ns), **spec.env}
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", LAUNCH_ENV: str(self._started_ns),
+               LAUNCHER_PID_ENV: str(os.getpid()), **spec.env}
         return subprocess.Popen([sys.executable, "-m", "nodes.cli", *spec.argv(), *extra], env=env,
                                 stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                 text=True, bufsize=1, start_new_session=True)
@@ -243,9 +252,10 @@ class Launch:
         return self.exit_code
 
     def run(self) -> int:
-        """start(), then wait for Ctrl-C / SIGTERM / the end of the launch, then stop()."""
+        """start(), then wait for a STOP_SIGNALS signal (Ctrl-C, SIGTERM, SIGHUP) or the end of the
+        launch, then stop()."""
         if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
+            for sig in STOP_SIGNALS:
                 signal.signal(sig, lambda signum, _frame: self._stop.set())
         try:
             self.start()

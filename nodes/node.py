@@ -22,7 +22,11 @@ also the watchdog: besides the node's own `warn()`, the status reports
   reported "ok" with its error count growing);
 - warn "forwarder ipc://... unreachable for 1.0 s": the bus forwarder went away (seen in
   the logs; the status itself cannot travel then). When it is back, latched messages are
-  re-sent and counters["bus_reconnects"] counts it.
+  re-sent and counters["bus_reconnects"] counts it;
+- warn "no forwarder answers on ipc://... (4.0 s): start one with `fv forwarder` or `fv launch`":
+  none answered within `CONNECT_WAIT_S` of the start (logged once); cleared when one answers.
+A node started by `fv launch` (`LAUNCHER_PID_ENV`) stops when that launcher has died (killed
+with SIGKILL: the node was re-parented), seen by the status thread within `WATCH_PERIOD_S`.
 """
 from __future__ import annotations
 
@@ -49,6 +53,7 @@ from nodes.params import build_params
 STATUS_TOPIC = "/status"
 STANDBY_READY = "fv-standby-ready"  # the line a standby process prints once it waits to take over
 LAUNCH_ENV = "FV_LAUNCH_NS"  # set by `fv launch` for its nodes: when the launch started, ns since the epoch
+LAUNCHER_PID_ENV = "FV_LAUNCHER_PID"  # set by `fv launch` for its nodes: the launcher's pid, their parent
 KEEP_ALL_CAP = 10_000
 _PAGE = os.sysconf("SC_PAGE_SIZE")
 _SEVERITY = {"ok": 0, "warn": 1, "error": 2}
@@ -147,6 +152,7 @@ class Node:
     first RBF solve: 0.4 s idle, 2.4 s at a load average of 8); raise it in a node whose
     callbacks legitimately take longer.
     WATCH_PERIOD_S: how often the status thread checks the node's health (s).
+    CONNECT_WAIT_S: how long spin() waits for the forwarder before warning that none answers (s).
     FAILING_AFTER: calls in a row a callback has raised on when the status says it fails.
     """
 
@@ -154,6 +160,7 @@ class Node:
     STATUS_PERIOD_S: ClassVar[float] = 1.0
     STUCK_AFTER_S: ClassVar[float] = 5.0
     WATCH_PERIOD_S: ClassVar[float] = 0.2
+    CONNECT_WAIT_S: ClassVar[float] = 2.0
     FAILING_AFTER: ClassVar[int] = 3
 
     def __init__(self, name: str, params: dict[str, Any] | None = None, *, namespace: str = "",
@@ -184,6 +191,7 @@ class Node:
         self._busy: tuple[str, float] | None = None  # (callback label, monotonic start) while one runs
         self._stuck_count = 0
         self._failing: dict[str, tuple[int, str]] = {}  # callback label -> (calls in a row that raised, the last error)
+        self._no_forwarder_since_s: float | None = None  # monotonic start of a wait for a forwarder never seen
         self._ctl_addr = f"inproc://fv-node-{next(_CONTROL_IDS)}"
         self._ctl_out = self.ctx.socket(zmq.PAIR)
         self._ctl_out.bind(self._ctl_addr)
@@ -264,7 +272,11 @@ class Node:
                 signal.signal(sig, lambda *_: self.stop())
         self._receiver = threading.Thread(target=self._receive_loop, name=f"{self.name}-rx", daemon=True)
         self._receiver.start()
-        self._pub_sock.wait_connected(2.0)
+        started_s = time.monotonic()
+        if not self._pub_sock.wait_connected(self.CONNECT_WAIT_S):
+            self._no_forwarder_since_s = started_s
+            self.log.warning("no forwarder answers on %s; start one with `fv forwarder` or `fv launch` "
+                             "(waiting for it)", self.address.url)
         try:
             self.setup()
             self._watcher = threading.Thread(target=self._watch_loop, name=f"{self.name}-status", daemon=True)
@@ -431,6 +443,10 @@ class Node:
         faults += [("warn", f"stale {s.topic}", text) for s in subs if (text := s.staleness(now_s)) is not None]
         faults += [("error", f"failing {label}", f"{label} raised on its last {calls} calls: {error}")
                    for label, (calls, error) in list(self._failing.items()) if calls >= self.FAILING_AFTER]
+        never_since = self._no_forwarder_since_s
+        if never_since is not None:
+            faults.append(("warn", "bus", f"no forwarder answers on {self.address.url} ({now_s - never_since:.1f} s): "
+                                          "start one with `fv forwarder` or `fv launch`"))
         down_since = self._pub_sock.down_since_s
         if down_since is not None:
             faults.append(("warn", "bus", f"forwarder {self.address.url} unreachable for {now_s - down_since:.1f} s"))
@@ -476,8 +492,9 @@ class Node:
     def _watch_loop(self) -> None:
         """The status thread: NodeStatus every STATUS_PERIOD_S and at once when the health
         changes (which fault, not how long it has lasted); logs stuck callbacks and the
-        forwarder going and coming back. An exception in one round is logged once per kind and
-        the thread goes on: a node whose status stopped dropped out of `fv node list`."""
+        forwarder going and coming back (or answering at last); stops the node when its launcher
+        died. An exception in one round is logged once per kind and the thread goes on: a node
+        whose status stopped dropped out of `fv node list`."""
         now = time.monotonic()
         with self._cond:
             for s in (s for ss in self._subs.values() for s in ss if not s.received):
@@ -495,8 +512,17 @@ class Node:
 
     def _watch_once(self, watch: _Watch) -> None:
         """One round of the status thread; `watch` holds what the rounds share."""
+        if launcher_gone():
+            self.log.warning("the launcher that started this node (pid %s) is gone; stopping",
+                             os.environ[LAUNCHER_PID_ENV])
+            self.stop()
+            return
         self._pub_sock.update()
         now = time.monotonic()
+        never_since = self._no_forwarder_since_s
+        if never_since is not None and self._pub_sock.connected:
+            self._no_forwarder_since_s = None
+            self.log.info("forwarder %s answers after %.1f s", self.address.url, now - never_since)
         busy = self._busy
         stuck = busy if busy is not None and now - busy[1] > self.STUCK_AFTER_S else None
         if stuck is not None and stuck != watch.stuck_since:
@@ -533,6 +559,13 @@ def launch_started_ns() -> int:
     """When the `fv launch` that started this process started (ns since the epoch); 0 for a node started
     by hand."""
     return int(os.environ.get(LAUNCH_ENV, "0"))
+
+
+def launcher_gone() -> bool:
+    """True when this process was started by `fv launch` (LAUNCHER_PID_ENV holds its pid) and that
+    launcher has died: the process has been re-parented (to init or a subreaper)."""
+    launcher_pid = os.environ.get(LAUNCHER_PID_ENV)
+    return launcher_pid is not None and os.getppid() != int(launcher_pid)
 
 
 def _name(fn: Callable) -> str:

@@ -4,6 +4,7 @@ reported in NodeStatus, nothing else crashes, and the pipeline resumes by itself
 from __future__ import annotations
 
 import io
+import logging
 import os
 import signal
 import subprocess
@@ -318,6 +319,23 @@ def test_forwarder_killed_and_restarted(bus_env: Bus, spawn) -> None:
     assert listener.poll() is None
     print(f"/tick back {resumed_s:.2f} s after the new forwarder answered")
     assert resumed_s < 2.0, f"/tick back {resumed_s:.2f} s after the forwarder answered"
+
+
+def test_a_node_without_a_forwarder_warns_once_and_recovers(bus_env: Bus, caplog: pytest.LogCaptureFixture) -> None:
+    """`fv node` on a bus no forwarder serves printed nothing and waited for good: it says so once, naming
+    the URL and what starts one, in its log and its status, and goes on when a forwarder appears."""
+    source = Source("source")
+    warning = f"no forwarder answers on {bus_env.address.url}"
+    with caplog.at_level(logging.INFO, logger="source"), spinning(source):
+        wait_for(lambda: source.health()[0] == "warn", source.CONNECT_WAIT_S + 10.0, "the warning")
+        message = source.health()[1]
+        assert message.startswith(warning + " (") and "`fv forwarder` or `fv launch`" in message, message
+        bus_env.start_forwarder()
+        st = wait_status("source", lambda st: st.state == "ok", 10.0)
+        assert st.counters["bus_reconnects"] == 0 and source.health() == ("ok", "")
+    logged = [r.getMessage() for r in caplog.records if r.name == "source"]
+    assert sum(warning in m for m in logged) == 1, logged
+    assert any(m.startswith(f"forwarder {bus_env.address.url} answers after") for m in logged), logged
 
 
 def test_launcher_restarts_the_forwarder_it_started(bus_env: Bus, tmp_path: Path) -> None:

@@ -3,6 +3,7 @@ args and includes, respawn, required nodes, and a clean stop on Ctrl-C."""
 from __future__ import annotations
 
 import io
+import os
 import signal
 import subprocess
 import time
@@ -309,6 +310,79 @@ def test_ctrl_c_stops_everything_within_2s(bus_env: Bus, spawn) -> None:
     output = proc.stdout.read()
     assert "[listener] INFO: SlipState seq=" in output and "[listener] [listener]" not in output
     assert ping(bus_env.address) is None
+
+
+def _gone(pids: list[int], timeout_s: float) -> list[int]:
+    """Poll until none of `pids` is alive; the ones still alive after `timeout_s`."""
+    deadline = time.monotonic() + timeout_s
+    while (alive := [p for p in pids if pid_alive(p)]) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return alive
+
+
+def _kill(pids: list[int]) -> None:
+    """SIGKILL whichever of `pids` still runs (a test's leftovers)."""
+    for pid in pids:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
+def _cmdline(pid: int) -> list[str]:
+    with open(f"/proc/{pid}/cmdline") as f:
+        return f.read().split("\0")
+
+
+def _blocks(pid: int, sig: int) -> bool:
+    """True when process `pid` blocks `sig` (a standby spare waiting to take over blocks SIGUSR1)."""
+    with open(f"/proc/{pid}/status") as f:
+        mask = next(line.split()[1] for line in f if line.startswith("SigBlk:"))
+    return bool(int(mask, 16) & (1 << (sig - 1)))
+
+
+def test_sighup_stops_everything_as_sigterm_does(bus_env: Bus, spawn) -> None:
+    """Closing the launch's terminal (SIGHUP) killed the launcher alone: the forwarder and nodes ran on,
+    and the next launch on that bus was refused for the namesakes they left."""
+    proc = spawn("launch", str(REPO / "launch" / "demo.yaml"), "rate_hz:=20")
+    family: list[int] = []
+    try:
+        wait_status("listener", lambda st: st.counters.get("received", 0) > 0, timeout_s=15.0)
+        family = children_of(proc.pid)
+        assert len(family) == 3, f"expected forwarder + 2 nodes, found {family}"
+        proc.send_signal(signal.SIGHUP)
+        assert proc.wait(10.0) == 0
+        leftover = _gone(family, 5.0)
+        assert not leftover, f"left running after SIGHUP: {leftover}"
+        assert ping(bus_env.address) is None
+    finally:
+        _kill(family)
+
+
+def test_nodes_and_spares_stop_when_their_launcher_is_killed(bus_env: Bus, spawn, tmp_path: Path) -> None:
+    """A launcher killed with SIGKILL cannot stop its nodes (each in its own session): they and the
+    standby spare see it gone and stop by themselves. The forwarder it started stays (a later launch
+    uses it)."""
+    path = _write(tmp_path, "l.yaml", "nodes:\n  - {kind: talker, respawn: true, standby: true}\n"
+                                      "  - {kind: listener}\n")
+    proc = spawn("launch", str(path))
+    nodes: list[int] = []
+    try:
+        wait_status("listener", lambda st: st.counters.get("received", 0) > 0, timeout_s=15.0)
+        deadline = time.monotonic() + 15.0
+        while time.monotonic() < deadline:
+            nodes = [pid for pid in children_of(proc.pid) if "node" in _cmdline(pid)]
+            spares = [pid for pid in nodes if "--standby" in _cmdline(pid)]
+            if len(nodes) == 3 and spares and _blocks(spares[0], signal.SIGUSR1):
+                break
+            time.sleep(0.05)
+        assert len(nodes) == 3 and spares, f"expected talker, its spare and listener, found {nodes}"
+        proc.kill()
+        proc.wait(5.0)
+        leftover = _gone(nodes, 10.0)
+        assert not leftover, f"left running after the launcher was killed: {leftover}"
+    finally:
+        _kill(nodes)
 
 
 @pytest.mark.parametrize("kind, params", [("camera", {"source": "sim"}), ("tracker", {}), ("interpolator", {}),

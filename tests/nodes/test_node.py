@@ -11,6 +11,7 @@ from typing import Callable
 
 import msgpack
 import numpy as np
+import pytest
 import zmq
 
 import msgs
@@ -188,3 +189,11 @@ def test_nodes_never_closed_do_not_block_the_next_ones(bus: Bus) -> None:
     finally:
         for sock in left_open:
             sock.close()
+
+
+@pytest.mark.parametrize("text, kind", [("[1]", "a list"), ('"x"', "a string"), ("3", "a number")])
+def test_params_json_that_is_not_an_object_is_refused(bus_env: Bus, text: str, kind: str) -> None:
+    """`--params-json '[1]'` gave a traceback (AttributeError: 'list' object has no attribute 'update')."""
+    result = run_fv("node", "camera", "--params-json", text)
+    assert result.returncode == 2
+    assert result.stderr == f"fv node: error: --params-json must be a JSON object (got {kind})\n"
