@@ -137,8 +137,8 @@ class PublisherSocket:
     passes subscriptions upstream) and whether the forwarder is there: the forwarder
     always subscribes to latched topics, so its subscription arriving means connected and
     its removal (ZMQ_IMMEDIATE: the connection's pipe goes with the connection) means
-    gone. When a forwarder connects after the first one (a restart), the last latched
-    message of each topic is sent again, unchanged, to refill the new forwarder's cache;
+    gone. When a forwarder connects (the first, or a restarted one), the last latched
+    message of each topic is sent again, unchanged, to fill the forwarder's cache;
     subscribers that saw it already drop it by its seq. Thread-safe.
 
     connected: the forwarder is connected now. reconnects: forwarder connections after
@@ -177,16 +177,18 @@ class PublisherSocket:
                     log.debug("%s: forwarder %s gone", self.node, self.address.url)
 
     def _forwarder_connected(self) -> None:
+        """Connected: the last latched message of each topic is sent (again), on the first connection
+        too: one published before any forwarder answered was dropped (ZMQ_IMMEDIATE), and a camera
+        started before its forwarder never delivered its `CameraInfo`."""
         self.connected = True
         self.down_since_s = None
         self._connections += 1
-        if self._connections == 1:
-            return
-        self.reconnects += 1
+        self.reconnects += self._connections > 1
         for env, frames in self._latched.items():
             self._send([env, *frames])
-        log.debug("%s: forwarder %s back (reconnect %d); %d latched messages re-sent", self.node,
-                  self.address.url, self.reconnects, len(self._latched))
+        if self._latched:
+            log.debug("%s: forwarder %s connected (reconnects %d); %d latched messages sent", self.node,
+                      self.address.url, self.reconnects, len(self._latched))
 
     def update(self) -> None:
         """Process the forwarder's subscription events: track the connection and re-send

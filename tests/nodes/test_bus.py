@@ -79,6 +79,23 @@ def test_latched_message_reaches_late_joiner_once(bus: Bus) -> None:
             assert first.recv(timeout_s=0.3) is None, "a replay seen before must be dropped"
 
 
+def test_a_latched_message_published_before_any_forwarder_is_delivered(bus_env: Bus) -> None:
+    """Only a reconnect re-sent latched messages: one published before the first forwarder answered (a
+    camera's CameraInfo, when the camera started first) was dropped and never delivered."""
+    pub = PublisherSocket("camera", bus_env.address)
+    try:
+        assert not pub.wait_connected(0.2)
+        pub.publish("/camera/info", CameraInfo(width=640, height=480), latched=True)
+        bus_env.start_forwarder()
+        assert pub.wait_connected(5.0) and pub.reconnects == 0
+        with TopicReader(["/camera/info"], bus_env.address) as reader:
+            item = reader.recv(timeout_s=5.0)
+            assert item is not None and item.latched and item.msg.width == 640
+            assert reader.recv(timeout_s=0.3) is None, "delivered twice"
+    finally:
+        pub.close()
+
+
 def _free_port_base() -> int:
     """A port p with p, p+1, p+2 free on 127.0.0.1."""
     for _ in range(50):
