@@ -1,15 +1,42 @@
 """The YAML reader of scene, launch and parameter text: PyYAML's safe loader, with numbers as YAML 1.2
-writes them."""
+writes them, and a mapping that repeats a key refused."""
 from __future__ import annotations
 
 import re
+from typing import Any
 
 import yaml
+
+_MERGE_TAG = "tag:yaml.org,2002:merge"
 
 
 class YamlLoader(yaml.SafeLoader):
     """SafeLoader that also reads YAML 1.2's floats without a dot (1e9, -2E-3) as numbers: YAML 1.1,
-    PyYAML's, reads them as text, so `fps:=1e9` was refused as "not of type float"."""
+    PyYAML's, reads them as text, so `fps:=1e9` was refused as "not of type float".
+
+    A mapping that repeats a key is refused (YAML requires unique keys; PyYAML kept the last, so
+    `{normal_N: 2.0, normal_N: 50.0}` pressed 50 N): a `yaml.constructor.ConstructorError` whose
+    `problem_mark` is the repeated key and whose `problem` names it and the line of its first use.
+    Keys brought in by a merge (`<<: *base`) may still be overridden.
+    """
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        """The mapping of `node`, refusing a key its own entries repeat."""
+        first_line: dict[Any, int] = {}
+        for key_node, _ in node.value:
+            if key_node.tag == _MERGE_TAG:
+                continue
+            key = self.construct_object(key_node, deep=True)
+            try:
+                seen = key in first_line
+            except TypeError:  # an unhashable key: SafeLoader refuses it below
+                continue
+            if seen:
+                raise yaml.constructor.ConstructorError(
+                    "while constructing a mapping", node.start_mark,
+                    f"found duplicate key {key!r} (first on line {first_line[key]})", key_node.start_mark)
+            first_line[key] = key_node.start_mark.line + 1
+        return super().construct_mapping(node, deep=deep)
 
 
 YamlLoader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9]+[eE][-+]?[0-9]+$"),

@@ -561,7 +561,8 @@ class ContactModel:
             obj: the indenter.
             centre_mm: (2,) object centre on the skin, mm.
             angle_rad: object rotation about the skin normal, rad.
-            normal_N: normal load, N (>= 0).
+            normal_N: normal load, N (>= 0; at 0 nothing is carried, and a tangential load or torque
+                is past the friction limit: gross slip).
             force_N: (2,) commanded tangential load, N (ignored while sliding/spinning).
             torque_Nmm: commanded torque about the object centre, N*mm.
             motion: "none", "slide" (kinematic gross translational slip), "spin"
@@ -579,20 +580,25 @@ class ContactModel:
             raise ValueError(f"centre_mm and force_N must be finite (2,) vectors and torque_Nmm finite, got {centre}, {force}, {torque_Nmm}")
         _check_load("normal_N", normal_N)
         zeros2 = np.zeros((2, n, n))
-        if "normal" not in effects or normal_N == 0:
-            self.reset()
-            empty = np.zeros((n, n), dtype=bool)
-            return ContactState(np.zeros((n, n)), zeros2, np.zeros((3, n, n)), empty, empty, 0.0, "stick", "none", 0.0, np.zeros(2), 0.0, True)
-        full = self.normal_solution(obj, centre, angle_rad, normal_N, self._warm_full)
-        self._warm_full = full
-        contact = full.contact
-        mu = obj.mu
         tangential = ("shear" in effects or "torsion" in effects) and motion != "roll"
         if "shear" not in effects:
             force = np.zeros(2)
         if "torsion" not in effects:
             torque_Nmm = 0.0
         q_abs = float(np.hypot(*force))
+        if "normal" not in effects or normal_N == 0:
+            self.reset()
+            empty = np.zeros((n, n), dtype=bool)
+            state, kind = "stick", "none"
+            if "normal" in effects and tangential and motion == "none" and (q_abs > 0 or torque_Nmm):
+                # nothing carries a tangential load or a torque with no normal load (its friction limit, mu * 0 N,
+                # is passed): gross slip as under any load past the limit, translational before rotational as below
+                state, kind = "gross", "translational" if q_abs > 0 else "rotational"
+            return ContactState(np.zeros((n, n)), zeros2, np.zeros((3, n, n)), empty, empty, 0.0, state, kind, 0.0, np.zeros(2), 0.0, True)
+        full = self.normal_solution(obj, centre, angle_rad, normal_N, self._warm_full)
+        self._warm_full = full
+        contact = full.contact
+        mu = obj.mu
         m_max = torsion_limit_Nmm(self.grid, full.pressure_mpa, mu, centre)
         ratio_t = q_abs / (mu * normal_N)
         ratio_r = abs(torque_Nmm) / m_max if m_max > 0 else (np.inf if torque_Nmm else 0.0)

@@ -13,6 +13,7 @@ modulus only enters E*), plus nominal ranges `RANGES` (field -> (low, high)) use
 """
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, fields
 from typing import Any, ClassVar
@@ -20,6 +21,22 @@ from typing import Any, ClassVar
 import numpy as np
 
 _STEEP_SLOPE = 5.0  # slope of a vertical-looking wall beyond a fillet (dimensionless)
+
+
+def finite_number(value: Any, key: str) -> float:
+    """`value`, a number read from a description (YAML/JSON), as a finite float.
+
+    Raises:
+        ValueError: naming `key` when `value` is not a number (a bool, a text, a list...) or is not
+            finite: NaN, infinite, or an integer past the float range (YAML and JSON read 400 digits
+            as an int, which float() refuses with an OverflowError).
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or (isinstance(value, float) and not math.isfinite(value)):
+        raise ValueError(f"{key}: {value!r} is not a finite number")
+    try:
+        return float(value)
+    except OverflowError:
+        raise ValueError(f"{key}: an integer past the float range (1.8e308) is not a finite number") from None
 
 
 def _filleted_slope(d_mm: np.ndarray, slope: float, fillet_mm: float) -> np.ndarray:
@@ -190,6 +207,13 @@ class Edge(Indenter):
     wedge_angle_deg: float = 90.0
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {"fillet_mm": (0.5, 3.0), "wedge_angle_deg": (60.0, 120.0), "mu": (0.4, 1.2), "youngs_modulus_mpa": _RIGID_PLASTIC_TO_METAL}
 
+    def __post_init__(self) -> None:
+        """Also refuses an angle of 180 deg or more: its flanks would not slope up from the tip (at 180
+        the wedge is a flat plane; past it they slope down, and the contact went to the skin's rims)."""
+        super().__post_init__()
+        if not self.wedge_angle_deg < 180.0:
+            raise ValueError(f"Edge.wedge_angle_deg must be in (0, 180) deg, exclusive, got {self.wedge_angle_deg}")
+
     def profile_mm(self, x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray:
         slope = 1.0 / np.tan(np.radians(self.wedge_angle_deg) / 2.0)
         return _filleted_slope(np.abs(y_mm) + np.zeros_like(x_mm), slope, self.fillet_mm)
@@ -302,15 +326,12 @@ def make_object(description: dict[str, Any]) -> Indenter:
     if "shape" not in description:
         raise ValueError(f"object description needs key 'shape' (one of {sorted(SHAPES)})")
     name = description["shape"]
-    if name not in SHAPES:
-        raise ValueError(f"object.shape {name!r} is unknown; choose one of {sorted(SHAPES)}")
+    if not isinstance(name, str) or name not in SHAPES:
+        raise ValueError(f"object.shape must be one of {sorted(SHAPES)} (got {name!r})")
     cls = SHAPES[name]
     allowed = {f.name for f in fields(cls)}
     params = {k: v for k, v in description.items() if k != "shape"}
     for key in params:
         if key not in allowed:
             raise ValueError(f"object key {key!r} is not a field of {name}; allowed: {sorted(allowed)}")
-    for key, value in params.items():
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ValueError(f"object.{key} must be a number, got {value!r}")
-    return cls(**{k: float(v) for k, v in params.items()})
+    return cls(**{key: finite_number(value, f"object.{key}") for key, value in params.items()})

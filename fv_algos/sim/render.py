@@ -30,6 +30,21 @@ EFFECTS: frozenset[str] = frozenset({"lens", "lighting", "noise", "occlusion", "
 
 _JACOBIAN_STEP_MM = 1e-3
 _NOISE_PAD_PX = 16
+_ROWS_NAMED = 5  # rows a MarkersReachCameraError names; it counts the rest
+
+
+class MarkersReachCameraError(ValueError):
+    """Markers at or behind the camera, which cannot be imaged.
+
+    Attributes:
+        rows: (K,) int64 indices of those markers in the `markers_skin_mm` given to `SkinRenderer.render`.
+    """
+
+    def __init__(self, rows: np.ndarray, camera_distance_mm: float) -> None:
+        self.rows = rows
+        named = ", ".join(str(row) for row in rows[:_ROWS_NAMED])
+        more = f", ... ({len(rows)} in all)" if len(rows) > _ROWS_NAMED else ""
+        super().__init__(f"markers_skin_mm rows [{named}{more}] reach the camera (z >= {camera_distance_mm} mm)")
 
 
 @dataclass(frozen=True)
@@ -352,7 +367,8 @@ class SkinRenderer:
         Returns:
             The frame and its ground truth (see RenderResult); the image is a new array.
         Raises:
-            ValueError: wrong shape, non-finite values, or a marker at or behind the camera.
+            ValueError: wrong shape or non-finite values.
+            MarkersReachCameraError: a marker at or behind the camera.
         """
         markers = np.asarray(markers_skin_mm, dtype=np.float64)
         if markers.ndim != 2 or markers.shape[1] != 3:
@@ -361,8 +377,7 @@ class SkinRenderer:
             raise ValueError("markers_skin_mm contains non-finite values")
         behind = markers[:, 2] >= self.camera_distance_mm
         if np.any(behind):
-            rows = np.flatnonzero(behind).tolist()
-            raise ValueError(f"markers_skin_mm rows {rows} reach the camera (z >= {self.camera_distance_mm} mm)")
+            raise MarkersReachCameraError(np.flatnonzero(behind), self.camera_distance_mm)
         p = self.params
         h, w = self._frame.shape
         centres, axes = self._project_discs(markers)

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from fv_algos.sim.objects import SHAPES, Indenter, make_object, shape_name
+from fv_algos.sim.objects import SHAPES, Indenter, finite_number, make_object, shape_name
 from fv_algos.sim.render import EFFECTS as RENDER_EFFECTS
 from fv_algos.yaml_loader import YamlLoader
 
@@ -146,16 +146,10 @@ class Command:
     angular_velocity_rad_s: float
 
 
-def _number(value: Any, key: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
-        raise ValueError(f"{key} must be a finite number, got {value!r}")
-    return float(value)
-
-
 def _vector(value: Any, key: str) -> tuple[float, float]:
     if not isinstance(value, (list, tuple)) or len(value) != 2:
         raise ValueError(f"{key} must be a list of two numbers [x, y], got {value!r}")
-    return (_number(value[0], key), _number(value[1], key))
+    return (finite_number(value[0], key), finite_number(value[1], key))
 
 
 def _step_from_dict(desc: Any, index: int) -> Step:
@@ -163,11 +157,11 @@ def _step_from_dict(desc: Any, index: int) -> Step:
     if not isinstance(desc, dict):
         raise ValueError(f"{where} must be a mapping, got {type(desc).__name__}")
     action = desc.get("action")
-    if action not in _ACTION_KEYS:
+    if not isinstance(action, str) or action not in _ACTION_KEYS:
         raise ValueError(f"{where}.action must be one of {sorted(_ACTION_KEYS)}, got {action!r}")
     if "duration_s" not in desc:
         raise ValueError(f"{where} needs key 'duration_s'")
-    duration = _number(desc["duration_s"], f"{where}.duration_s")
+    duration = finite_number(desc["duration_s"], f"{where}.duration_s")
     if duration <= 0:
         raise ValueError(f"{where}.duration_s must be > 0, got {duration}")
     allowed = _ACTION_KEYS[action]
@@ -183,7 +177,7 @@ def _step_from_dict(desc: Any, index: int) -> Step:
     values: dict[str, Any] = {}
     for key in allowed & set(desc):
         name = f"{where}.{key}"
-        values[key] = _vector(desc[key], name) if key in ("force_N", "velocity_mm_s") else _number(desc[key], name)
+        values[key] = _vector(desc[key], name) if key in ("force_N", "velocity_mm_s") else finite_number(desc[key], name)
     if values.get("normal_N", 0.0) < 0:
         raise ValueError(f"{where}.normal_N must be >= 0, got {values['normal_N']}")
     if values.get("velocity_mm_s") == (0.0, 0.0) or values.get("angular_velocity_deg_s") == 0.0:
@@ -207,7 +201,7 @@ def scene_from_dict(desc: dict[str, Any]) -> Scene:
         if key not in desc:
             raise ValueError(f"scene needs key {key!r}")
     obj = make_object(desc["object"])
-    fps = _number(desc["fps"], "fps")
+    fps = finite_number(desc["fps"], "fps")
     if fps <= 0:
         raise ValueError(f"fps must be > 0, got {fps}")
     if not isinstance(desc["steps"], list) or not desc["steps"]:
@@ -221,9 +215,9 @@ def scene_from_dict(desc: dict[str, Any]) -> Scene:
         if key not in ("normal_N", "force_N", "torque_Nmm"):
             raise ValueError(f"initial key {key!r} is unknown (known: normal_N, force_N, torque_Nmm)")
     initial = Loads(
-        normal_N=_number(initial_desc.get("normal_N", 0.0), "initial.normal_N"),
+        normal_N=finite_number(initial_desc.get("normal_N", 0.0), "initial.normal_N"),
         force_N=_vector(initial_desc.get("force_N", [0.0, 0.0]), "initial.force_N"),
-        torque_Nmm=_number(initial_desc.get("torque_Nmm", 0.0), "initial.torque_Nmm"),
+        torque_Nmm=finite_number(initial_desc.get("torque_Nmm", 0.0), "initial.torque_Nmm"),
     )
     if initial.normal_N < 0:
         raise ValueError(f"initial.normal_N must be >= 0, got {initial.normal_N}")
@@ -244,11 +238,11 @@ def scene_from_dict(desc: dict[str, Any]) -> Scene:
     else:
         effects = needed
     start = _vector(desc.get("start_mm", [0.0, 0.0]), "start_mm")
-    rates = {k: _number(desc.get(k, d), k) for k, d in (("slide_speed_mm_s", 5.0), ("spin_rate_deg_s", 30.0))}
+    rates = {k: finite_number(desc.get(k, d), k) for k, d in (("slide_speed_mm_s", 5.0), ("spin_rate_deg_s", 30.0))}
     for key, rate in rates.items():
         if rate <= 0:
             raise ValueError(f"{key} must be > 0, got {rate}")
-    return Scene(obj, fps, effects, steps, start, _number(desc.get("start_angle_deg", 0.0), "start_angle_deg"), initial, **rates)
+    return Scene(obj, fps, effects, steps, start, finite_number(desc.get("start_angle_deg", 0.0), "start_angle_deg"), initial, **rates)
 
 
 def load_scene(path: str | Path) -> Scene:

@@ -21,7 +21,7 @@ import numpy as np
 from fv_algos.fisheye import DEFAULT_CAMERA_DISTANCE_MM, FisheyeCamera
 from fv_algos.sim.contact import ContactModel, ContactParams, ContactState
 from fv_algos.sim.halfspace import SurfaceGrid
-from fv_algos.sim.render import RenderParams, SkinRenderer
+from fv_algos.sim.render import MarkersReachCameraError, RenderParams, SkinRenderer
 from fv_algos.sim.render import EFFECTS as RENDER_EFFECTS
 from fv_algos.sim.scene import (DEFAULT_RENDER_EFFECTS, SCENARIO_KINDS, Command, Scene, grasp_scene, random_scenario,
                                 scene_commands, scripted_motion)
@@ -264,7 +264,13 @@ class SimSensor:
             yield grasp_scene(scenario)
 
     def __iter__(self) -> Iterator[SimFrame]:
-        """Yields SimFrame; finite for a scene, endless in random mode."""
+        """Yields SimFrame; finite for a scene, endless in random mode.
+
+        Raises:
+            ValueError: naming the frame, as `SceneRunner` does, when a frame cannot be played: besides
+                SceneRunner's, a load that pushes markers to the camera (the half-space skin has no
+                thickness that would stop it).
+        """
         skin = self.params.skin
         for scene in self._scenes():
             runner = SceneRunner(scene, skin, self.params.contact)
@@ -272,7 +278,13 @@ class SimSensor:
             for mech in runner:
                 u = runner.model.grid.sample(mech.state.displacement_mm, self.markers_ref_mm).T
                 deformed = np.column_stack([self.markers_ref_mm + u[:, :2], u[:, 2]])
-                result = self.renderer.render(deformed)
+                try:
+                    result = self.renderer.render(deformed)
+                except MarkersReachCameraError as exc:
+                    raise ValueError(
+                        f"frame {mech.index} (t = {mech.command.stamp_s:.3f} s): the normal load of "
+                        f"{mech.state.normal_N:g} N pushes {len(exc.rows)} of the {len(deformed)} markers to the "
+                        f"camera, {self.params.camera_distance_mm:g} mm from the skin; lower the load") from None
                 truth = FrameTruth(self._index, self.markers_ref_mm, u, result.markers_px, result.visible, mech, runner.model.grid, self.camera, self.params.camera_distance_mm, self._lens)
                 self.last_frame_s = time.perf_counter() - started
                 yield SimFrame(result.image, self._time_offset_s + mech.command.stamp_s, truth)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fv_algos.fisheye import DEFAULT_CAMERA_DISTANCE_MM, FisheyeCamera
-from fv_algos.sim.render import EFFECTS, RenderParams, SkinRenderer, ellipse_coverage
+from fv_algos.sim.render import EFFECTS, MarkersReachCameraError, RenderParams, SkinRenderer, ellipse_coverage
 
 CAMERA = FisheyeCamera.default()
 DISTANCE_MM = DEFAULT_CAMERA_DISTANCE_MM
@@ -199,6 +199,17 @@ def test_render_rejects_bad_markers(markers: np.ndarray, message: str) -> None:
     renderer = SkinRenderer(CAMERA, DISTANCE_MM, DIAMETER_MM, FLAT, frozenset(), seed=0)
     with pytest.raises(ValueError, match=message):
         renderer.render(markers)
+
+
+def test_markers_at_the_camera_are_counted_not_all_listed() -> None:
+    """A heavy press listed all 256 row indices in its message."""
+    renderer = SkinRenderer(CAMERA, DISTANCE_MM, DIAMETER_MM, FLAT, frozenset(), seed=0)
+    markers = marker_grid()
+    markers[10:, 2] = DISTANCE_MM + 1.0
+    with pytest.raises(MarkersReachCameraError, match=r"^markers_skin_mm rows \[10, 11, 12, 13, 14, \.\.\. \(246 in all\)\] "
+                                                      r"reach the camera \(z >= 15.0 mm\)$") as caught:
+        renderer.render(markers)
+    np.testing.assert_array_equal(caught.value.rows, np.arange(10, 256))
 
 
 def test_bad_configuration_is_refused() -> None:

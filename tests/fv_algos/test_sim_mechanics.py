@@ -203,6 +203,18 @@ def test_zero_load_gives_zero_displacement(model: ContactModel) -> None:
     assert not np.any(s.displacement_mm) and s.contact.sum() == 0
 
 
+@pytest.mark.parametrize("force, torque, kind", [((1.0, 0.0), 0.0, "translational"), ((0.0, 0.0), 2.0, "rotational"),
+                                                 ((0.3, 0.4), 2.0, "translational")])
+def test_a_tangential_load_with_no_normal_load_is_gross_slip(model: ContactModel, force: tuple, torque: float, kind: str) -> None:
+    """mu * 0 N carries nothing: the load is past the friction limit (it was 'stick', the load dropped)."""
+    s = _solve(model, normal=0.0, force=force, torque=torque)
+    assert (s.slip_state, s.slip_type) == ("gross", kind)
+    assert not (s.contact.any() or s.traction_mpa.any() or s.displacement_mm.any() or s.force_N.any())
+    assert _solve(model, normal=0.0, force=force, torque=torque, effects=NORMAL).slip_state == "stick"  # not asked for
+    rolling = model.solve(Sphere(), np.zeros(2), 0.0, 0.0, np.array(force), torque, "roll", np.zeros(2), ALL)
+    assert rolling.slip_state == "stick"  # rolling: no traction
+
+
 def test_mirror_symmetry(model: ContactModel) -> None:
     s = _solve(model, obj=Corner(), force=(0.6, 0.0))
     ux, uy, uz = s.displacement_mm

@@ -12,6 +12,7 @@ from fv_algos.sim.scene import (MAX_SLIDE_MM, NON_SLIP_KINDS, SLIP_KINDS, Loads,
                                 scene_commands, scene_from_dict)
 from fv_algos.sim.sensor import SceneRunner
 from fv_algos.sim.skin import SkinParams
+from fv_algos.yaml_loader import YamlLoader
 
 EXAMPLE = {
     "object": {"shape": "sphere", "radius_mm": 10, "mu": 0.8},
@@ -79,7 +80,18 @@ def test_twist_and_roll() -> None:
         ({"slide_speed_mm_s": -5}, "slide_speed_mm_s must be > 0"),  # moved the object against the force
         ({"spin_rate_deg_s": 0}, "spin_rate_deg_s must be > 0"),      # gross slip that never moved
         ({"effects": ["normal", {"x": 1}]}, "effects must be a list of names"),  # unhashable type: 'dict'
-        ({"object": {"shape": "sphere", "radius_mm": "10"}}, "object.radius_mm must be a number"),  # taken
+        ({"object": {"shape": "sphere", "radius_mm": "10"}}, "object.radius_mm: '10' is not a finite number"),  # taken
+        # a TypeError (unhashable type: 'list') from deep inside, not a ValueError naming the key:
+        ({"object": {"shape": ["sphere"]}}, r"object.shape must be one of \['bottle_cap', .*\] \(got \['sphere'\]\)"),
+        ({"steps": [{"action": ["hold"], "duration_s": 1}]}, r"steps\[0\].action must be one of .*, got \['hold'\]"),
+        # 400 digits, as YAML and JSON read them: an OverflowError, and for fps a TypeError from np.isfinite
+        ({"object": {"shape": "sphere", "radius_mm": 10**400}}, "object.radius_mm: an integer past the float range .* is not a finite number"),
+        ({"fps": 10**400}, "fps: an integer past the float range .* is not a finite number"),
+        ({"initial": {"force_N": [10**400, 0]}}, "initial.force_N: an integer past the float range"),
+        ({"fps": float("nan")}, "fps: nan is not a finite number"),
+        ({"object": {"shape": "edge", "wedge_angle_deg": 180}}, r"Edge.wedge_angle_deg must be in \(0, 180\) deg, exclusive, got 180"),
+        ({"object": {"shape": "edge", "wedge_angle_deg": 270}}, r"wedge_angle_deg must be in \(0, 180\)"),  # contact on the rims
+        ({"object": {"shape": "edge", "wedge_angle_deg": 0}}, "wedge_angle_deg must be finite and > 0"),
     ],
 )
 def test_bad_descriptions_name_the_key(change: dict, key: str) -> None:
@@ -100,6 +112,25 @@ def test_mechanics_a_scene_cannot_play_are_named_by_frame() -> None:
     assert _run({**past, "effects": ["normal", "shear", "slip"]})[-1].centre_mm[0] > 0
 
 
+def test_a_shear_with_no_normal_load_is_past_the_friction_limit() -> None:
+    """It was 'stick' in every frame, the shear dropped (nothing pressed: zero contact, zero traction)."""
+    unpressed = {"object": {"shape": "sphere"}, "fps": 10, "steps": [{"action": "shear", "duration_s": 0.5, "force_N": [1, 0]}]}
+    with pytest.raises(ValueError, match=r"frame 1 \(t = 0.100 s\): the loads pass the friction limit \(gross "
+                                         r"translational slip\) but the scene lacks the 'slip' effect"):
+        _run(unpressed)
+    frames = _run({**unpressed, "effects": ["normal", "shear", "slip"], "slide_speed_mm_s": 4.0})
+    assert frames[0].state.slip_state == "stick"  # no load yet
+    assert all(f.state.slip_state == "gross" and f.state.slip_type == "translational" for f in frames[1:])
+    np.testing.assert_allclose([f.centre_mm for f in frames], [[0.4 * max(k - 1, 0), 0.0] for k in range(5)], atol=1e-12)
+    assert not any(f.state.contact.any() or f.state.force_N.any() for f in frames)  # nothing carried the shear
+    twist = {"object": {"shape": "key"}, "fps": 10, "steps": [{"action": "twist", "duration_s": 0.3, "torque_Nmm": 2.0}]}
+    with pytest.raises(ValueError, match="frame 1 .* pass the friction limit \\(gross rotational slip\\)"):
+        _run(twist)
+    still = _run({"object": {"shape": "sphere"}, "fps": 10, "effects": ["normal", "shear"],
+                  "steps": [{"action": "hold", "duration_s": 0.3}, {"action": "release", "duration_s": 0.2}]})
+    assert all(f.state.slip_state == "stick" for f in still)  # no shear, no normal load: fine
+
+
 def test_yaml_and_json_files(tmp_path) -> None:
     (tmp_path / "s.yaml").write_text(yaml.safe_dump(EXAMPLE))
     (tmp_path / "s.json").write_text(json.dumps(EXAMPLE))
@@ -112,8 +143,30 @@ def test_yaml_and_json_files(tmp_path) -> None:
     with pytest.raises(ValueError, match=r"broken.yaml: not YAML: line 2, column 4: expected ',' or '}'"):
         load_scene(tmp_path / "broken.yaml")  # a parser traceback naming "<unicode string>"
     (tmp_path / "bad.json").write_text(json.dumps({**EXAMPLE, "object": {"shape": "egg"}}))
-    with pytest.raises(ValueError, match="bad.json: .*object.shape 'egg' is unknown"):
+    with pytest.raises(ValueError, match=r"bad.json: .*object.shape must be one of \[.*\] \(got 'egg'\)"):
         load_scene(tmp_path / "bad.json")
+    (tmp_path / "huge.json").write_text(json.dumps({**EXAMPLE, "object": {"shape": "sphere", "radius_mm": 10**400}}))
+    with pytest.raises(ValueError, match="huge.json: object.radius_mm: an integer past the float range"):
+        load_scene(tmp_path / "huge.json")  # OverflowError: int too large to convert to float
+
+
+@pytest.mark.parametrize(
+    "text, line, column, key",
+    [  # the last one won: a press of 50 N, and fps 10
+        ("object: {shape: sphere}\nfps: 10\nsteps:\n  - {action: press, duration_s: 0.2, normal_N: 2.0, normal_N: 50.0}\n",
+         4, 53, "normal_N"),
+        ("object: {shape: sphere}\nfps: 30\nsteps: [{action: hold, duration_s: 0.1}]\nfps: 10\n", 4, 1, "fps"),
+    ],
+)
+def test_a_repeated_key_is_refused_with_its_line(tmp_path, text: str, line: int, column: int, key: str) -> None:
+    (tmp_path / "dup.yaml").write_text(text)
+    with pytest.raises(ValueError, match=rf"dup.yaml: not YAML: line {line}, column {column}: found duplicate key '{key}'"):
+        load_scene(tmp_path / "dup.yaml")
+
+
+def test_a_merge_may_still_override_a_key() -> None:
+    text = "base: &b {shape: sphere, radius_mm: 5}\nobject: {<<: *b, radius_mm: 8}\n"
+    assert yaml.load(text, Loader=YamlLoader)["object"] == {"shape": "sphere", "radius_mm": 8}
 
 
 @pytest.mark.parametrize("kind", SLIP_KINDS + NON_SLIP_KINDS)

@@ -121,6 +121,23 @@ def test_a_slide_goes_its_distance_at_any_frame_rate(fps: float) -> None:
     assert np.degrees(after_twist.angle_rad) == pytest.approx(15.0)
 
 
+@pytest.mark.parametrize("normal_N, pushed", [(200.0, 32), (500.0, 256)])
+def test_a_load_that_pushes_markers_to_the_camera_is_named_by_frame(tmp_path, capsys, normal_N: float, pushed: int) -> None:
+    """`fv sim` said only "markers_skin_mm rows [86, 87, ... 169] reach the camera (z >= 15.0 mm)" (all 256 at 500 N)."""
+    import yaml
+
+    from nodes.cli import main
+    heavy = {"object": {"shape": "sphere"}, "fps": 10, "initial": {"normal_N": normal_N},
+             "steps": [{"action": "hold", "duration_s": 0.1}]}
+    message = (rf"^frame 0 \(t = 0.000 s\): the normal load of {normal_N:g} N pushes {pushed} of the 256 markers to the "
+               r"camera, 15 mm from the skin; lower the load$")
+    with pytest.raises(ValueError, match=message):
+        _frames(0, heavy)
+    (tmp_path / "heavy.yaml").write_text(yaml.safe_dump(heavy))
+    assert main(["sim", "--scene", str(tmp_path / "heavy.yaml"), "--preview", str(tmp_path / "x.png"), "--frames", "1"]) == 2
+    assert f"fv sim: error: frame 0 (t = 0.000 s): the normal load of {normal_N:g} N pushes" in capsys.readouterr().err
+
+
 def test_a_scene_its_mechanics_cannot_play_is_a_named_camera_fault(tmp_path) -> None:
     """A camera on such a scene logged a bare exception and replayed its first frames."""
     import yaml
