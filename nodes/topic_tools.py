@@ -301,6 +301,7 @@ def build_message(type_name: str, text: str) -> Any:
 
     import msgs
     from msgs.message import HEADER_FIELDS
+    from msgs.wire import check_message
     from nodes.params import build_params, parse_text
 
     cls = msgs.message_type(type_name)
@@ -322,10 +323,7 @@ def build_message(type_name: str, text: str) -> Any:
                                  f"{exc}") from None
     values.setdefault("stamp_ns", time.time_ns())
     msg = build_params(cls, values, where=type_name)
-    try:
-        msg.validate()
-    except ValueError as exc:
-        raise ValueError(f"{type_name}.{exc}") from None
+    check_message(msg)  # as subscribers decode it: "SlipState.probability: 2.0 is not in [0, 1]"
     return msg
 
 
