@@ -180,12 +180,12 @@ class CameraNode(Node):
                 return
             self._reopen()
             return
-        try:
-            frame = self.held_frame or self.source.read()
+        held, self.held_frame = self.held_frame, None
+        try:  # the held frame is stamped now, when it is played: it was read before the start gate opened
+            frame = Frame(held.image, time.time_ns()) if held is not None else self.source.read()
         except SourceError as exc:
             self._lost(str(exc))
             return
-        self.held_frame = None
         if frame is None:
             if getattr(self.source, "finished", False):
                 self.warn(f"{self.source.name}: end of input after {self.counters['frames']} frames")

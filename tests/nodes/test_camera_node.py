@@ -239,11 +239,16 @@ def test_start_after_holds_the_first_frame_until_the_named_nodes_report(bus, spa
               "-p", "start_after=[late_node]")
         wait_status("camera", timeout_s=20.0)
         assert reader.recv(1.0) is None  # held back: late_node has not reported since
+        opened_ns = time.time_ns()
         pub.publish("/status", NodeStatus(), latched=True)
         frames = [reader.recv(5.0) for _ in range(20)]
         pub.close()
     assert all(f is not None for f in frames)
     assert [f.msg.seq for f in frames] == list(range(20))  # the whole video, from its first frame
+    # the first frame, read at start to check the video, is stamped when played: stamped at its read, it
+    # came seconds before the second and a slip detector took the gap for a new grasp
+    assert frames[0].msg.stamp_ns >= opened_ns
+    assert max(np.diff([f.msg.stamp_ns for f in frames])) < 0.5e9
 
 
 def test_start_after_gives_up_after_the_timeout_with_a_warning(bus, spawn, tmp_path: Path) -> None:
