@@ -22,6 +22,13 @@ class YamlLoader(yaml.SafeLoader):
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
         """The mapping of `node`, refusing a key its own entries repeat."""
+        self.refuse_repeated_keys(node)
+        return super().construct_mapping(node, deep=deep)
+
+    def refuse_repeated_keys(self, node: yaml.MappingNode) -> None:
+        """The ConstructorError above when `node`'s own entries repeat a key (call it before
+        `flatten_mapping`, which adds the merged keys); a loader with its own mapping constructor
+        calls it too."""
         first_line: dict[Any, int] = {}
         for key_node, _ in node.value:
             if key_node.tag == _MERGE_TAG:
@@ -29,14 +36,13 @@ class YamlLoader(yaml.SafeLoader):
             key = self.construct_object(key_node, deep=True)
             try:
                 seen = key in first_line
-            except TypeError:  # an unhashable key: SafeLoader refuses it below
+            except TypeError:  # an unhashable key: the mapping's constructor refuses it
                 continue
             if seen:
                 raise yaml.constructor.ConstructorError(
                     "while constructing a mapping", node.start_mark,
                     f"found duplicate key {key!r} (first on line {first_line[key]})", key_node.start_mark)
             first_line[key] = key_node.start_mark.line + 1
-        return super().construct_mapping(node, deep=deep)
 
 
 YamlLoader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9]+[eE][-+]?[0-9]+$"),

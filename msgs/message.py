@@ -46,8 +46,9 @@ class ArraySpec:
         return None
 
 
-HEADER_FIELDS = ("seq", "stamp_ns", "pub_ns", "frame_id", "node")
-HEADER_INTS = ("seq", "stamp_ns", "pub_ns")  # int64 on the wire and never negative: [0, 2**63)
+HEADER_KINDS: dict[str, type] = {"seq": int, "stamp_ns": int, "pub_ns": int, "frame_id": str, "node": str}
+HEADER_FIELDS = tuple(HEADER_KINDS)
+HEADER_INTS = tuple(name for name, kind in HEADER_KINDS.items() if kind is int)  # int64 on the wire, in [0, 2**63)
 INT64_LIMIT = 2**63
 
 

@@ -19,10 +19,9 @@ from typing import Any, Iterable
 import msgpack
 import numpy as np
 
-from msgs.message import HEADER_FIELDS, HEADER_INTS, Message, MessageError, header_int_problem
+from msgs.message import HEADER_FIELDS, HEADER_INTS, HEADER_KINDS, Message, MessageError, header_int_problem
 
 MAX_NDIM = 8
-HEADER_KINDS: dict[str, type] = {"seq": int, "stamp_ns": int, "pub_ns": int, "frame_id": str, "node": str}
 
 _REGISTRY: dict[str, type[Message]] = {}
 

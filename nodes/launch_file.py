@@ -78,6 +78,7 @@ class _Loader(YamlLoader):
 
 
 def _construct_mapping(loader: _Loader, node: yaml.MappingNode) -> _Dict:
+    loader.refuse_repeated_keys(node)
     loader.flatten_mapping(node)
     out = _Dict()
     out.line, out.lines = node.start_mark.line + 1, {}
@@ -85,8 +86,6 @@ def _construct_mapping(loader: _Loader, node: yaml.MappingNode) -> _Dict:
         key = loader.construct_object(key_node, deep=True)
         if not isinstance(key, str):
             raise yaml.constructor.ConstructorError(None, None, f"key {key!r} is not a string", key_node.start_mark)
-        if key in out:
-            raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key!r}", key_node.start_mark)
         out[key] = loader.construct_object(value_node, deep=True)
         out.lines[key] = key_node.start_mark.line + 1
     return out

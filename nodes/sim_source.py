@@ -9,11 +9,16 @@ from fv_algos.sim.sensor import SimFrame, SimSensor
 from nodes.camera_sources import Frame, SourceError
 
 
+def source_name(scene_path: str) -> str:
+    """How the simulated source of the scene file ``scene_path`` ("": random scenarios) is named."""
+    return f"sim {scene_path or 'random scenarios'}"
+
+
 def read_scene(scene_path: str, prerender: bool = False) -> Scene | None:
     """The scene of the file ``scene_path`` ("": random scenarios, None); ValueError naming it when it
     cannot be read or is no valid scene, or when ``prerender`` comes without one (random scenarios never
     end). The camera's params call it too, so `fv launch --check` refuses what the source would."""
-    name = f"sim {scene_path or 'random scenarios'}"
+    name = source_name(scene_path)
     if prerender and not scene_path:
         raise ValueError(f"{name}: prerender needs a scene file (random scenarios never end)")
     try:
@@ -36,7 +41,7 @@ class SimSource:
         self.seed = seed
         self.fps = fps
         self.prerender = prerender
-        self.name = f"sim {scene_path or 'random scenarios'}"
+        self.name = source_name(scene_path)
         try:
             scene = read_scene(scene_path, prerender)
         except ValueError as exc:

@@ -255,13 +255,15 @@ def train(config: TrainConfig, data: Split, resume: str | Path | None = None) ->
             group["lr"] = lr_at(config, step)
         optimizer.step()
         step += 1
-        if not all(bool(torch.isfinite(p).all()) for p in model.parameters()):  # the same on every DDP rank
+        finite = torch.stack([torch.isfinite(p).all() for p in model.parameters()]).all()  # one sync per step
+        loss_value = float(loss.detach())
+        if not finite:  # the same on every DDP rank: the parameters are
             kept = f"; {checkpoint_path} keeps step {history[-1]['step']}" if checkpoint_path is not None else ""
-            raise ValueError(f"training diverged at step {step}: loss {float(loss.detach()):.3g} and parameters "
+            raise ValueError(f"training diverged at step {step}: loss {loss_value:.3g} and parameters "
                              f"no longer finite (lr {config.lr:g}: try a lower one, or grad_clip){kept}")
         train_time += time.perf_counter() - t0
         train_cpu += (time.process_time() - c0) / threads
-        loss_sum += float(loss.detach()) * rows.size
+        loss_sum += loss_value * rows.size
         correct += int((logits.argmax(1) == target).sum())
         seen += rows.size
         bar.update(1)
