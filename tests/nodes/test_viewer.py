@@ -62,8 +62,10 @@ def synthetic(k: int, probability: float) -> list[tuple[str, Message]]:
 
 @pytest.fixture
 def viewer(bus: Bus) -> Iterator[ViewerNode]:
-    """A viewer node on the test bus, spinning in a thread, on a free port."""
-    node = ViewerNode("viewer", {"port": 0, "rate_hz": 20.0})
+    """A viewer node on the test bus, spinning in a thread, on a free port. Its plot spans 600 s: with the
+    default 20 s, a Chromium slow to start (23 s to its first snapshot, once) saw the window full twice, the
+    same number of points, and the page test failed though the plot had moved on."""
+    node = ViewerNode("viewer", {"port": 0, "rate_hz": 20.0, "history_s": 600.0})
     thread = threading.Thread(target=node.spin, kwargs={"install_signals": False}, daemon=True)
     thread.start()
     deadline = time.monotonic() + 5.0
