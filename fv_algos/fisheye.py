@@ -57,6 +57,22 @@ def _json_int(value: object) -> int:
     return value
 
 
+def _json_coefficients(value: object) -> np.ndarray:
+    """(4,) float64 k1..k4 read from JSON: a list of 4 numbers, or OpenCV's 4x1 column of them."""
+    D = np.array(value, dtype=np.float64)
+    if D.shape not in ((4,), (4, 1)):
+        raise ValueError(f"expected 4 coefficients k1..k4 as a list (or a 4x1 column), got {value!r}")
+    return D.reshape(4)
+
+
+def _json_optional(kind: type | tuple[type, ...], what: str, value: object) -> object:
+    """`value` read from JSON when it is null or of `kind` (a bool is no number); ValueError naming
+    `what` was expected otherwise."""
+    if value is None or (isinstance(value, kind) and not isinstance(value, bool)):
+        return value
+    raise ValueError(f"expected {what} or null, got {value!r}")
+
+
 @dataclass(frozen=True, eq=False)
 class FisheyeCamera:
     """A calibrated fisheye camera.
@@ -308,11 +324,11 @@ class FisheyeCamera:
                 raise ValueError(f"calibration file {path} lacks the field '{field}'")
         fields = {
             "K": lambda v: np.array(v, dtype=np.float64),
-            "D": lambda v: np.array(v, dtype=np.float64),
+            "D": _json_coefficients,
             "width": _json_int,
             "height": _json_int,
-            "rms_px": lambda v: None if v is None else float(v),
-            "date": lambda v: None if v is None else str(v),
+            "rms_px": lambda v: _json_optional((int, float), "a number", v),
+            "date": lambda v: _json_optional(str, "a string", v),
         }
         values = {}
         for field, convert in fields.items():

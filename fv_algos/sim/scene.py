@@ -229,6 +229,9 @@ def scene_from_dict(desc: dict[str, Any]) -> Scene:
         if not isinstance(desc["effects"], list) or not all(isinstance(name, str) for name in desc["effects"]):
             raise ValueError(f"effects must be a list of names, got {desc['effects']!r}")
         effects = frozenset(desc["effects"])
+        repeated = sorted({name for name in desc["effects"] if desc["effects"].count(name) > 1})
+        if repeated:
+            raise ValueError(f"effects lists {repeated} more than once")
         unknown = effects - EFFECTS
         if unknown:
             raise ValueError(f"effects {sorted(unknown)} unknown (known: {sorted(EFFECTS)})")

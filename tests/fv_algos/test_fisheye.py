@@ -166,6 +166,10 @@ def test_a_failed_save_leaves_the_old_file_whole(tmp_path: Path, monkeypatch: py
         (lambda r: r.update(height=None), "'height'"),
         (lambda r: r.update(K=[[1, 2], "x"]), "'K'"),
         (lambda r: r.update(rms_px="bad"), "'rms_px'"),
+        (lambda r: r.update(D=[[0, 0], [0, 0]]), "'D'"),  # 4 numbers, not k1..k4: taken flattened
+        (lambda r: r.update(rms_px=True), "'rms_px'"),  # taken as 1.0
+        (lambda r: r.update(rms_px="0.5"), "'rms_px'"),  # a string was converted
+        (lambda r: r.update(date=20261127), "'date'"),  # taken as the string '20261127'
     ],
 )
 def test_load_names_the_bad_field(tmp_path: Path, change, field: str) -> None:

@@ -80,6 +80,7 @@ def test_twist_and_roll() -> None:
         ({"slide_speed_mm_s": -5}, "slide_speed_mm_s must be > 0"),  # moved the object against the force
         ({"spin_rate_deg_s": 0}, "spin_rate_deg_s must be > 0"),      # gross slip that never moved
         ({"effects": ["normal", {"x": 1}]}, "effects must be a list of names"),  # unhashable type: 'dict'
+        ({"effects": ["normal", "shear", "normal"]}, r"effects lists \['normal'\] more than once"),  # taken as one
         ({"object": {"shape": "sphere", "radius_mm": "10"}}, "object.radius_mm: '10' is not a finite number"),  # taken
         # a TypeError (unhashable type: 'list') from deep inside, not a ValueError naming the key:
         ({"object": {"shape": ["sphere"]}}, r"object.shape must be one of \['bottle_cap', .*\] \(got \['sphere'\]\)"),
