@@ -208,15 +208,16 @@ def recover_in_place(path: Path) -> RecoverReport:
     as it is (no copy kept)."""
     path = Path(path)
     broken = path.with_name(path.name + BROKEN_SUFFIX)
-    if broken.exists():
-        raise ValueError(f"{broken} already exists: move it away or pass --output")
     tmp = path.with_name(path.name + ".recovering")
     tmp.unlink(missing_ok=True)
     report = recover(path, tmp)
     report.output = str(path)
-    if report.complete:
+    if report.complete:  # also a file recovered before, whose original is kept beside it
         tmp.unlink()
         return report
+    if broken.exists():
+        tmp.unlink()
+        raise ValueError(f"{broken} already exists: move it away or pass --output")
     os.replace(path, broken)
     os.replace(tmp, path)
     return report

@@ -203,13 +203,18 @@ def test_recover_in_place_keeps_the_original(bag: tuple[Path, list], capsys: pyt
     assert 0 < report["messages"] < len(messages) and report["lost_b"] > 0
     assert file.with_name(file.name + ".broken").read_bytes() == data[:len(data) * 2 // 3]
     assert BagReader(path).message_count == report["messages"]
+    recovered = file.read_bytes()
+    # now complete: left as it is, no copy kept (this said that the .broken of the first run already exists)
+    report = recover_in_place(file)
+    assert report.complete and "left as it is" in report.summary_line() and file.read_bytes() == recovered
+    file.write_bytes(recovered[:len(recovered) // 2])  # damaged again, its first original still beside it
     with pytest.raises(ValueError, match="already exists"):
         recover_in_place(file)
+    assert file.read_bytes() == recovered[:len(recovered) // 2]
+    left = sorted(p.name for p in file.parent.iterdir() if p.name.startswith(file.name))
+    assert left == [file.name, file.name + ".broken"]  # no .recovering
     file.with_name(file.name + ".broken").unlink()
-    recovered = file.read_bytes()
-    report = recover_in_place(file)  # now complete: left as it is, no copy kept
-    assert report.complete and "left as it is" in report.summary_line() and file.read_bytes() == recovered
-    assert not file.with_name(file.name + ".broken").exists()
+    assert recover_in_place(file).damaged and file.with_name(file.name + ".broken").exists()
 
 
 @pytest.mark.parametrize("content", [b"", b"not a bag at all" * 10, b"\x89MCAP0\r\n" + b"\x00" * 40])
