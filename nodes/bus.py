@@ -11,6 +11,7 @@ arrives again) and re-sends its last latched message per topic.
 """
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 import time
@@ -94,34 +95,38 @@ def connect_client(sock: zmq.Socket, address: BusAddress, endpoint: str) -> None
 
 
 _REFUSED: set[str] = set()  # the bus URLs whose refused handshake this process has logged
+_MONITORS = itertools.count()  # numbers the handshake monitors' endpoints
 _HANDSHAKE_EVENTS = zmq.EVENT_HANDSHAKE_SUCCEEDED | zmq.EVENT_HANDSHAKE_FAILED_AUTH | \
     zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL | zmq.EVENT_MONITOR_STOPPED
 
 
 def _watch_handshake(sock: zmq.Socket, address: BusAddress) -> None:
     """Log, once, why the forwarder at `address` refuses `sock`'s CURVE handshake, from a thread that
-    watches it until the handshake succeeds or the socket closes: ZeroMQ retries it for good without a
-    word, so a host whose key the forwarder does not know received nothing and said nothing."""
+    watches it until the socket closes: ZeroMQ retries it for good without a word, so a host whose key
+    the forwarder does not know received nothing and said nothing. The thread closes the monitor only
+    when ZeroMQ says it has stopped (the socket closed): closed before, at the handshake, it left the
+    monitor's sockets behind, 4 file descriptors per socket, and a process that had pinged a TCP
+    forwarder 300 times could open no more sockets ("Too many open files")."""
     from zmq.utils.monitor import recv_monitor_message
 
-    monitor = sock.get_monitor_socket(_HANDSHAKE_EVENTS)
+    # pyzmq names the endpoint after the socket's file descriptor by default, which the next socket may reuse
+    monitor = sock.get_monitor_socket(_HANDSHAKE_EVENTS, addr=f"inproc://fv-handshake-{next(_MONITORS)}")
     keys = curve_dir()  # as the socket was given them
 
     def watch() -> None:
         try:
             while True:
                 event = recv_monitor_message(monitor)["event"]
-                if event in (zmq.EVENT_HANDSHAKE_SUCCEEDED, zmq.EVENT_MONITOR_STOPPED):
+                if event == zmq.EVENT_MONITOR_STOPPED:
                     return
-                if address.url in _REFUSED:  # said once per bus, not once per socket
-                    return
+                if event == zmq.EVENT_HANDSHAKE_SUCCEEDED or address.url in _REFUSED:  # said once per bus
+                    continue
                 _REFUSED.add(address.url)
                 why = ("it does not know this host's client key: copy that client.key into its authorized/ folder"
                        if event == zmq.EVENT_HANDSHAKE_FAILED_AUTH else
                        "this host's server.key is not that forwarder's: copy its server.key here")
                 log.error("the forwarder at %s refuses the CURVE handshake (FV_CURVE_DIR %s): %s; nothing "
                           "passes until it is fixed", address.url, keys, why)
-                return
         except zmq.ZMQError:  # the context went away
             return
         finally:
