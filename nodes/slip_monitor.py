@@ -3,7 +3,8 @@ of state and a heartbeat line every `every_s`, with the capture-to-decision late
 
 In a replay the frames' capture stamps are the recorded session's, so "now - stamp" is the
 recording's age: with `frames` (the replayed image topics) the latency runs from each frame's
-arrival on the bus instead."""
+arrival at this monitor to its decision's (the decision's publish time, taken before, was printed
+as a negative latency once the monitor read the frame after the slip detector had judged it)."""
 from __future__ import annotations
 
 import collections
@@ -48,14 +49,17 @@ class SlipMonitor(Node):
         while len(self.arrival_ns) > ARRIVALS_KEPT:
             self.arrival_ns.popitem(last=False)
 
-    def latency_text(self, msg: SlipState) -> str:
-        """The decision's latency in ms, from its frame's capture or, with ``frames``, its arrival."""
+    def latency_text(self, msg: SlipState, received_ns: int) -> str:
+        """The decision's latency in ms: from its frame's capture to its publishing or, with ``frames``,
+        from its frame's arrival here to its own (``received_ns``, ns since the epoch)."""
         if not self.params.frames:
             return f"latency {(msg.pub_ns - msg.stamp_ns) / 1e6:5.1f} ms"
         arrived = self.arrival_ns.get(msg.stamp_ns)
-        return "latency  n/a (frame not seen)" if arrived is None else f"latency {(msg.pub_ns - arrived) / 1e6:5.1f} ms"
+        return ("latency  n/a (frame not seen)" if arrived is None else
+                f"latency {(received_ns - arrived) / 1e6:5.1f} ms")
 
     def on_slip(self, msg: SlipState) -> None:
+        received_ns = time.time_ns()
         now = time.monotonic()
         self.t0_ns = self.t0_ns or msg.stamp_ns
         changed = msg.slip != self.last_slip
@@ -65,4 +69,4 @@ class SlipMonitor(Node):
         state = "SLIP" if msg.slip else "no slip"
         flag = "" if msg.valid else "  (invalid window)"
         print(f"t={(msg.stamp_ns - self.t0_ns) / 1e9:7.2f}s  {state:8s} p={msg.probability:.2f}  "
-              f"{self.latency_text(msg)}{flag}", flush=True)
+              f"{self.latency_text(msg, received_ns)}{flag}", flush=True)

@@ -1,5 +1,5 @@
 """slip_monitor: the latency it prints runs from the frame's capture live, and from the frame's arrival in a
-replay (whose capture stamps are the recorded session's)."""
+replay (whose capture stamps are the recorded session's) to the decision's."""
 from __future__ import annotations
 
 import time
@@ -34,6 +34,18 @@ def test_latency_is_from_the_capture_live_and_from_the_frame_s_arrival_in_a_repl
     line = capsys.readouterr().out
     assert "SLIP" in line and "p=0.90" in line
     assert (30 if replay else 50) <= _latency_ms(line) < 1000  # not the recorded session's age
+    node.close()
+
+
+def test_a_replayed_decision_read_after_its_frame_has_no_negative_latency(capsys) -> None:
+    """The slip detector published its decision before this monitor read the frame (a busy monitor): the
+    latency was the decision's publish time less the frame's arrival here, -0.8 ms."""
+    node = _monitor({"frames": ["/camera/image"]})
+    published_ns = time.time_ns()
+    time.sleep(0.01)
+    node.on_frame(Image(stamp_ns=RECORDED_NS, data=np.zeros((4, 4), np.uint8)))
+    node.on_slip(SlipState(stamp_ns=RECORDED_NS, probability=0.9, slip=True, pub_ns=published_ns))
+    assert 0.0 <= _latency_ms(capsys.readouterr().out) < 1000
     node.close()
 
 
