@@ -8,13 +8,14 @@ import subprocess
 import sys
 import threading
 import time
+import msgpack
 import pytest
 import zmq
 
 import msgs
 from msgs import CameraInfo, NodeStatus, SlipState
 from nodes.bus import PublisherSocket, SeqTracker, TopicReader, envelope, parse_envelope
-from nodes.endpoints import BUS_ENV, CURVE_ENV, bus_address, make_keys
+from nodes.endpoints import BUS_ENV, CURVE_ENV, bus_address, make_keys, secure_server
 from nodes.forwarder import ping
 from tests.nodes.conftest import REPO, Bus, run_fv
 
@@ -208,6 +209,33 @@ def test_sockets_on_a_tcp_bus_leave_no_file_descriptors_behind(bus_env: Bus, mon
                             cwd=REPO, env=dict(os.environ, **{CURVE_ENV: str(keys)}))
     assert result.returncode == 0, result.stderr
     assert int(result.stdout) < 20, "file descriptors left behind by 100 pings"
+
+
+def test_a_ping_over_tcp_waits_for_a_slow_answer(bus_env: Bus, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The CURVE handshake comes before the answer: on a loaded host 0.3 s missed a forwarder that was
+    serving ("no forwarder answers ... no launch runs on this bus", 2 runs of `fv topic hz` in 16)."""
+    keys = bus_env.folder / "keys"
+    make_keys(keys)
+    monkeypatch.setenv(CURVE_ENV, str(keys))
+    address = bus_address(f"tcp://127.0.0.1:{_free_port_base()}")
+    slow = zmq.Context.instance().socket(zmq.REP)  # a forwarder's control socket that answers in 0.8 s
+    slow.linger = 0
+    secure_server(slow, keys)
+    slow.bind(address.ctl)
+
+    def answer() -> None:
+        if slow.poll(5000):
+            slow.recv()
+            time.sleep(0.8)
+            slow.send(msgpack.packb({"pid": 1}))
+
+    thread = threading.Thread(target=answer)
+    thread.start()
+    try:
+        assert ping(address) == {"pid": 1}
+    finally:
+        thread.join()
+        slow.close()
 
 
 def test_tcp_forwarder_refuses_to_start_without_keys(bus_env: Bus) -> None:
