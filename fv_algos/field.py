@@ -17,6 +17,7 @@ from typing import Literal
 
 import numpy as np
 from scipy.interpolate import RBFInterpolator, griddata
+from scipy.spatial import cKDTree
 
 Kernel = Literal["thin_plate_spline", "multiquadric", "inverse_multiquadric", "gaussian", "linear", "cubic"]
 
@@ -26,6 +27,17 @@ Kernel = Literal["thin_plate_spline", "multiquadric", "inverse_multiquadric", "g
 _KERNELS = ("thin_plate_spline", "multiquadric", "inverse_multiquadric", "gaussian", "linear", "cubic")
 _SCALED = ("multiquadric", "inverse_multiquadric", "gaussian")
 _POLY_TERMS = 3
+# Valid reference points whose thinner principal spread (smaller singular value of the centred
+# points) is below this share of the larger one are collinear: the linear term is undetermined
+# across the line (a uniform translation comes out wrong by up to its own size from a share of
+# ~1e-7 down, by < 1e-3 of it from 1e-5 up).
+_COLLINEAR_RTOL = 1e-5
+# Reference markers closer than this are one marker listed twice (no detector resolves 1e-3 px):
+# the RBF system turns their differences into huge coefficients, the tracker's pitch into ~0.
+_COINCIDENT_PX = 1e-3
+# Reference coordinates beyond this are no camera's (frames are < 1e4 px wide): squared
+# distances of such points overflow or swamp the kernel.
+_MAX_COORD_PX = 1e6
 
 
 @dataclass(frozen=True)
@@ -44,6 +56,12 @@ class FieldParams:
         ill-conditioned systems finite).
     min_markers: fewer valid markers than this (or than the polynomial needs) gives an
         all-zero field flagged invalid.
+    min_valid_share: a smaller share of the reference markers valid gives an all-zero field
+        flagged invalid (0 disables). A corrupt frame (pure noise) gets chance matches, ~10 %
+        of the markers (24 of 256 in a simulated skin), whose field is large and wrong (read as
+        slip); real recordings stay above 0.25 in every frame: GelSight Mini trials >= 0.79, the
+        FingerVision video fingervision_cam1_0002.m4v >= 0.29 (9 of its 31 markers, over its
+        2931 frames from frame 1, the reference, on). 0.25 catches the first and none of these.
     """
 
     method: Literal["rbf_operator", "rbf_refit", "griddata"] = "rbf_operator"
@@ -53,6 +71,7 @@ class FieldParams:
     smoothing: float = 0.0
     rcond: float = 1e-10
     min_markers: int = 3
+    min_valid_share: float = 0.25
 
     def __post_init__(self) -> None:
         if self.method not in ("rbf_operator", "rbf_refit", "griddata"):
@@ -69,6 +88,8 @@ class FieldParams:
             raise ValueError(f"FieldParams.rcond must be in (0, 1), got {self.rcond}")
         if self.min_markers < 1:
             raise ValueError(f"min_markers must be >= 1, got {self.min_markers}")
+        if not 0.0 <= self.min_valid_share <= 1.0:
+            raise ValueError(f"FieldParams.min_valid_share must be in [0, 1], got {self.min_valid_share}")
 
 
 @dataclass(frozen=True)
@@ -77,7 +98,9 @@ class DisplacementField:
 
     field: (H, W, 3) float32, channels dx_px, dy_px, magnitude_px; all finite (zeros when
     invalid). x_px: (W,) float64 and y_px: (H,) float64 grid coordinates in the reference
-    frame. valid: False when too few markers were valid. markers_used: markers that fed it.
+    frame. valid: False when too few markers (or too small a share of them) were valid, their
+    reference points were collinear, or the field is not finite in float32. markers_used:
+    markers that fed it.
     filled_cells: grid cells filled from the nearest marker (griddata outside the hull).
     """
 
@@ -87,6 +110,40 @@ class DisplacementField:
     valid: bool
     markers_used: int
     filled_cells: int = 0
+
+
+def checked_reference(points_px: np.ndarray, name: str) -> np.ndarray:
+    """(N, 2) float64 copy of reference marker positions `points_px` (px), N >= 1.
+
+    The check shared by `FieldInterpolator` and the tracker: ValueError naming `name` for
+    another shape, no markers, non-finite coordinates, coordinates beyond +/- 1e6 px, or
+    markers that coincide (closer than 1e-3 px; the message names the first pairs).
+    """
+    ref = np.array(points_px, dtype=np.float64)
+    if ref.ndim != 2 or ref.shape[1] != 2:
+        raise ValueError(f"{name} must have shape (N, 2), got {ref.shape}")
+    if ref.shape[0] == 0:
+        raise ValueError(f"{name} holds no markers")
+    if not np.all(np.isfinite(ref)):
+        raise ValueError(f"{name} holds non-finite coordinates")
+    largest = float(np.abs(ref).max())
+    if largest > _MAX_COORD_PX:
+        raise ValueError(f"{name} holds coordinates beyond +/- {_MAX_COORD_PX:g} px (up to {largest:g} px)")
+    pairs = cKDTree(ref).query_pairs(_COINCIDENT_PX, output_type="ndarray")
+    if pairs.size:
+        pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+        listed = ", ".join(f"{i} and {j} (at {ref[i, 0]:g}, {ref[i, 1]:g} px)" for i, j in pairs[:5])
+        more = f" and {len(pairs) - 5} more pairs" if len(pairs) > 5 else ""
+        raise ValueError(f"{name}: markers {listed}{more} coincide (closer than {_COINCIDENT_PX:g} px): "
+                         "list each marker once")
+    return ref
+
+
+def _spans_plane(points_px: np.ndarray) -> bool:
+    """Whether points (n >= 2, 2) px are not (numerically) collinear: the smaller singular value
+    of the centred points exceeds `_COLLINEAR_RTOL` x the larger (coincident points: False)."""
+    spread = np.linalg.svd(points_px - points_px.mean(axis=0), compute_uv=False)
+    return bool(spread[1] > _COLLINEAR_RTOL * spread[0])
 
 
 def _kernel(r: np.ndarray, kernel: str, width: float) -> np.ndarray:
@@ -196,13 +253,9 @@ class FieldInterpolator:
     """
 
     def __init__(self, reference_px: np.ndarray, params: FieldParams = FieldParams()) -> None:
-        ref = np.asarray(reference_px, dtype=np.float64)
-        if ref.ndim != 2 or ref.shape[1] != 2 or ref.shape[0] == 0:
-            raise ValueError(f"reference_px must have shape (N >= 1, 2), got {ref.shape}")
-        if not np.all(np.isfinite(ref)):
-            raise ValueError("reference_px holds non-finite coordinates")
+        ref = checked_reference(reference_px, "reference_px")
         self.params = params
-        self.reference_px = ref.copy()
+        self.reference_px = ref
         self.x_px, self.y_px = grid_axes(ref, params.grid_shape)
         gx, gy = np.meshgrid(self.x_px, self.y_px)
         self._grid_points = np.column_stack([gx.ravel(), gy.ravel()])
@@ -228,8 +281,9 @@ class FieldInterpolator:
     def interpolate(self, current_px: np.ndarray, valid: np.ndarray) -> DisplacementField:
         """Field from current marker positions (N, 2) px and validity (N,) bool.
 
-        Markers with non-finite positions count as not valid. Returns a `DisplacementField`
-        (flagged invalid and all-zero when fewer than `min_markers` are usable).
+        Markers with non-finite positions count as not valid. Returns a `DisplacementField`,
+        flagged invalid and all-zero when the valid markers cannot carry a field (`_carries_field`)
+        or the field does not fit float32.
         """
         cur = np.asarray(current_px, dtype=np.float64)
         mask = np.asarray(valid, dtype=bool)
@@ -239,8 +293,7 @@ class FieldInterpolator:
         mask = mask & np.all(np.isfinite(cur), axis=1)
         used = int(mask.sum())
         h, w = self.params.grid_shape
-        needed = max(self.params.min_markers, _POLY_TERMS)
-        if used < needed:
+        if not self._carries_field(mask):
             return DisplacementField(np.zeros((h, w, 3), np.float32), self.x_px, self.y_px, False, used)
         disp = cur[mask] - self.reference_px[mask]
         filled = 0
@@ -262,12 +315,24 @@ class FieldInterpolator:
                 grid = np.full((self._grid_points.shape[0], 2), np.nan)
         else:
             grid, filled = self._griddata(self.reference_px[mask], disp)
-        if not np.all(np.isfinite(grid)):
-            return DisplacementField(np.zeros((h, w, 3), np.float32), self.x_px, self.y_px, False, used)
         out = np.empty((h * w, 3), dtype=np.float32)
-        out[:, :2] = grid
-        out[:, 2] = np.hypot(grid[:, 0], grid[:, 1])
+        with np.errstate(over="ignore"):  # beyond float32: inf, refused below
+            out[:, :2] = grid
+            out[:, 2] = np.hypot(grid[:, 0], grid[:, 1])
+        if not np.all(np.isfinite(out)):
+            return DisplacementField(np.zeros((h, w, 3), np.float32), self.x_px, self.y_px, False, used)
         return DisplacementField(out.reshape(h, w, 3), self.x_px, self.y_px, True, used, filled)
+
+    def _carries_field(self, mask: np.ndarray) -> bool:
+        """Whether the valid markers `mask` (N,) bool can carry a field: at least `min_markers` (and
+        the polynomial's 3), at least `min_valid_share` of the reference markers, and reference
+        points spanning the plane (`_spans_plane`: the linear term needs 2-D)."""
+        used = int(mask.sum())
+        if used < max(self.params.min_markers, _POLY_TERMS):
+            return False
+        if used < self.params.min_valid_share * mask.size:
+            return False
+        return _spans_plane(self.reference_px[mask])
 
     def _apply_operator(self, mask: np.ndarray, disp: np.ndarray) -> np.ndarray:
         """(G, 2) grid displacements from the valid markers' (n_valid, 2) displacements.

@@ -171,7 +171,11 @@ def _sub_halfspace(halfspace: HalfSpace, size: int) -> HalfSpace:
 
 
 def _polonsky_keer(halfspace: HalfSpace, gap_mm: np.ndarray, load_N: float, p0: np.ndarray, params: ContactParams) -> tuple[np.ndarray, float, bool]:
-    """Polonsky-Keer CG on a square grid: returns (pressure MPa, approach mm, converged)."""
+    """Polonsky-Keer CG on a square grid: returns (pressure MPa, approach mm, converged).
+
+    Stops at once with approach NaN (not converged) when the pressure or the displacements
+    leave the float64 range (a load or a compliance too large, or a load too small to spread).
+    """
     area = halfspace.grid.cell_area_mm2
     p = p0 * (load_N / (p0.sum() * area))
     t = np.zeros_like(p)
@@ -180,7 +184,11 @@ def _polonsky_keer(halfspace: HalfSpace, gap_mm: np.ndarray, load_N: float, p0: 
     self_compliance = None
     for _ in range(params.normal_max_iterations):
         contact = p > 0
-        g = halfspace.normal_displacement_mm(p) + gap_mm
+        with np.errstate(over="ignore", invalid="ignore"):  # out of range: caught just below
+            g = halfspace.normal_displacement_mm(p) + gap_mm
+            in_range = contact.any() and np.isfinite(np.sum(g[contact] ** 2))
+        if not in_range:
+            return p, float("nan"), False
         approach = float(g[contact].mean())
         g -= approach
         g_norm = float(np.sum(g[contact] ** 2))
@@ -213,6 +221,30 @@ def _polonsky_keer(halfspace: HalfSpace, gap_mm: np.ndarray, load_N: float, p0: 
     return p, approach, False
 
 
+def _solve_on_window(halfspace: HalfSpace, gap_mm: np.ndarray, load_N: float, params: ContactParams, candidate: np.ndarray, seed: np.ndarray) -> NormalSolution:
+    """Polonsky-Keer on the window around the `candidate` cells (n, n) bool, seeded with `seed` (n, n)
+    MPa; gap_mm (n, n) >= 0 mm, load_N > 0. ValueError naming the load and the half-space's Young's
+    modulus when the solve leaves the float64 range."""
+    n = halfspace.grid.n_cells
+    rows, cols = _window(candidate, pad=2)
+    h, w = rows.stop - rows.start, cols.stop - cols.start
+    sub = _sub_halfspace(halfspace, max(h, w))
+    m = sub.grid.n_cells
+    # Square window; padding cells beyond the skin are lifted far out of reach.
+    sub_gap = np.full((m, m), gap_mm.max() + 1e3)
+    sub_seed = np.zeros((m, m))
+    sub_gap[:h, :w] = gap_mm[rows, cols]
+    sub_seed[:h, :w] = seed[rows, cols]
+    p_sub, approach, converged = _polonsky_keer(sub, sub_gap, load_N, sub_seed, params)
+    if not np.isfinite(approach):
+        modulus = halfspace.material.youngs_modulus_mpa
+        raise ValueError(f"normal contact out of the solver's float64 range: load_N {load_N:g} N against a Young's "
+                         f"modulus of {modulus:g} MPa (the skin's, or a softer object's); neither is a physical value")
+    pressure = np.zeros((n, n))
+    pressure[rows, cols] = p_sub[:h, :w]
+    return NormalSolution(pressure, approach, load_N, converged)
+
+
 def solve_normal(halfspace: HalfSpace, gap_mm: np.ndarray, load_N: float, params: ContactParams, warm: NormalSolution | None = None) -> NormalSolution:
     """Rigid indenter of arbitrary shape pressed with `load_N` (Polonsky-Keer CG).
 
@@ -226,6 +258,9 @@ def solve_normal(halfspace: HalfSpace, gap_mm: np.ndarray, load_N: float, params
             solve runs on a window around it).
     Returns:
         NormalSolution on the full grid; `approach_mm` is measured from the gap's minimum.
+    Raises:
+        ValueError naming the load and the half-space's Young's modulus when the solve leaves the
+        float64 range (e.g. 1e160 N, 5e-324 N, or a modulus of 1e-300 MPa).
     """
     n = halfspace.grid.n_cells
     gap = np.asarray(gap_mm, dtype=np.float64)
@@ -246,25 +281,12 @@ def solve_normal(halfspace: HalfSpace, gap_mm: np.ndarray, load_N: float, params
         candidate = np.ones((n, n), dtype=bool)
     if not seed.any():
         seed = (gap <= gap.min() + halfspace.grid.cell_mm * 0.1).astype(np.float64)
-    while True:
-        rows, cols = _window(candidate, pad=2)
-        h, w = rows.stop - rows.start, cols.stop - cols.start
-        sub = _sub_halfspace(halfspace, max(h, w))
-        m = sub.grid.n_cells
-        # Square window; padding cells beyond the skin are lifted far out of reach.
-        sub_gap = np.full((m, m), gap.max() + 1e3)
-        sub_seed = np.zeros((m, m))
-        sub_gap[:h, :w] = gap[rows, cols]
-        sub_seed[:h, :w] = seed[rows, cols]
-        p_sub, approach, converged = _polonsky_keer(sub, sub_gap, load, sub_seed, params)
-        pressure = np.zeros((n, n))
-        pressure[rows, cols] = p_sub[:h, :w]
-        # Contact lies where gap < approach, so the window holds it whenever approach < bound.
-        if approach < bound:
-            return NormalSolution(pressure, approach, load, converged)
-        bound = np.inf
-        candidate = np.ones((n, n), dtype=bool)
-        seed = pressure
+    solution = _solve_on_window(halfspace, gap, load, params, candidate, seed)
+    # Contact lies where gap < approach, so the window holds it whenever approach < bound.
+    if solution.approach_mm < bound:
+        return solution
+    full = np.ones((n, n), dtype=bool)
+    return _solve_on_window(halfspace, gap, load, params, full, solution.pressure_mpa)
 
 
 def ciavarella_jaeger_traction(full: NormalSolution, reduced: NormalSolution, mu: float, direction: np.ndarray, cell_area_mm2: float) -> np.ndarray:

@@ -134,7 +134,10 @@ def fast_layout(model: nn.Module, dtype: torch.dtype | None) -> nn.Module:
 
 def width_gain(config: ModelConfig, width_px: int | None) -> float:
     """Factor that takes fields (px) of frames ``width_px`` wide to px of the frames the model was
-    trained on (``config.field_width_px``); 1.0 when either width is unknown (None or 0)."""
+    trained on (``config.field_width_px``); 1.0 when either width is unknown (None or 0). ValueError for
+    a negative ``width_px`` (its gain would flip the field's sign)."""
+    if width_px is not None and width_px < 0:
+        raise ValueError(f"width_px must be > 0, or 0 / None when unknown, got {width_px}")
     if not config.field_width_px or not width_px:
         return 1.0
     return config.field_width_px / width_px

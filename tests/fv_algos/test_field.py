@@ -67,7 +67,7 @@ def test_smooth_field_accuracy_and_griddata_alternative() -> None:
 @pytest.mark.slow
 def test_missing_markers_give_the_exact_interpolant_of_the_valid_ones() -> None:
     cur = REF + _smooth(REF)
-    interp = FieldInterpolator(REF)
+    interp = FieldInterpolator(REF, FieldParams(min_valid_share=0.0))  # down to 5 of 256 markers
     rng = np.random.default_rng(3)
     for dropped in (1, len(REF) // 3, len(REF) - 5):  # a new validity pattern every frame
         mask = VALID.copy()
@@ -89,7 +89,8 @@ def test_all_or_almost_all_markers_lost(kept: int) -> None:
     mask[np.random.default_rng(1).choice(len(REF), kept, replace=False)] = True
     cur = REF + 2.0
     for method in ("rbf_operator", "rbf_refit", "griddata"):
-        out = FieldInterpolator(REF, FieldParams(method=method)).interpolate(cur, mask)  # type: ignore[arg-type]
+        params = FieldParams(method=method, min_valid_share=0.0)  # type: ignore[arg-type]
+        out = FieldInterpolator(REF, params).interpolate(cur, mask)
         assert np.all(np.isfinite(out.field))
         assert out.valid == (kept >= 3)
         if out.valid:
@@ -105,18 +106,60 @@ def test_nan_positions_are_treated_as_missing() -> None:
     assert np.abs(out.field[:, :, :2] - 1.0).max() < 1e-3
 
 
-def test_collinear_and_coincident_markers_stay_finite() -> None:
+@pytest.mark.parametrize("kept", [63, 64])
+def test_a_small_share_of_valid_markers_gives_an_invalid_field(kept: int) -> None:
+    """A noise frame's few chance matches (24 of 256) made a large wrong field flagged valid."""
+    mask = np.zeros(len(REF), dtype=bool)
+    mask[np.random.default_rng(2).choice(len(REF), kept, replace=False)] = True
+    for method in ("rbf_operator", "rbf_refit", "griddata"):
+        out = FieldInterpolator(REF, FieldParams(method=method)).interpolate(REF + 2.0, mask)  # type: ignore[arg-type]
+        assert out.valid == (kept >= 0.25 * len(REF)) and out.markers_used == kept
+        assert np.abs(out.field[:, :, :2] - 2.0 * out.valid).max() < 1e-3
+    assert not FieldInterpolator(REF, FieldParams(min_valid_share=0.3)).interpolate(REF + 2.0, mask).valid
+    for share in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="min_valid_share"):
+            FieldParams(min_valid_share=share)
+
+
+def test_collinear_markers_give_an_invalid_field() -> None:
+    """The linear term needs valid reference points spanning 2-D: rbf_operator's field of exactly
+    collinear markers was wrong (a uniform (2, -1) came out as -0.49 .. 2 in x) and flagged valid."""
+    lattice = grid_centres(5, 5, 25.0) + 100.0
+    shift = np.array([2.0, -1.0])
     line = np.column_stack([np.linspace(0.0, 300.0, 20), np.full(20, 50.0)])
     op, condition = rbf_operator(line, np.array([[10.0, 60.0], [150.0, 40.0]]))
     assert np.all(np.isfinite(op)) and condition > 1e8
-    dup = np.vstack([REF, REF[:20], REF[:5] + 1e-9])
-    interp = FieldInterpolator(dup)
-    out = interp.interpolate(dup + np.array([0.5, -0.25]), np.ones(len(dup), dtype=bool))
-    assert out.valid
-    assert np.abs(out.field[:, :, 0] - 0.5).max() < 1e-3
-    assert np.abs(out.field[:, :, 1] + 0.25).max() < 1e-3
-    collinear = FieldInterpolator(line).interpolate(line + 1.0, np.ones(20, dtype=bool))
-    assert np.all(np.isfinite(collinear.field))
+    for method in ("rbf_operator", "rbf_refit", "griddata"):
+        params = FieldParams(method=method, min_valid_share=0.0)  # type: ignore[arg-type]
+        for rows in ([0, 1, 2], [0, 1, 2, 3, 4], [0, 6, 12, 18, 24]):  # a row, a longer row, the diagonal
+            mask = np.zeros(25, dtype=bool)
+            mask[rows] = True
+            out = FieldInterpolator(lattice, params).interpolate(lattice + shift, mask)
+            assert not out.valid and not out.field.any(), (method, rows)
+        mask[7] = True  # one marker off the diagonal: 2-D again
+        out = FieldInterpolator(lattice, params).interpolate(lattice + shift, mask)
+        assert out.valid and np.abs(out.field[:, :, :2] - shift).max() < 1e-3
+        assert not FieldInterpolator(line, params).interpolate(line + 1.0, np.ones(20, dtype=bool)).valid
+
+
+@pytest.mark.parametrize("shift", [[1e39, 0.0], [2.5e38, 2.5e38]])
+def test_displacements_beyond_float32_give_an_invalid_field(shift: list[float]) -> None:
+    """Finite float64 displacements whose component or magnitude overflows float32 gave inf, flagged valid."""
+    out = FieldInterpolator(REF).interpolate(REF + shift, VALID)
+    assert not out.valid and not out.field.any() and out.markers_used == len(REF)
+
+
+def test_coincident_or_absurd_reference_markers_are_refused() -> None:
+    """Coincident reference points inflated a 2 px shift to 1e5 px (thin-plate spline)."""
+    with pytest.raises(ValueError, match=r"markers 0 and 1 \(at 200, 200 px\), 0 and 2 .* coincide"):
+        FieldInterpolator(np.full((5, 2), 200.0))
+    with pytest.raises(ValueError, match="markers 0 and 256 .* coincide"):
+        FieldInterpolator(np.vstack([REF, REF[:1]]), FieldParams(method="rbf_refit"))
+    with pytest.raises(ValueError, match="markers 5 and 256 .* coincide"):
+        FieldInterpolator(np.vstack([REF, REF[5:6] + 1e-9]))
+    with pytest.raises(ValueError, match="beyond"):
+        FieldInterpolator(REF * 1e200)
+    assert len(FieldInterpolator(np.vstack([REF, REF[:1] + 0.01])).reference_px) == 257  # 0.01 px apart: two markers
 
 
 @pytest.mark.parametrize("width_px", [1e-3, 1e6])

@@ -68,3 +68,24 @@ def test_a_camera_twice_the_model_rate_is_judged_on_every_other_frame_and_slow_g
     judge.reset()
     assert [judge.takes(t * 1_000_000) for t in (0, 40, 80, 140, 180)] == [True] * 5  # 60 ms > 1.4 periods
     assert judge.slow_gaps == 1
+
+
+def test_fields_past_float16_count_as_the_largest_motion_and_non_finite_ones_are_refused(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The float16 cast made 7e4 px inf, whose NaN gradients were then taken as 0: the largest motion
+    scored like none. A NaN field scored like no motion."""
+    judge = GraspJudge(TrialNet(4))
+    rows: list[np.ndarray] = []
+    monkeypatch.setattr(judge, "push", lambda row, field_row: rows.append(field_row) or 0.0)
+    image = np.full((240, 320, 3), 128, np.uint8)
+    for value in (65504.0, 7e4, 1e300):  # float16's largest, and past it
+        judge.step(image, np.full((30, 30, 3), value), 1.0)
+    assert np.all(np.isfinite(rows)) and rows[0][0] == 65504.0
+    np.testing.assert_array_equal(rows[1], rows[0])
+    np.testing.assert_array_equal(rows[2], rows[0])
+    for bad in (np.nan, np.inf, -np.inf):
+        field = np.zeros((30, 30, 3), np.float32)
+        field[3, 4, 0] = bad
+        with pytest.raises(ValueError, match="field holds 1 non-finite values"):
+            judge.step(image, field, 1.0)
+    assert len(rows) == 3

@@ -1,6 +1,8 @@
 """Half-space Green's functions and contact solutions against closed-form answers."""
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -250,6 +252,17 @@ def test_bad_inputs_raise(model: ContactModel) -> None:
         model.solve(Sphere(), np.zeros(2), 0.0, 1.0, np.zeros(2), 0.0, "fly", np.zeros(2), ALL)
     with pytest.raises(ValueError, match="radius_mm"):
         Sphere(radius_mm=0.0)
+
+
+@pytest.mark.parametrize("load, modulus", [(1e160, MATERIAL.youngs_modulus_mpa), (5e-324, MATERIAL.youngs_modulus_mpa),
+                                            (1.0, 1e-300)])
+def test_loads_and_moduli_past_the_float_range_are_refused_by_name(load: float, modulus: float) -> None:
+    """The solver looped for ever (its approach NaN) on these; now a ValueError names both."""
+    halfspace = HalfSpace(SurfaceGrid(16, 0.375), Elastomer(modulus, MATERIAL.poisson_ratio))
+    x = np.arange(16) * 0.375
+    gap = ((x[:, None] - 3.0) ** 2 + (x[None] - 3.0) ** 2) / 20.0
+    with pytest.raises(ValueError, match=re.escape(f"load_N {load:g} N against a Young's modulus of {modulus:g} MPa")):
+        solve_normal(halfspace, gap, load, ContactParams())
 
 
 def test_every_shape_presses_and_carries_the_load(model: ContactModel) -> None:

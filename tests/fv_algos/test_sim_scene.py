@@ -113,6 +113,14 @@ def test_mechanics_a_scene_cannot_play_are_named_by_frame() -> None:
     assert _run({**past, "effects": ["normal", "shear", "slip"]})[-1].centre_mm[0] > 0
 
 
+def test_a_scene_with_a_load_past_the_solver_range_is_refused_by_name(tmp_path) -> None:
+    """A sphere pressed off the skin's centre with 1e200 N hung the contact solver."""
+    (tmp_path / "s.yaml").write_text("object: {shape: sphere, radius_mm: 10}\nfps: 30\ninitial: {normal_N: 1.0e+200}\n"
+                                     "steps: [{action: hold, duration_s: 0.1}]\n")
+    with pytest.raises(ValueError, match=r"load_N 1e\+200 N"):
+        list(SceneRunner(load_scene(tmp_path / "s.yaml"), SkinParams(), ContactParams()))
+
+
 def test_a_shear_with_no_normal_load_is_past_the_friction_limit() -> None:
     """It was 'stick' in every frame, the shear dropped (nothing pressed: zero contact, zero traction)."""
     unpressed = {"object": {"shape": "sphere"}, "fps": 10, "steps": [{"action": "shear", "duration_s": 0.5, "force_N": [1, 0]}]}

@@ -105,6 +105,16 @@ def test_fields_are_rescaled_to_the_training_frame_width() -> None:
     assert width_gain(ModelConfig(), 320) == 1.0 and width_gain(model.config, 0) == 1.0
 
 
+def test_a_negative_frame_width_is_refused() -> None:
+    """A gain of -1 from width -640 flipped the field's sign: a mirrored grasp, judged as real."""
+    model = build_model(ModelConfig(hidden=8, window=4, grid=8, field_width_px=640)).eval()
+    for config in (model.config, ModelConfig()):  # whether or not the model knows its frame width
+        with pytest.raises(ValueError, match="width_px must be > 0, or 0 / None when unknown, got -640"):
+            width_gain(config, -640)
+    with pytest.raises(ValueError, match="width_px"):
+        predict_proba(model, np.zeros((1, 4, 8, 8, 3), np.float32), width_px=-640)
+
+
 @pytest.mark.parametrize("scale", [0.0, 1.0, 1e6, -1e6, 3e38])
 def test_probability_is_finite_and_in_unit_interval(scale: float) -> None:
     window = np.full((4, 8, 8, 3), scale, dtype=np.float32)
