@@ -368,7 +368,6 @@ def estimate_marker_params(image: np.ndarray, min_markers: int = 4) -> MarkerPar
     return MarkerParams(diameter_px=diameter, pitch_px=pitch, polarity=polarity, contrast=contrast)
 
 
-
 def drop_border_markers(detections: Detections, shape: tuple[int, ...], margin_px: float) -> Detections:
     """Detections whose centre lies at least `margin_px` from every image edge.
 
@@ -381,3 +380,45 @@ def drop_border_markers(detections: Detections, shape: tuple[int, ...], margin_p
         (c[:, 0] >= margin_px) & (c[:, 0] <= w - 1 - margin_px) & (c[:, 1] >= margin_px) & (c[:, 1] <= h - 1 - margin_px)
     )
     return Detections(centres_px=c[keep], areas_px2=detections.areas_px2[keep])
+
+
+def _lattice_support(centres_px: np.ndarray, neighbours: int = 8, tolerance: float = 0.2) -> np.ndarray:
+    """(N,) int64: for each of the centres (N, 2) px, how many of its `neighbours` nearest other
+    centres have a centre within `tolerance` x their distance of their point reflection through it.
+
+    A lattice marker's neighbours come in opposite pairs, also under a smooth distortion such as
+    a fisheye's; a clutter blob beside a marker has next to none.
+    """
+    n = centres_px.shape[0]
+    k = min(neighbours, n - 1)
+    if k < 1:
+        return np.zeros(n, dtype=np.int64)
+    tree = cKDTree(centres_px)
+    distance, index = tree.query(centres_px, k=k + 1)
+    mirrored = 2.0 * centres_px[:, None, :] - centres_px[index[:, 1:]]
+    gap, _ = tree.query(mirrored.reshape(-1, 2))
+    return np.count_nonzero(gap.reshape(n, k) <= tolerance * distance[:, 1:], axis=1)
+
+
+def drop_crowded_markers(detections: Detections, radius_px: float) -> Detections:
+    """Detections with no two centres closer than `radius_px`: of blobs closer than that, the one
+    that fits the marker lattice best (`_lattice_support`; on a tie the larger) is kept.
+
+    Lattice markers lie a pitch apart, so of two blobs less than half a pitch apart at most one
+    is a marker. Behind a transparent skin (FingerVision) the reference frame shows background
+    clutter too, and a clutter blob taken as a reference marker next to a real one can take that
+    marker's dot (it lies inside the tracker's gate) once the clutter is gone.
+    """
+    centres = detections.centres_px
+    pairs = cKDTree(centres).query_pairs(radius_px, output_type="ndarray")
+    if pairs.size == 0:
+        return detections
+    rank = np.empty(len(detections), dtype=np.int64)
+    rank[np.lexsort((-detections.areas_px2, -_lattice_support(centres)))] = np.arange(len(detections))
+    keep = np.ones(len(detections), dtype=bool)
+    crowded = np.unique(pairs)
+    for blob in crowded[np.argsort(rank[crowded])]:
+        if keep[blob]:
+            partners = pairs[(pairs == blob).any(axis=1)].ravel()
+            keep[partners[rank[partners] > rank[blob]]] = False
+    return Detections(centres_px=centres[keep], areas_px2=detections.areas_px2[keep])

@@ -22,6 +22,7 @@ from fv_algos.detection import (
     detect_blobs,
     detect_fast,
     drop_border_markers,
+    drop_crowded_markers,
     estimate_marker_params,
 )
 from fv_algos.field import DisplacementField, FieldInterpolator, FieldParams
@@ -103,17 +104,19 @@ class Perception:
     def reset(self, reference_image: np.ndarray) -> TrackState:
         """Start over with `reference_image` as the undeformed skin (estimates markers if unset).
 
-        Markers cut by the frame edge are left out of the reference.
+        Markers cut by the frame edge are left out of the reference, and of blobs less than half a
+        pitch apart all but the one that fits the marker lattice best (`drop_crowded_markers`).
         """
         if self.params.marker is None:
             self.marker = estimate_marker_params(reference_image)
         assert self.marker is not None
-        reference = drop_border_markers(
+        detected = drop_border_markers(
             self._detect_any(reference_image), reference_image.shape, 0.5 * self.marker.diameter_px + 1.0
         )
+        reference = drop_crowded_markers(detected, 0.5 * self.marker.pitch_px)
         if len(reference) < 3:
             raise ValueError(f"reference frame shows {len(reference)} markers, need >= 3")
-        self.tracker = Tracker(reference, self.params.tracking)
+        self.tracker = Tracker(reference, self.params.tracking, cluttered=len(reference) < len(detected))
         self.interpolator = FieldInterpolator(reference.centres_px, self.params.interpolation)
         self.frame_shape = reference_image.shape[:2]
         return self.tracker.state
@@ -124,15 +127,19 @@ class Perception:
 
         reference_px: (N, 2) undeformed marker positions in px, N >= 3. The markers of
         `image` are matched to them as one tracking step (motions up to the tracker's
-        one-frame limit, about 1.5 marker pitches, are followed).
+        one-frame limit, about 1.5 marker pitches, are followed). The markers' reference area (the
+        tracker's area check) is the median detection's, or the marker disc's
+        (`MarkerParams.area_px2`) when `image` shows none (e.g. the camera still dark): what the
+        detector measures of an undeformed marker, so the markers are picked up once they show.
         """
         ref = np.asarray(reference_px, dtype=np.float64).reshape(-1, 2)
         if ref.shape[0] < 3 or not np.all(np.isfinite(ref)):
             raise ValueError(f"reference_px: need >= 3 finite markers, got shape {ref.shape}")
         if self.params.marker is None:
             self.marker = estimate_marker_params(image)
+        assert self.marker is not None
         detections = self._detect_any(image)
-        area = float(np.median(detections.areas_px2)) if len(detections) else 1.0
+        area = float(np.median(detections.areas_px2)) if len(detections) else self.marker.area_px2
         self.tracker = Tracker(Detections(ref, np.full(ref.shape[0], area)), self.params.tracking)
         self.interpolator = FieldInterpolator(ref, self.params.interpolation)
         self.frame_shape = image.shape[:2]  # the caller's reference was taken on frames of this size

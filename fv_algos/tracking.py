@@ -14,6 +14,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from fv_algos.detection import Detections
+from fv_algos.field import checked_reference
 
 
 # Rejecting an implausible match changes its neighbours' medians, so the check is repeated.
@@ -266,20 +267,24 @@ class Tracker:
     """Tracks a fixed set of reference markers through frames of detections.
 
     Usage: `Tracker(reference, params)`, then `step(detections) -> TrackState` per frame;
-    `reset(reference)` starts over from new reference detections.
+    `reset(reference)` starts over from new reference detections. `cluttered`: the reference frame
+    showed blobs besides the marker lattice (the background behind a transparent skin,
+    `fv_algos.detection.drop_crowded_markers`); the global fallback's match is then taken only when it
+    matches at least its trigger's count of markers more than the match grown from the velocity
+    prediction, not one more: among the background's blobs, winning by one or two, it shifted groups of
+    markers by a pitch, which then stayed valid (FingerVision video behind which a QR card passes).
     """
 
-    def __init__(self, reference: Detections, params: TrackerParams = TrackerParams()) -> None:
+    def __init__(self, reference: Detections, params: TrackerParams = TrackerParams(),
+                 cluttered: bool = False) -> None:
         self.params = params
+        self.cluttered = cluttered
         self.reset(reference)
 
     def reset(self, reference: Detections) -> None:
-        """Take `reference` (finite centres (N, 2) px, N >= 1) as the undeformed markers."""
-        ref = _checked_points(reference.centres_px, "reference centres_px")
-        if ref.shape[0] == 0:
-            raise ValueError("reference holds no markers")
-        if not np.all(np.isfinite(ref)):
-            raise ValueError("reference centres_px holds non-finite coordinates")
+        """Take `reference` (finite centres (N, 2) px, N >= 1, each marker once) as the undeformed
+        markers; ValueError for centres `checked_reference` refuses (e.g. a marker listed twice)."""
+        ref = checked_reference(reference.centres_px, "reference centres_px")
         areas = np.asarray(reference.areas_px2, dtype=np.float64)
         if areas.shape != (ref.shape[0],):
             raise ValueError(f"reference areas_px2 must have shape ({ref.shape[0]},), got {areas.shape}")
@@ -621,7 +626,8 @@ class Tracker:
         unpaired = min(unmatched, det.shape[0] - (self._ref.shape[0] - unmatched))
         if radius > 0.0 and unpaired >= self._transport_trigger:
             other = self._grow(self._transport_prediction(base, det, radius), base, det, tree, areas)
-            if np.count_nonzero(other < 0) < unmatched:
+            margin = self._transport_trigger if self.cluttered else 1
+            if np.count_nonzero(other < 0) <= unmatched - margin:
                 return other
         elif radius > 0.0 and unpaired > 0:
             return self._reacquire(matched, base, det, areas, radius)

@@ -107,7 +107,7 @@ def test_fingervision_validity_drops_instead_of_wrong_matches(real_data: Path) -
     reference_image = np.median(stack, axis=0).astype(np.uint8)
     perception = Perception()  # marker parameters estimated from the reference, nothing hand-set
     reference = perception.reset(reference_image)
-    assert len(reference.valid) >= 30
+    assert len(reference.valid) >= 28  # 32 blobs, less 3 of clutter within half a pitch of others
     shares, inconsistent = [], 0
     for _, frame in frames:
         state, field = perception.step(frame)
@@ -135,30 +135,70 @@ def _off_a_free_rest_dot(state: TrackState, detections: np.ndarray, off_px: floa
     return int(np.count_nonzero(rest_gap < rest_px))
 
 
+def _on_another_reference(state: TrackState, off_px: float, rest_px: float) -> int:
+    """Valid markers more than `off_px` from their reference position and within `rest_px` of
+    another marker's: sitting on that marker's dot at rest."""
+    gap, index = cKDTree(state.reference_px).query(state.current_px)
+    off = np.hypot(*state.displacement_px.T) > off_px
+    return int(np.count_nonzero(state.valid & off & (gap < rest_px) & (index != np.arange(index.size))))
+
+
 @pytest.mark.slow
 def test_fingervision_every_frame_no_valid_marker_off_its_free_rest_dot(real_data: Path) -> None:
     """Every frame (54 fps) with frame 1 the reference, as launch/video.yaml takes it: behind the
     transparent skin most reference neighbours of a few markers are background clutter, gone from
     frame ~780 on, so neighbour consistency cannot judge them. Before the tracker's swap check
     marker 22 sat valid one pitch off, on marker 19's dot, with its own dot free at rest, from
-    frame 786 (13 marker-frames up to frame 1000), and no swap was reported."""
+    frame 786 (13 marker-frames up to frame 1000), and no swap was reported. With a clutter blob
+    17 px (0.39 pitch) from marker 22 in the reference, that blob took marker 22's dot from frame
+    794 (11 marker-frames up to frame 1000, and valid on it until frame 2622); the reference now
+    leaves out such clutter, and no valid marker sits on another's dot."""
     frames = _frames(real_data / "fingervision_cam1_0002.m4v", stop=1000)
     perception = Perception()
     perception.reset(frames[1][1])
     assert perception.marker is not None
     pitch = perception.marker.pitch_px
-    wrong, swapped, reported, shares = 0, 0, 0, []
+    wrong, hopped, swapped, reported, shares = 0, 0, 0, 0, []
     for _, frame in frames[1:]:
         state, field = perception.step(frame)
         assert np.all(np.isfinite(field.field))
         assert not (state.swapped & state.valid).any()
         wrong += _off_a_free_rest_dot(state, perception.detect(frame).centres_px, 0.7 * pitch, 0.15 * pitch)
+        hopped += _on_another_reference(state, 0.3 * pitch, 0.15 * pitch)
         swapped += int(state.swapped.sum())
         reported += detected_swaps(state)
         shares.append(state.valid.mean())
-    assert wrong == 0
-    assert swapped > 0 and reported >= swapped
-    assert np.mean(shares) > 0.79
+    assert wrong == 0 and hopped == 0
+    assert reported >= swapped
+    assert np.mean(shares) > 0.83
+
+
+@pytest.mark.slow
+def test_fingervision_whole_video_few_markers_on_another_dot(real_data: Path) -> None:
+    """The whole video (2,932 frames), frame 1 the reference. From frame ~1,950 a QR card behind the
+    skin hides markers' own dots among its blobs. The tracker's global one-to-one fallback was taken
+    whenever it matched one marker more than the match grown from the velocity prediction, and
+    among the card's blobs it shifted groups of markers by a pitch, which stayed valid there (marker
+    24 on marker 18's dot for 357 frames). Behind this cluttered reference (blobs left out of it as too
+    close to lattice markers) it must now match at least as many more as set it off. Valid markers on
+    another marker's dot, in marker-frames: 568 before; 798 with only the reference's clutter left out,
+    234 with only the fallback's margin; 116 with both."""
+    capture = cv2.VideoCapture(str(real_data / "fingervision_cam1_0002.m4v"))
+    capture.read()  # frame 0
+    ok, frame = capture.read()
+    perception = Perception()
+    perception.reset(frame)
+    pitch = perception.marker.pitch_px
+    hopped, shares = 0, []
+    while ok:
+        state, _ = perception.step(frame)
+        hopped += _on_another_reference(state, 0.3 * pitch, 0.15 * pitch)
+        shares.append(state.valid.mean())
+        ok, frame = capture.read()
+    capture.release()
+    assert len(shares) == 2931  # frames 1 to 2931
+    assert hopped < 150
+    assert np.mean(shares) > 0.78
 
 
 def test_isd_grasp_video_tracks(isd_data: Path) -> None:

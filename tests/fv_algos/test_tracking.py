@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 
 from fv_algos.detection import Detections
+from fv_algos.perception import Perception, PerceptionParams
 from fv_algos.tracking import Tracker, TrackerParams, neighbour_consistency
-from tests.fv_algos.test_detection import grid_centres
+from tests.fv_algos.test_detection import SIM_MARKER, grid_centres, render_markers
 
 PITCH = 25.0
 REF = grid_centres(16, 16, PITCH)
@@ -299,6 +300,32 @@ def test_reference_reset_and_bad_input() -> None:
         TrackerParams(rest_ratio=0.5)  # half a pitch would reach the neighbours' reference positions
     with pytest.raises(ValueError, match="swap_lost_share"):
         TrackerParams(swap_lost_share=-0.1)
+
+
+def test_duplicated_or_absurd_reference_markers_are_refused() -> None:
+    """A marker listed twice made the pitch 1e-9 px (nothing tracked); coordinates ~1e200 px
+    raised an IndexError on the first step."""
+    with pytest.raises(ValueError, match=r"reference centres_px: markers 0 and 1 \(at 10, 10 px\) coincide"):
+        Tracker(Detections(np.array([[10.0, 10.0], [10.0, 10.0], [40.0, 10.0]]), np.full(3, AREA)))
+    tracker = Tracker(_det(REF, None))
+    with pytest.raises(ValueError, match="markers 3 and 256 .* coincide"):
+        tracker.reset(_det(np.vstack([REF, REF[3:4]]), None))
+    with pytest.raises(ValueError, match="beyond"):
+        Tracker(_det(REF * 1e200, None))
+    assert tracker.pitch_px == PITCH  # a refused reset leaves the tracker as it was
+
+
+def test_perception_resumed_on_a_blank_frame_tracks_the_markers_once_they_show() -> None:
+    """A resume on a frame with no detections took 1 px^2 as the markers' area: the area check
+    then refused every real marker, forever."""
+    centres = grid_centres(12, 12)
+    perception = Perception(PerceptionParams(marker=SIM_MARKER))
+    perception.resume(np.full((480, 640), 190, np.uint8), centres)  # the camera still dark
+    assert len(perception.detect(render_markers(centres))) == len(centres)
+    for shift in (0.0, 1.0, 2.0):
+        state, field = perception.step(render_markers(centres + shift))
+        assert state.valid.all() and field.valid
+        assert np.abs(field.field[:, :, :2] - shift).max() < 0.1
 
 
 def test_neighbour_consistency_flags_a_swap_not_a_smooth_field() -> None:
