@@ -165,7 +165,9 @@ class FisheyeCamera:
         Returns:
             (N, 2) float64 pixel coordinates (u, v).
         Raises:
-            ValueError: wrong shape, non-finite values, or a point with z <= 0.
+            ValueError: wrong shape, non-finite values, a point with z <= 0, or (with the lens) a
+                point at or past the ray angle where the distortion polynomial folds back
+                (`_theta_max`): its pixel would be that of a ray nearer the axis.
         """
         pts = _as_points(points_cam_mm, 3, "points_cam_mm")
         z = pts[:, 2]
@@ -176,6 +178,13 @@ class FisheyeCamera:
         if lens:
             r = np.hypot(ab[:, 0], ab[:, 1])
             theta = np.arctan(r)
+            folded = theta >= self._theta_max
+            if folded.any():
+                rows, worst_deg = np.flatnonzero(folded)[:10].tolist(), np.degrees(theta[folded].max())
+                raise ValueError(
+                    f"points_cam_mm rows {rows} lie {worst_deg:.1f} deg off the axis, at or past "
+                    f"{np.degrees(self._theta_max):.1f} deg where this camera's distortion D {self.D.tolist()} "
+                    "folds back (their pixels would be those of rays nearer the axis)")
             scale = np.ones_like(r)
             nonzero = r > 0
             scale[nonzero] = self._distort(theta[nonzero]) / r[nonzero]

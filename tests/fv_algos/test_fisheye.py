@@ -104,6 +104,22 @@ def test_project_rejects_bad_points(points: np.ndarray, message: str) -> None:
         GENERAL.project(points)
 
 
+def test_points_past_the_fold_of_the_distortion_are_refused() -> None:
+    """D = [-0.3, 0, 0, 0] folds back at 60.4 deg: a point 70 deg off the axis projected onto the pixel of
+    one at 50.25 deg, and that pixel's ray was the 50.25 deg one, valid. Points within the fold still
+    project; without the lens every point in front of the camera does."""
+    camera = FisheyeCamera(K=GENERAL.K, D=np.array([-0.3, 0.0, 0.0, 0.0]), width=640, height=480)
+
+    def off_axis(deg: float) -> np.ndarray:
+        return np.array([[np.tan(np.radians(deg)), 0.0, 1.0]])
+
+    with pytest.raises(ValueError, match=r"rows \[0\] lie 70.0 deg off the axis, at or past 60.4 deg"):
+        camera.project(off_axis(70.0))
+    rays, valid = camera.pixel_rays(camera.project(off_axis(50.25)))
+    assert valid[0] and np.degrees(np.arccos(rays[0, 2])) == pytest.approx(50.25, abs=1e-6)
+    assert np.all(np.isfinite(camera.project(off_axis(70.0), lens=False)))
+
+
 @pytest.mark.parametrize(
     ("kwargs", "field"),
     [
