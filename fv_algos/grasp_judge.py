@@ -15,10 +15,8 @@ import numpy as np
 
 from fv_algos.contact_motion import ContactMotion, ContactMotionParams
 from fv_algos.frame_rate import FramePicker
+from fv_algos.real_trials import float16_px
 from fv_algos.trial_net import RunningTrial, TrialNet, descriptor_matrix, field_rows, load_trial_model
-
-_FLOAT16_MAX_PX = float(np.finfo(np.float16).max)  # 65504 px: the largest field value the judge's float16 holds
-
 
 class GraspJudge:
     """Running P(slip) of one camera's grasp: ``reset`` when a grasp starts (the next frame is its
@@ -63,16 +61,15 @@ class GraspJudge:
 
     def step(self, image: np.ndarray, field: np.ndarray, valid_share: float) -> float:
         """P(slip) of the grasp up to and including this frame (one :meth:`takes` kept): ``image`` (H, W, 3) BGR uint8,
-        ``field`` (h, w, 3) px of ``image`` (dx, dy, |d|; clipped to +-65504 px and rounded to float16 as in the
-        cached fields the model was trained on: beyond, float16 holds only inf, whose gradients are NaN),
+        ``field`` (h, w, 3) px of ``image`` (dx, dy, |d|; rounded to float16 as the cached fields the model was
+        trained on, :func:`fv_algos.real_trials.float16_px`),
         ``valid_share`` the share of reference markers valid in this frame. ValueError for a field with a NaN or
         infinite value (it would score like no motion)."""
         values = np.asarray(field)
         if not np.all(np.isfinite(values)):
             raise ValueError(f"field holds {np.count_nonzero(~np.isfinite(values))} non-finite values (NaN or inf)")
         series_row = self.motion.reset(image) if self.frames == 0 else self.motion.step(image)
-        rows = field_rows(np.clip(values, -_FLOAT16_MAX_PX, _FLOAT16_MAX_PX).astype(np.float16)[None],
-                          np.array([valid_share]), image.shape[1])
+        rows = field_rows(float16_px(values)[None], np.array([valid_share]), image.shape[1])
         return self.push(series_row, rows[0])
 
     def push(self, row: np.ndarray, field_row: np.ndarray) -> float:

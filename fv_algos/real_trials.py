@@ -45,6 +45,7 @@ from fv_algos import field as field_module
 from fv_algos.atomic_file import write_atomically
 from fv_algos.frame_crop import FrameCrop
 from fv_algos.perception import Perception, PerceptionParams
+from fv_algos.slip.windows import FLOAT16_MAX
 from fv_algos.tracking import TrackState, neighbour_consistency
 
 T = TypeVar("T")
@@ -244,6 +245,12 @@ def detected_swaps(state: TrackState) -> int:
     return int(np.count_nonzero(state.swapped) + np.count_nonzero(flagged))
 
 
+def float16_px(fields: np.ndarray) -> np.ndarray:
+    """``fields`` (any shape, px) as the cache stores them and the trial models were trained on: float16,
+    clipped to its range (+-65504 px; beyond it float16 holds only inf, whose gradients are NaN)."""
+    return np.clip(fields, -FLOAT16_MAX, FLOAT16_MAX).astype(np.float16)
+
+
 def video_fields(
     path: str | Path, params: PerceptionParams | None = None, reference_frame: int = 1, crop: FrameCrop | None = None
 ) -> VideoFields:
@@ -270,7 +277,7 @@ def video_fields(
     if not fields:
         raise ValueError(f"{path}: no frame at reference_frame={reference_frame}")
     return VideoFields(
-        np.stack(fields).astype(np.float16),
+        float16_px(np.stack(fields)),
         np.array(field_valid, dtype=bool),
         np.array(shares, dtype=np.float32),
         np.array(swaps, dtype=np.int32),

@@ -14,7 +14,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from fv_algos.detection import Detections
-from fv_algos.field import checked_reference
+from fv_algos.reference_markers import checked_reference
 
 
 # Rejecting an implausible match changes its neighbours' medians, so the check is repeated.
