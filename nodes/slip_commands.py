@@ -47,6 +47,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--export", type=output_with_suffix(".pt"), default=None,
                    help="also write an inference-only checkpoint here (no optimizer state) and its .json record")
     p.add_argument("--force", action="store_true", help="train afresh into an --out that holds a trained run")
+    p.add_argument("--device", default="cpu", help="torch device to train on: cpu (default), cuda, cuda:N, mps, "
+                   "xpu[:N]; under torchrun, cuda means each rank's own GPU")
     p.set_defaults(func=_train)
 
     p = sub.add_parser("eval", help="Table 1 (every split and model) and the speed/accuracy variants; or, with "
@@ -243,12 +245,13 @@ def _split(sequences, split: str, window: int, test_fraction: float, seed: int):
 def _train(args: argparse.Namespace) -> int:
     from fv_algos.slip import train as slip_train
     from fv_algos.slip.classifier import load_checkpoint
-    from fv_algos.slip.models import ModelConfig, build_model, count_parameters
+    from fv_algos.slip.models import ModelConfig, build_model, count_parameters, usable_device
     from fv_algos.slip.windows import load_sequences
     from fv_algos.slip_study import dataset_fingerprint
     if (args.out / slip_train.CHECKPOINT_NAME).is_file() and args.resume is None and not args.force:
         raise ValueError(f"{args.out} holds a trained run: --resume {args.out / slip_train.CHECKPOINT_NAME} to go "
                          "on with it, --force to replace it, or choose another --out")
+    usable_device(args.device)  # before the data set is read
     sequences = load_sequences(args.data)
     # validate here: train.main's own parser would exit instead of raising a clear ValueError
     ModelConfig(arch=args.model, hidden=args.hidden, kernel=args.kernel, window=args.window, grid=sequences.grid)
@@ -257,7 +260,7 @@ def _train(args: argparse.Namespace) -> int:
         raise ValueError(f"--extra {args.extra} holds --data's own sequences: its test windows would be trained on")
     optional = {"--steps": args.steps, "--lr": args.lr, "--batch-size": args.batch, "--eval-every": args.eval_every,
                 "--threads": args.threads, "--resume": args.resume, "--precision": args.precision,
-                "--extra": args.extra}
+                "--extra": args.extra, "--device": args.device}
     argv = ["--data", str(args.data), "--out", str(args.out), "--split", SPLITS[args.split], "--arch", args.model,
             "--hidden", str(args.hidden), "--kernel", str(args.kernel), "--window", str(args.window),
             "--seed", str(args.seed), "--test-fraction", str(args.test_fraction),
@@ -455,6 +458,7 @@ def add_bench_parser(kinds: argparse._SubParsersAction, name: str) -> None:
     p.add_argument("--variants", default="fp32,bf16,int8", help="comma-separated variants (fp32,bf16,int8,compile)")
     p.add_argument("--threads", default="1,2", help="comma-separated torch thread counts (default 1,2)")
     p.add_argument("--repeats", type=positive_int, default=50, help="timed calls per measurement (default 50)")
+    p.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda, cuda:N, mps, xpu[:N]")
     p.add_argument("--json", action="store_true", help="print the rows as JSON")
     p.set_defaults(func=_bench_slip)
 
@@ -475,9 +479,10 @@ def _bench_slip(args: argparse.Namespace) -> int:
     if min(thread_counts) < 1:
         raise ValueError(f"--threads {args.threads}: every thread count must be >= 1")
     for variant in _csv(args.variants, str):
-        predictor = variant_predictor(model, variant)
+        predictor = variant_predictor(model, variant, args.device)
         for threads in thread_counts:
-            rows.append({"model": args.model, "variant": variant, "threads": threads, "params": count_parameters(model),
+            rows.append({"model": args.model, "variant": variant, "device": args.device, "threads": threads,
+                         "params": count_parameters(model),
                          "ms_per_window": time_forward(predictor, window, threads, args.repeats)})
     print(json.dumps(rows, indent=1) if args.json else markdown_table(rows, list(rows[0])))
     return 0

@@ -130,8 +130,9 @@ class SlipDetectorNode(Node):
             self.subscribe("markers/reference", MarkerArray, self.on_window_reference, depth=1)
         self.field_sub = self.subscribe("field", DisplacementField, self.on_field, depth=cfg.window,
                                         stale_after_s=p.input_timeout_s or None)
-        self.log.info("model %s: window %d, grid %d, fields read at %s px wide frames", p.model, cfg.window,
-                      cfg.grid, cfg.field_width_px or "any")
+        warm_up_s = self.classifier.warm_up()
+        self.log.info("model %s: window %d, grid %d, fields read at %s px wide frames; on %s, first pass %.0f ms",
+                      p.model, cfg.window, cfg.grid, cfg.field_width_px or "any", p.device, 1e3 * warm_up_s)
 
     def setup_grasp(self, model: TrialModel) -> None:
         import torch

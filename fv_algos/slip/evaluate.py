@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from fv_algos.slip.classifier import predict_proba
-from fv_algos.slip.models import count_parameters, fast_layout
+from fv_algos.slip.models import count_parameters, fast_layout, usable_device
 from fv_algos.slip.windows import Split, WindowSet
 
 Predictor = Callable[[np.ndarray], np.ndarray]
@@ -85,27 +85,31 @@ def time_forward(predictor: Predictor, window: np.ndarray, threads: int, repeats
     return 1e3 * statistics.median(times)
 
 
-def variant_predictor(model: nn.Module, variant: str = "fp32") -> Predictor:
-    """Wrap a CPU model as a predictor in one of VARIANTS.
+def variant_predictor(model: nn.Module, variant: str = "fp32", device: str = "cpu") -> Predictor:
+    """Wrap a model as a predictor in one of VARIANTS, run on ``device`` (a torch device name;
+    the windows go in and the probabilities come back as NumPy arrays on the host).
 
     fp32: as is. bf16: forward under torch.autocast(bfloat16) (convolutions and linear layers in
     bf16) on a channels-last copy of the model. int8: torch.ao.quantization.quantize_dynamic on nn.Linear and nn.LSTM (weights int8,
     activations quantised on the fly); convolutions stay fp32 because dynamic quantisation has no
-    conv kernels. compile: torch.compile (inductor; needs a C++ compiler, compiles on first call).
+    conv kernels; CPU only. compile: torch.compile (inductor; needs a C++ compiler on a CPU, Triton
+    on a GPU; compiles on first call). ``model`` itself is left on its device.
     """
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
-    model = model.eval()
+    if variant == "int8" and usable_device(device).type != "cpu":
+        raise ValueError(f"variant int8 runs on the cpu only, not device {device!r}")
+    model = copy.deepcopy(model).to(usable_device(device)).eval()
     if variant == "bf16":
-        return partial(predict_proba, fast_layout(copy.deepcopy(model), torch.bfloat16), autocast=torch.bfloat16)
+        return partial(predict_proba, fast_layout(model, torch.bfloat16), autocast=torch.bfloat16, device=device)
     if variant == "int8":
-        quantized = torch.ao.quantization.quantize_dynamic(copy.deepcopy(model), {nn.Linear, nn.LSTM}, dtype=torch.qint8)
+        quantized = torch.ao.quantization.quantize_dynamic(model, {nn.Linear, nn.LSTM}, dtype=torch.qint8)
         return partial(predict_proba, quantized)
     if variant == "compile":
         compiled = torch.compile(model)
         compiled.config = model.config
-        return partial(predict_proba, compiled)
-    return partial(predict_proba, model)
+        return partial(predict_proba, compiled, device=device)
+    return partial(predict_proba, model, device=device)
 
 
 def table_rows(

@@ -104,6 +104,27 @@ def bf16_fast_on_cpu() -> bool:
     return any(bool(getattr(torch.cpu, name)()) for name in probes if hasattr(torch.cpu, name))
 
 
+def usable_device(name: str | torch.device) -> torch.device:
+    """The torch device ``name`` ("cpu", "cuda", "cuda:N", "mps", "xpu", "xpu:N") once it is known to be
+    usable in this process: ValueError naming the device and the reason otherwise (torch itself raises
+    an AssertionError for a CUDA device in a CPU-only build, and only at the first tensor moved)."""
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise ValueError(f"device {str(name)!r} is not a torch device (cpu, cuda, cuda:N, mps, xpu, xpu:N)") from None
+    if device.type == "cpu":
+        return device
+    backend = {"cuda": torch.cuda, "xpu": getattr(torch, "xpu", None), "mps": torch.backends.mps}.get(device.type)
+    if backend is None or not backend.is_available():
+        raise ValueError(f"device {str(name)!r} is not usable here: this torch ({torch.__version__}) sees no "
+                         f"{device.type} device (a CPU-only torch build has none; the README says how GPU users install torch)")
+    count = backend.device_count() if hasattr(backend, "device_count") else 1
+    if device.index is not None and device.index >= count:
+        raise ValueError(f"device {str(name)!r} is not usable here: {count} {device.type} device(s), "
+                         f"numbered from 0")
+    return device
+
+
 def autocast_dtype(precision: str, device: str | torch.device = "cpu") -> torch.dtype | None:
     """torch.autocast dtype for a precision name in PRECISIONS: "fp32" -> None (no autocast),
     "bf16" -> torch.bfloat16, "auto" -> torch.bfloat16 on a CPU with native bf16 hardware

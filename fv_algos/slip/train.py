@@ -44,6 +44,7 @@ from fv_algos.slip.models import (
     build_model,
     fast_layout,
     to_model_input,
+    usable_device,
     width_gain,
 )
 from fv_algos.slip.windows import SPLIT_KINDS, SequenceSet, Split, load_sequences, make_windows, split_windows, with_extra_training
@@ -128,7 +129,7 @@ class TrainResult:
         evaluation), over the steps run in this call.
     windows_per_cpu_s: the same per second of this process's CPU time divided by its torch
         threads: close to windows_per_s on a quiet machine, and an estimate of it when other
-        processes compete for the cores.
+        processes compete for the cores; None when training on another device than the CPU.
     autocast: the autocast dtype used ("bfloat16") or None for plain fp32.
     param_digest: SHA-256 of the final parameters (equal on every DDP rank when in sync).
     checkpoint_path: the last checkpoint written (None when out_dir is None or not rank 0).
@@ -140,7 +141,7 @@ class TrainResult:
     windows_per_s: float
     param_digest: str
     checkpoint_path: Path | None
-    windows_per_cpu_s: float = 0.0
+    windows_per_cpu_s: float | None = 0.0
     autocast: str | None = None
 
 
@@ -215,7 +216,7 @@ def train(config: TrainConfig, data: Split, resume: str | Path | None = None) ->
             f"data windows are {data.windows.window} frames on a {data.windows.sequences.grid} grid, "
             f"model expects {config.model.window} frames on a {config.model.grid} grid"
         )
-    device = torch.device(config.device)
+    device = usable_device(config.device)
     amp = autocast_dtype(config.precision, device)
     torch.manual_seed(config.seed)
     model = fast_layout(build_model(config.model).to(device), amp)
@@ -293,6 +294,8 @@ def train(config: TrainConfig, data: Split, resume: str | Path | None = None) ->
     steps_run = step - start_step
     windows_per_s = steps_run * config.batch_size / train_time if train_time > 0 else 0.0
     windows_per_cpu_s = steps_run * config.batch_size / train_cpu if train_cpu > 0 else 0.0
+    if device.type != "cpu":  # the steps wait on the device: CPU time says nothing of their speed
+        windows_per_cpu_s = None
     model = model.to(memory_format=torch.contiguous_format).eval()
     return TrainResult(model, history, step, windows_per_s, parameter_digest(model), checkpoint_path,
                        windows_per_cpu_s, None if amp is None else str(amp).removeprefix("torch."))

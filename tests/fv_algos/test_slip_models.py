@@ -23,6 +23,7 @@ from fv_algos.slip.models import (
     build_model,
     count_parameters,
     to_model_input,
+    usable_device,
     width_gain,
 )
 from fv_algos.slip.windows import SyntheticConfig, make_windows, split_windows, synthetic_sequences
@@ -174,6 +175,34 @@ def test_classifier_precisions_agree() -> None:
     assert SlipClassifier(_model()).autocast == autocast_dtype("auto")
     for window in windows:
         assert bf16.predict(window) == pytest.approx(fp32.predict(window), abs=0.05)
+
+
+def test_devices_are_refused_by_name_and_reason() -> None:
+    assert usable_device("cpu") == torch.device("cpu")
+    for bad in ("gpu", "cuda:x"):
+        with pytest.raises(ValueError, match=f"device '{bad}' is not a torch device"):
+            usable_device(bad)
+    if torch.cuda.is_available():
+        assert usable_device("cuda").type == "cuda"
+        with pytest.raises(ValueError, match=f"cuda device\\(s\\), numbered from 0"):
+            usable_device(f"cuda:{torch.cuda.device_count()}")
+    else:  # torch itself raises AssertionError, at the first tensor moved
+        with pytest.raises(ValueError, match="device 'cuda:0' is not usable here: this torch .* sees no cuda device"):
+            usable_device("cuda:0")
+        with pytest.raises(ValueError, match="device 'cuda' is not usable here"):
+            SlipClassifier(_model(), device="cuda")
+        with pytest.raises(ValueError, match="device 'cuda' is not usable here"):
+            variant_predictor(_model(), "fp32", "cuda")
+    with pytest.raises(ValueError, match="int8 runs on the cpu only|not usable here"):
+        variant_predictor(_model(), "int8", "cuda")
+
+
+def test_warm_up_runs_one_window_and_changes_no_answer() -> None:
+    window = np.random.default_rng(5).normal(scale=3.0, size=(4, 8, 8, 3)).astype(np.float32)
+    classifier = SlipClassifier(_model())
+    before = classifier.predict(window)
+    assert classifier.warm_up() > 0
+    assert classifier.predict(window) == before
 
 
 def test_classifier_rejects_model_with_other_config() -> None:

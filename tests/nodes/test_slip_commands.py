@@ -141,7 +141,7 @@ def test_bad_input_gives_clear_errors(data: Path, tmp_path: Path, capsys: pytest
 def test_bench_slip_times_the_shipped_model(capsys: pytest.CaptureFixture) -> None:
     assert main(["bench", "slip", "--variants", "fp32", "--threads", "1", "--repeats", "2", "--json"]) == 0
     (row,) = json.loads(capsys.readouterr().out)
-    assert row["params"] == 269_826 and row["ms_per_window"] > 0
+    assert row["params"] == 269_826 and row["ms_per_window"] > 0 and row["device"] == "cpu"
 
 
 SHIPPED_SIM = {  # trained on the simulated camera's 640x480 frames
