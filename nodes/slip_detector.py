@@ -84,8 +84,11 @@ class SlipDetectorParams:
             raise ValueError(f"hysteresis {self.hysteresis} must be >= 0 and keep threshold +/- h inside (0, 1)")
         if self.threads < 1:
             raise ValueError(f"threads {self.threads} must be >= 1")
-        if not DEVICE_RE.fullmatch(self.device):  # checked by name: torch is not imported to check a launch file
+        if not DEVICE_RE.fullmatch(self.device):  # checked by name: torch is not imported for a cpu launch
             raise ValueError(f"device {self.device!r} is not cpu, cuda, cuda:N, mps, xpu or xpu:N")
+        if self.device != "cpu":  # one this torch cannot use is refused by `fv launch --check`, not respawned
+            from fv_algos.slip.models import usable_device
+            usable_device(self.device)
         if self.input_timeout_s < 0:
             raise ValueError(f"input_timeout_s {self.input_timeout_s} must be > 0, or 0 for never")
         if self.window_gap_s <= 0:

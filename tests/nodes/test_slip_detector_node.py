@@ -371,5 +371,21 @@ def test_bad_params_are_refused_before_start(params: dict, message: str) -> None
     from nodes.slip_detector import SlipDetectorParams
     with pytest.raises(ValueError, match=message):
         SlipDetectorParams(**params)
-    for ok in ("cpu", "cuda", "cuda:1", "mps"):
-        assert SlipDetectorParams(device=ok).device == ok
+    assert SlipDetectorParams(device="cpu").device == "cpu"
+
+
+def test_a_device_this_torch_cannot_use_is_refused_before_start() -> None:
+    """`fv launch device:=cuda` on a CPU-only torch respawned a slip detector that could never start."""
+    import torch
+
+    from nodes.slip_detector import SlipDetectorParams
+    if torch.cuda.is_available():
+        assert SlipDetectorParams(device="cuda").device == "cuda"
+        bad = f"cuda:{torch.cuda.device_count()}"
+    else:
+        bad = "cuda"
+    with pytest.raises(ValueError, match=f"device '{bad}' is not usable here"):
+        SlipDetectorParams(device=bad)
+    if not torch.backends.mps.is_available():
+        with pytest.raises(ValueError, match="device 'mps' is not usable here"):
+            SlipDetectorParams(device="mps")
