@@ -38,14 +38,20 @@ class ClassicalConfig:
             raise ValueError("ClassicalConfig.noise_floor_px and stick_tol must be > 0")
 
 
-def _frames(windows: np.ndarray) -> np.ndarray:
-    """(N, T, H, W, 3) px -> (N, T, H*W*2) float64 dx/dy values; ValueError on bad input."""
+def _frames(windows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, T, H, W, 3) px -> the (N, T, H*W*2) float64 dx/dy values of each window divided by its
+    largest |value|, and those scales (N,) px (1 for an all-zero window); ValueError on bad input.
+    Both features are ratios, so they are computed on the scaled values (the noise floor scaled
+    alike): the Gram matrix of a window of 1e160 px no longer overflows."""
     arr = np.asarray(windows)
     if arr.ndim != 5 or arr.shape[-1] != 3:
         raise ValueError(f"windows must have shape (N, T, H, W, 3), got {arr.shape}")
     if not np.isfinite(arr).all():
         raise ValueError("windows contain non-finite values (NaN/inf)")
-    return arr[..., :2].reshape(arr.shape[0], arr.shape[1], -1).astype(np.float64)
+    frames = arr[..., :2].reshape(arr.shape[0], arr.shape[1], -1).astype(np.float64)
+    scale = np.abs(frames).max(axis=(1, 2), initial=0.0)
+    scale[scale == 0] = 1.0
+    return frames / scale[:, None, None], scale
 
 
 def _rank1(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -57,22 +63,25 @@ def _rank1(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def pattern_change(windows: np.ndarray, noise_floor_px: float = 0.2) -> np.ndarray:
     """(N, T, H, W, 3) px -> (N,) float64 in [0, 1): unexplained-by-a-fixed-pattern energy share."""
-    frames = _frames(windows)
+    frames, scale = _frames(windows)
     values, _ = _rank1(frames)
     total = values.sum(axis=1)
-    noise = noise_floor_px**2 * frames.shape[1] * frames.shape[2]
+    with np.errstate(over="ignore"):  # a window far below the noise floor: an infinite noise term, share 0
+        noise = (noise_floor_px / scale) ** 2 * frames.shape[1] * frames.shape[2]
     return (total - values[:, -1]) / (total + noise)
 
 
 def stick_ratio(windows: np.ndarray, noise_floor_px: float = 0.2, stick_tol: float = 0.25) -> np.ndarray:
     """(N, T, H, W, 3) px -> (N,) float64 in [0, 1]: share of cells following the fixed pattern."""
-    frames = _frames(windows)
+    frames, scale = _frames(windows)
     _, top = _rank1(frames)
     residual = frames - top[:, :, None] * np.einsum("nt,ntk->nk", top, frames)[:, None, :]
     n, t = frames.shape[:2]
     cell_res = np.sqrt((residual.reshape(n, t, -1, 2) ** 2).mean(axis=(1, 3)))
     cell_rms = np.sqrt((frames.reshape(n, t, -1, 2) ** 2).mean(axis=(1, 3)))
-    return (cell_res <= stick_tol * cell_rms + noise_floor_px).mean(axis=1)
+    with np.errstate(over="ignore"):
+        floor = noise_floor_px / scale[:, None]
+    return (cell_res <= stick_tol * cell_rms + floor).mean(axis=1)
 
 
 class ClassicalSlipDetector:

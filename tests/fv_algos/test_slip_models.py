@@ -247,6 +247,19 @@ def test_classical_features_separate_stick_from_slip() -> None:
         pattern_change(np.full_like(windows, np.nan))
 
 
+@pytest.mark.parametrize("scale", [1e-170, 1e160, 1e300])
+def test_classical_features_hold_at_extreme_scales(scale: float) -> None:
+    """A window of 1e160 px overflowed the Gram matrix: numpy's eigh raised LinAlgError."""
+    windows, _ = _pattern_windows()
+    windows = windows.astype(np.float64) * 3.0  # well above the 0.2 px noise floor
+    change, ratio = pattern_change(windows * scale), stick_ratio(windows * scale)
+    if scale < 1:  # far below the noise floor: no motion, every cell sticks
+        assert change.tolist() == [0.0, 0.0] and ratio.tolist() == [1.0, 1.0]
+    else:  # the noise floor no longer counts: the shares of the same windows without it
+        assert change == pytest.approx(pattern_change(windows, noise_floor_px=1e-300))
+        assert ratio.tolist() == stick_ratio(windows, noise_floor_px=1e-300).tolist()
+
+
 @pytest.mark.parametrize("feature", ["pattern_change", "stick_ratio"])
 def test_classical_detector_fits_threshold(feature: str) -> None:
     windows, labels = _pattern_windows()
