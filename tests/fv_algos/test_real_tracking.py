@@ -201,6 +201,32 @@ def test_fingervision_whole_video_few_markers_on_another_dot(real_data: Path) ->
     assert np.mean(shares) > 0.78
 
 
+@pytest.mark.slow
+def test_fingervision_tracker_resumed_at_frame_300_keeps_the_cluttered_fallback(real_data: Path) -> None:
+    """A tracker resumed at frame 300 from frame 1's reference (a respawned tracker node) used the
+    ordinary fallback: 487 marker-frames valid on another marker's dot to the video's end, 138 now."""
+    capture = cv2.VideoCapture(str(real_data / "fingervision_cam1_0002.m4v"))
+    capture.read()  # frame 0
+    _, first = capture.read()
+    reference = Perception()
+    reference.reset(first)
+    pitch = reference.marker.pitch_px
+    for _ in range(2, 300):
+        capture.read()
+    ok, frame = capture.read()
+    perception = Perception()
+    perception.resume(frame, reference.tracker.state.reference_px)
+    assert perception.tracker.cluttered
+    hopped = 0
+    ok, frame = capture.read()
+    while ok:
+        state, _ = perception.step(frame)
+        hopped += _on_another_reference(state, 0.3 * pitch, 0.15 * pitch)
+        ok, frame = capture.read()
+    capture.release()
+    assert hopped < 250
+
+
 def test_isd_grasp_video_tracks(isd_data: Path) -> None:
     frames = _frames(isd_data / "train" / "avocado_real" / "exp_num_1" / "camera_0.avi", step=5)[1:40]
     perception = Perception()

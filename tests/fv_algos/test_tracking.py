@@ -328,6 +328,18 @@ def test_perception_resumed_on_a_blank_frame_tracks_the_markers_once_they_show()
         assert np.abs(field.field[:, :, :2] - shift).max() < 0.1
 
 
+def test_perception_resumed_among_clutter_takes_its_reference_as_cluttered() -> None:
+    """A resumed tracker did not know that the reference it took over was cluttered (`reset` leaves
+    crowded blobs out and says so to the tracker): the frame it resumes on now tells it."""
+    centres = grid_centres(12, 12)
+    perception = Perception(PerceptionParams(marker=SIM_MARKER))
+    perception.resume(render_markers(centres), centres)
+    assert not perception.tracker.cluttered
+    clutter = centres[:1] + [0.45 * SIM_MARKER.pitch_px, 0.0]  # a blob under half a pitch from a marker
+    perception.resume(render_markers(np.vstack([centres, clutter])), centres)
+    assert perception.tracker.cluttered
+
+
 def test_neighbour_consistency_flags_a_swap_not_a_smooth_field() -> None:
     smooth = _bump(REF, 12.0)
     valid = np.ones(len(REF), dtype=bool)
