@@ -47,8 +47,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--export", type=output_with_suffix(".pt"), default=None,
                    help="also write an inference-only checkpoint here (no optimizer state) and its .json record")
     p.add_argument("--force", action="store_true", help="train afresh into an --out that holds a trained run")
-    p.add_argument("--device", default="cpu", help="torch device to train on: cpu (default), cuda, cuda:N, mps, "
-                   "xpu[:N]; under torchrun, cuda means each rank's own GPU")
     p.set_defaults(func=_train)
 
     p = sub.add_parser("eval", help="Table 1 (every split and model) and the speed/accuracy variants; or, with "
@@ -131,6 +129,8 @@ def _model_flags(p: argparse.ArgumentParser, single_run: bool = True) -> None:
     p.add_argument("--seed", type=random_seed, default=0, help="training and split seed (default 0)")
     p.add_argument("--test-fraction", type=float, default=0.1, help="held-out share (default 0.1)")
     p.add_argument("--threads", type=positive_int, default=None, help="torch threads for training")
+    p.add_argument("--device", default="cpu", help="torch device to train on: cpu (default), cuda, cuda:N, mps, "
+                   "xpu[:N]; under torchrun, cuda means each rank's own GPU")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -329,7 +329,7 @@ class _ModelStore:
         fingerprint = self.fingerprint if sequences is None else dataset_fingerprint(sequences)
         given = {"steps": a.steps, "batch_size": a.batch, "lr": a.lr, "threads": a.threads, "precision": a.precision}
         train_config = TrainConfig(model=config, seed=a.seed, out_dir=str(run_dir), progress=not a.no_progress,
-                                   **{k: v for k, v in given.items() if v is not None})
+                                   device=a.device, **{k: v for k, v in given.items() if v is not None})
         if (run_dir / CHECKPOINT_NAME).is_file():
             if not (run_dir / RUN_RECORD).is_file():
                 raise ValueError(f"{run_dir}: its training did not finish (no {RUN_RECORD}): remove it or point "
@@ -354,8 +354,8 @@ class _ModelStore:
                    dataset_metadata=self.sequences.metadata, windows_per_cpu_s=result.windows_per_cpu_s,
                    autocast=result.autocast, lr=train_config.lr, batch_size=train_config.batch_size)
         self.sources[key] = f"trained {train_config.steps} steps -> {run_dir}"
-        self.models[key] = result.model
-        return result.model
+        self.models[key] = result.model.cpu()  # judged and timed on the cpu, wherever it was trained
+        return self.models[key]
 
 
 def _eval(args: argparse.Namespace) -> int:
@@ -363,6 +363,8 @@ def _eval(args: argparse.Namespace) -> int:
         raise ValueError("--online, --alarm and --plot need --trials (a trial-level model judged frame by frame)")
     if args.trials is None and (args.crop or args.size):
         raise ValueError("--crop and --size need --trials (the frames of its videos are cut as they are read)")
+    if args.device != "cpu" and args.data is None:
+        raise ValueError("--device is the device --data's models are trained on (--trials and --stream judge on the cpu)")
     if args.stream is not None:
         return _eval_stream(args)
     if args.trials is not None:
@@ -373,7 +375,7 @@ def _eval(args: argparse.Namespace) -> int:
     if args.data is None or args.out is None:
         raise ValueError("give --data DATASET.npz and --out DIR (or --trials DIR --model M)")
     from fv_algos.slip.evaluate import table_rows
-    from fv_algos.slip.models import ModelConfig
+    from fv_algos.slip.models import ModelConfig, usable_device
     from fv_algos.slip.windows import load_sequences
     from fv_algos.slip_study import split_inflation, table_predictors
     from nodes.plots import markdown_table, pareto_plot
@@ -381,6 +383,7 @@ def _eval(args: argparse.Namespace) -> int:
     unknown = sorted(set(splits) - set(SPLITS))
     if unknown:
         raise ValueError(f"--splits: unknown {unknown} (known: {list(SPLITS)})")
+    usable_device(args.device)  # before the data set is read
     sequences = load_sequences(args.data)
     store = _ModelStore(args.models or args.out / "models", args.data, sequences, args)
     base = {"hidden": args.hidden, "kernel": args.kernel, "window": args.window, "grid": sequences.grid,

@@ -136,6 +136,11 @@ def test_bad_input_gives_clear_errors(data: Path, tmp_path: Path, capsys: pytest
     assert "not found" in capsys.readouterr().err
     assert main(["train", "--data", str(data), "--out", str(tmp_path), "--model", "transformer", *TINY]) == 2
     assert "arch" in capsys.readouterr().err
+    for command in (["train", "--out", str(tmp_path / "t")], ["eval", "--out", str(tmp_path / "e")]):
+        assert main([*command, "--data", str(data), "--device", "gpu"]) == 2  # before any data is read
+        assert "device 'gpu' is not a torch device" in capsys.readouterr().err
+    assert main(["eval", "--stream", "0.2", "--device", "cpu:0" if torch.cuda.is_available() else "cuda"]) == 2
+    assert "--device is the device --data's models are trained on" in capsys.readouterr().err
 
 
 def test_bench_slip_times_the_shipped_model(capsys: pytest.CaptureFixture) -> None:
