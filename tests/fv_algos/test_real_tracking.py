@@ -173,6 +173,30 @@ def test_fingervision_every_frame_no_valid_marker_off_its_free_rest_dot(real_dat
     assert np.mean(shares) > 0.83
 
 
+def _fingervision_at_frame_1(real_data: Path) -> tuple[cv2.VideoCapture, Perception, np.ndarray]:
+    """The FingerVision video read up to frame 1, a Perception with frame 1 as its reference, frame 1."""
+    capture = cv2.VideoCapture(str(real_data / "fingervision_cam1_0002.m4v"))
+    capture.read()  # frame 0
+    _, frame = capture.read()
+    perception = Perception()
+    perception.reset(frame)
+    return capture, perception, frame
+
+
+def _track_to_the_end(perception: Perception, capture: cv2.VideoCapture, frame: np.ndarray,
+                      pitch: float) -> tuple[int, list[float]]:
+    """Track `frame` and the rest of `capture`: valid marker-frames on another marker's dot (more than
+    0.3 pitch off, within 0.15 of it), and the share of markers valid per frame."""
+    hopped, shares, ok = 0, [], True
+    while ok:
+        state, _ = perception.step(frame)
+        hopped += _on_another_reference(state, 0.3 * pitch, 0.15 * pitch)
+        shares.append(state.valid.mean())
+        ok, frame = capture.read()
+    capture.release()
+    return hopped, shares
+
+
 @pytest.mark.slow
 def test_fingervision_whole_video_few_markers_on_another_dot(real_data: Path) -> None:
     """The whole video (2,932 frames), frame 1 the reference. From frame ~1,950 a QR card behind the
@@ -183,19 +207,8 @@ def test_fingervision_whole_video_few_markers_on_another_dot(real_data: Path) ->
     close to lattice markers) it must now match at least as many more as set it off. Valid markers on
     another marker's dot, in marker-frames: 568 before; 798 with only the reference's clutter left out,
     234 with only the fallback's margin; 116 with both."""
-    capture = cv2.VideoCapture(str(real_data / "fingervision_cam1_0002.m4v"))
-    capture.read()  # frame 0
-    ok, frame = capture.read()
-    perception = Perception()
-    perception.reset(frame)
-    pitch = perception.marker.pitch_px
-    hopped, shares = 0, []
-    while ok:
-        state, _ = perception.step(frame)
-        hopped += _on_another_reference(state, 0.3 * pitch, 0.15 * pitch)
-        shares.append(state.valid.mean())
-        ok, frame = capture.read()
-    capture.release()
+    capture, perception, frame = _fingervision_at_frame_1(real_data)
+    hopped, shares = _track_to_the_end(perception, capture, frame, perception.marker.pitch_px)
     assert len(shares) == 2931  # frames 1 to 2931
     assert hopped < 150
     assert np.mean(shares) > 0.78
@@ -205,25 +218,15 @@ def test_fingervision_whole_video_few_markers_on_another_dot(real_data: Path) ->
 def test_fingervision_tracker_resumed_at_frame_300_keeps_the_cluttered_fallback(real_data: Path) -> None:
     """A tracker resumed at frame 300 from frame 1's reference (a respawned tracker node) used the
     ordinary fallback: 487 marker-frames valid on another marker's dot to the video's end, 138 now."""
-    capture = cv2.VideoCapture(str(real_data / "fingervision_cam1_0002.m4v"))
-    capture.read()  # frame 0
-    _, first = capture.read()
-    reference = Perception()
-    reference.reset(first)
-    pitch = reference.marker.pitch_px
+    capture, reference, _ = _fingervision_at_frame_1(real_data)
     for _ in range(2, 300):
         capture.read()
-    ok, frame = capture.read()
+    _, frame = capture.read()
     perception = Perception()
     perception.resume(frame, reference.tracker.state.reference_px)
     assert perception.tracker.cluttered
-    hopped = 0
-    ok, frame = capture.read()
-    while ok:
-        state, _ = perception.step(frame)
-        hopped += _on_another_reference(state, 0.3 * pitch, 0.15 * pitch)
-        ok, frame = capture.read()
-    capture.release()
+    _, frame = capture.read()
+    hopped, _ = _track_to_the_end(perception, capture, frame, reference.marker.pitch_px)
     assert hopped < 250
 
 
