@@ -161,6 +161,40 @@ def test_a_dark_first_frame_is_no_reference_and_the_next_is_taken() -> None:
         node.close()
 
 
+@pytest.mark.parametrize("first_seq, resumed", [(0, False), (40, True)])
+def test_a_replay_from_the_camera_s_first_frame_takes_its_own_reference(first_seq: int, resumed: bool) -> None:
+    """A recorder started before a session also gets the reference an earlier session left on the bus
+    (latched), stamped before the recording's first frame: the replay tracked the whole bag against it
+    (349 of 500 decisions differed from the live ones). A recording that holds the camera's first frames
+    holds the frame the live tracker took its reference from: the replay takes its own there. One that
+    starts later (a recording begun mid-session) is tracked against the recorded reference, as before."""
+    from fv_algos.sim.scene import scene_from_dict
+    from fv_algos.sim.sensor import SimSensor
+    from msgs import Image
+    from nodes.tracker import TrackerNode
+    sensor = SimSensor(scene_from_dict({"object": {"shape": "sphere"}, "fps": 10,
+                                        "steps": [{"action": "hold", "duration_s": 0.2}]}), seed=0)
+    rest = sensor.renderer.render(np.column_stack([sensor.markers_ref_mm, np.zeros(len(sensor.markers_ref_mm))])).image
+    node = TrackerNode("tracker", {"resume": False, "recorded_reference": "recorded/markers/reference"})
+    references: list = []
+    try:
+        node.setup()
+        node.reference_pub.publish = references.append
+        node.markers_pub.publish = lambda _msg: None
+        earlier = node.perception.reset(rest)  # the earlier session's, stamped 24 s before the recording
+        node.on_recorded_reference(MarkerArray(stamp_ns=1, ref_px=earlier.reference_px.astype(np.float32),
+                                               cur_px=earlier.reference_px.astype(np.float32),
+                                               valid=np.ones(len(earlier.valid), bool),
+                                               frames_since_seen=np.zeros(len(earlier.valid), np.int32),
+                                               width=rest.shape[1], height=rest.shape[0]))
+        for k in range(3):
+            node.on_image(Image(seq=first_seq + k, stamp_ns=24_000_000_000 + k, encoding="mono8", data=rest))
+        assert node.counters["resumed"] == int(resumed) and node.counters["references"] == int(not resumed)
+        assert len(references) == 1 and references[0].stamp_ns == (24_000_000_000 if resumed else 24_000_000_001)
+    finally:
+        node.close()
+
+
 def test_a_frame_of_another_size_is_dropped_until_a_new_reference() -> None:
     """A camera reopened at another size: its frame was tracked against the reference's marker positions
     into a wrong field taken as valid (8 of 70 markers valid, |d| 35 px with the skin at rest). It is now
