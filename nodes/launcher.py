@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from nodes.launch_file import NodeSpec, load_launch, parse_arg_overrides
-from nodes.node import LAUNCH_ENV, LAUNCHER_PID_ENV, STANDBY_READY
+from nodes.node import LAUNCH_ENV, LAUNCHER_PID_ENV, STANDBY_READY, STOP_SIGNALS
 
 GRACE_S = 1.2
 NAMESAKE_WAIT_S = 0.5  # how long a launch on a running bus listens for the NodeStatus of namesakes
@@ -48,7 +48,6 @@ POLL_S = 0.05
 STATUS_PERIOD_S = 1.0  # the launcher's own NodeStatus period
 SILENT_AFTER_S = 3.0  # a running node whose NodeStatus stopped this long is reported (nodes send one per second)
 STATUS_TOPIC = "/status"
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)  # each stops the launch (SIGHUP: terminal closed)
 
 
 @dataclass

@@ -52,6 +52,8 @@ from nodes.params import build_params
 
 STATUS_TOPIC = "/status"
 STANDBY_READY = "fv-standby-ready"  # the line a standby process prints once it waits to take over
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)  # each stops a node or a launch cleanly (SIGHUP: its
+# terminal closed; a recorder left its bag unfinished)
 LAUNCH_ENV = "FV_LAUNCH_NS"  # set by `fv launch` for its nodes: when the launch started, ns since the epoch
 LAUNCHER_PID_ENV = "FV_LAUNCHER_PID"  # set by `fv launch` for its nodes: the launcher's pid, their parent
 KEEP_ALL_CAP = 10_000
@@ -266,9 +268,9 @@ class Node:
         return self._stop.is_set()
 
     def spin(self, install_signals: bool = True) -> None:
-        """Run setup, then callbacks and timers until stop() or SIGINT/SIGTERM."""
+        """Run setup, then callbacks and timers until stop() or a STOP_SIGNALS signal."""
         if install_signals and threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
+            for sig in STOP_SIGNALS:
                 signal.signal(sig, lambda *_: self.stop())
         self._receiver = threading.Thread(target=self._receive_loop, name=f"{self.name}-rx", daemon=True)
         self._receiver.start()

@@ -126,6 +126,22 @@ def test_kill_9_then_recover_keeps_every_completed_chunk(bus: BusAddress, spawn:
         np.testing.assert_array_equal(m.decode().data, sent[m.sequence][1])
 
 
+def test_a_recorder_whose_terminal_closes_finishes_its_bag(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
+    """SIGHUP (the terminal closed, an SSH session dropped) killed the recorder outright: its bag was
+    unfinished and needed `fv bag recover`. Every node now stops on it as on Ctrl-C."""
+    rec = spawn("bag", "record", "/slip", "-o", str(tmp_path / "hup"))
+    pub = PublisherSocket("cam", bus)
+    try:
+        wait_subscribed(pub, ["/slip"])
+        for k in range(20):
+            pub.publish("/slip", SlipState(stamp_ns=k + 1))
+        time.sleep(0.5)
+    finally:
+        pub.close()
+    assert stop(rec, signal.SIGHUP) == 0
+    assert BagReader(tmp_path / "hup" / "hup_0.mcap").topics()["/slip"].count == 20
+
+
 def test_a_full_disk_ends_the_recording_with_the_command_that_keeps_it(bus: BusAddress, spawn: Spawn,
                                                                        tmp_path: Path) -> None:
     """A file size limit (what a full disk does to the recorder): one error naming the file and
