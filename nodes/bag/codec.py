@@ -33,6 +33,7 @@ HEADER_PROBE_B = 512
 
 META_NODE = "node"
 META_LATCHED = "latched"
+RECORDING_END_META = "fv_recording_end"  # metadata record of a finished recording: totals, per-topic counts and times
 
 
 def join_frames(frames: Iterable[Any]) -> bytes:

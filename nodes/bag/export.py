@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -38,6 +39,19 @@ def _row(msg: Message, log_time_ns: int) -> dict[str, Any]:
     return row
 
 
+MAX_TIMEBASE = 65_535  # MPEG-4's largest time-base denominator
+
+
+def video_fps(fps: float) -> float:
+    """``fps`` rounded to the most decimals (3 at most) that keep fps * 10**decimals within MAX_TIMEBASE:
+    OpenCV writes a rate as that integer over 10**decimals, and its mp4 writer failed to open at a
+    measured 97.2568578 fps (97257 / 1000: "timebase not supported by MPEG 4 standard")."""
+    for decimals in (3, 2, 1, 0):
+        if round(fps * 10**decimals) <= MAX_TIMEBASE:
+            return round(fps, decimals)
+    return fps
+
+
 def _video(messages: Iterator[tuple[str, Message, int]], output: Path, fmt: str, fps: float) -> int:
     import cv2
     writer = None
@@ -47,7 +61,7 @@ def _video(messages: Iterator[tuple[str, Message, int]], output: Path, fmt: str,
             frame = _bgr(msg)
             if writer is None:
                 size = (frame.shape[1], frame.shape[0])
-                writer = cv2.VideoWriter(str(output), cv2.VideoWriter_fourcc(*FOURCC[fmt]), fps, size)
+                writer = cv2.VideoWriter(str(output), cv2.VideoWriter_fourcc(*FOURCC[fmt]), video_fps(fps), size)
                 if not writer.isOpened():
                     raise RuntimeError(f"OpenCV cannot write {fmt} video to {output}")
             elif (frame.shape[1], frame.shape[0]) != size:
@@ -61,9 +75,17 @@ def _video(messages: Iterator[tuple[str, Message, int]], output: Path, fmt: str,
     return count
 
 
+PNG_NAME = re.compile(r"\d{6,}_\d+\.png")  # <index>_<stamp_ns>.png
+
+
 def _png(messages: Iterator[tuple[str, Message, int]], output: Path) -> int:
+    """Frames as PNG files in folder ``output``; the frames of an earlier export there are replaced
+    (they were kept, and two exports' frames mixed), any other file is left alone."""
     import cv2
     output.mkdir(parents=True, exist_ok=True)
+    for earlier in output.iterdir():
+        if PNG_NAME.fullmatch(earlier.name) and earlier.is_file():
+            earlier.unlink()
     count = 0
     for _topic, msg, _t in messages:
         path = output / f"{count:06d}_{msg.stamp_ns}.png"
@@ -124,8 +146,7 @@ def export(path: Path | str, topic: str, output: Path, fmt: str | None = None, f
         raise ValueError(f"{topic} holds {type_name}, not Image: export it as csv or npz")
     messages = bag.read([topic])
     if fmt in FOURCC:
-        count = topics[topic].count
-        rate = fps or ((count - 1) / bag.duration_s if bag.duration_s > 0 and count > 1 else 30.0)
+        rate = fps or topics[topic].rate_hz or 30.0
         return _video(messages, output, fmt, rate), output
     if fmt == "png":
         return _png(messages, output), output

@@ -27,7 +27,7 @@ def bag_info(path: Path | str, gaps: bool = False) -> dict[str, Any]:
     topics = []
     for t in bag.topics().values():
         entry = {"topic": t.topic, "type": t.type_name, "count": t.count,
-                 "rate_hz": (t.count - 1) / duration if duration > 0 and t.count > 1 else 0.0,
+                 "rate_hz": t.rate_hz,
                  "latched": t.latched, "nodes": t.nodes}
         if gaps:
             entry["gaps"] = missing[t.topic]

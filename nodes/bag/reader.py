@@ -10,6 +10,7 @@ naming the file and what is wrong (a crashed recording: run `fv bag recover FILE
 """
 from __future__ import annotations
 
+import json
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,7 +25,7 @@ from zstandard import ZstdError
 
 import msgs
 from msgs import Message, MessageError
-from nodes.bag.codec import MESSAGE_ENCODING, META_LATCHED, META_NODE, split_payload
+from nodes.bag.codec import MESSAGE_ENCODING, META_LATCHED, META_NODE, RECORDING_END_META, split_payload
 from nodes.bag.writer import bag_file_index
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -45,13 +46,24 @@ class BagError(ValueError):
 
 @dataclass
 class TopicInfo:
-    """One topic of a bag: message type, message count, latched, publishing nodes."""
+    """One topic of a bag: message type, message count, latched, publishing nodes, and the log times
+    (ns) of its first and last message: exact from a finished recording's totals, else the bounds of
+    the chunks that hold it."""
 
     topic: str
     type_name: str
     count: int = 0
     latched: bool = False
     nodes: list[str] = field(default_factory=list)
+    first_ns: int = 0
+    last_ns: int = 0
+
+    @property
+    def rate_hz(self) -> float:
+        """Messages per second over the topic's own span (0 for fewer than 2 messages): a camera's frame
+        rate, whatever else the bag held before or after it."""
+        span_ns = self.last_ns - self.first_ns
+        return (self.count - 1) * 1e9 / span_ns if self.count > 1 and span_ns > 0 else 0.0
 
 
 @dataclass
@@ -206,6 +218,15 @@ class BagReader:
                 node = channel.metadata.get(META_NODE, "")
                 if node not in info.nodes:
                     info.nodes.append(node)
+                chunks = [c for c in f.summary.chunk_indexes if cid in c.message_index_offsets]
+                if chunks:
+                    first, last = min(c.message_start_time for c in chunks), max(c.message_end_time for c in chunks)
+                    info.first_ns = min(info.first_ns, first) if info.first_ns else first
+                    info.last_ns = max(info.last_ns, last)
+        recorded = json.loads(self.metadata().get(RECORDING_END_META, {}).get("per_topic", "{}"))
+        for topic, totals in recorded.items():
+            if topic in out and "first_ns" in totals:  # a recording finished before it kept these had only counts
+                out[topic].first_ns, out[topic].last_ns = int(totals["first_ns"]), int(totals["last_ns"])
         return out
 
     def attachments(self) -> list[Attachment]:

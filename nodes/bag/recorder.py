@@ -27,6 +27,7 @@ import yaml
 
 import msgs
 from msgs import CameraInfo, MessageError
+from nodes.bag.codec import RECORDING_END_META
 from nodes.bag.writer import COMPRESSIONS, DEFAULT_CHUNK_B, BagWriter
 from nodes.bus import ALL_TOPICS, SeqTracker, TopicReader
 from nodes.node import Node
@@ -34,7 +35,6 @@ from nodes.node import Node
 DRAIN_IDLE_S = 0.1  # on stop, keep receiving until the queue stays empty this long, a message published
 DRAIN_MAX_S = 2.0   # after the stop comes (a live bus is never quiet), or this long at most
 RECORDING_META = "fv_recording"
-RECORDING_END_META = "fv_recording_end"
 
 
 @dataclass
@@ -212,8 +212,8 @@ class BagRecord(Node):
             self.writer.add_metadata(RECORDING_END_META, {
                 "end_time_ns": str(time.time_ns()), "messages": str(sum(s.count for s in stats.values())),
                 "gaps": str(self.total_gaps), "malformed": str(self._reader.malformed),
-                "per_topic": json.dumps({t: {"count": s.count, "gaps": self._gaps[t].gaps}
-                                         for t, s in stats.items()})})
+                "per_topic": json.dumps({t: {"count": s.count, "gaps": self._gaps[t].gaps, "first_ns": s.first_ns,
+                                             "last_ns": s.last_ns} for t, s in stats.items()})})
             self.writer.close()
         except OSError as exc:
             unfinished = self.writer.files[-1] if self.writer.files else self.writer.output

@@ -11,8 +11,8 @@ import pytest
 
 import msgs
 from msgs import CameraInfo, DisplacementField, Image, MarkerArray, MessageError, SlipState
-from nodes.bag.codec import MESSAGE_ENCODING, join_frames, split_payload
-from nodes.bag.export import export
+from nodes.bag.codec import MESSAGE_ENCODING, RECORDING_END_META, join_frames, split_payload
+from nodes.bag.export import export, video_fps
 from nodes.bag.info import bag_info
 from nodes.bag.reader import BagError, BagReader, read_bag
 from nodes.bag.recover import recover, recover_in_place
@@ -243,6 +243,14 @@ def test_export_keeps_a_file_that_exists_and_refuses_rates_that_mean_nothing(
     assert "exists and is not empty: pass --force" in capsys.readouterr().err and keep.read_text() == "important\n"
     assert main(["bag", "export", str(path), "--topic", "/slip", "-o", str(keep), "--force"]) == 0
     assert len(keep.read_text().splitlines()) == 41
+    frames = tmp_path / "frames"  # a frame folder: --force replaced nothing, and two exports' frames mixed
+    assert main(["bag", "export", str(path), "--topic", "/camera/image", "-o", str(frames)]) == 0
+    (frames / "notes.txt").write_text("mine\n")
+    shorter = tmp_path / "short"
+    write_bag(shorter, sample_messages(5, np.random.default_rng(1)))
+    assert main(["bag", "export", str(shorter), "--topic", "/camera/image", "-o", str(frames)]) == 2
+    assert main(["bag", "export", str(shorter), "--topic", "/camera/image", "-o", str(frames), "--force"]) == 0
+    assert len(list(frames.glob("*.png"))) == 5 and (frames / "notes.txt").read_text() == "mine\n"
     for fps in ("inf", "nan", "-5"):
         with pytest.raises(SystemExit):
             main(["bag", "export", str(path), "--topic", "/camera/image", "-o", str(tmp_path / f"{fps}.avi"),
@@ -284,12 +292,46 @@ def test_info_json(bag: tuple[Path, list], capsys: pytest.CaptureFixture) -> Non
     info = json.loads(capsys.readouterr().out)
     image = next(t for t in info["topics"] if t["topic"] == "/camera/image")
     assert image["count"] == 40 and image["gaps"] == 0 and image["type"] == "Image"
-    assert image["rate_hz"] == pytest.approx(39 / info["duration_s"])
+    assert 39 / info["duration_s"] <= image["rate_hz"] <= 100.0  # without a recording's totals: the chunks' bounds
     assert info["attachments"][0]["name"] == "launch.yaml" and info["metadata"]["fv_recording"]["host"] == "test"
     assert main(["bag", "info", str(path)]) == 0
     text = capsys.readouterr().out
     assert "/camera/image" in text and "launch.yaml" in text
     assert bag_info(path)["messages"] == 121
+
+
+def test_a_topic_s_rate_is_over_its_own_span(tmp_path: Path, rng: np.random.Generator,
+                                             capsys: pytest.CaptureFixture) -> None:
+    """`fv bag info` and `fv bag export` divided a topic's count by the whole bag's duration: a camera
+    recorded from 2 s after the recording began showed 6.02 Hz instead of 12.5, and its video played at
+    half speed. A finished recording keeps each topic's first and last log time."""
+    messages = sample_messages(40, rng)  # frames every 10 ms: 100 Hz
+    late = [(t, latched, m, ts + (0 if latched else 4_000_000_000)) for t, latched, m, ts in messages]
+    writer = BagWriter(tmp_path / "late", fsync=False)
+    seqs: dict[str, int] = {}
+    for topic, latched, msg, t in late:
+        seq = seqs[topic] = seqs.get(topic, -1) + 1
+        writer.write(topic, "cam", latched, frames_of(msg, seq, "cam", t - 100), t)
+    per_topic = {t: {"count": st.count, "gaps": 0, "first_ns": st.first_ns, "last_ns": st.last_ns}
+                 for t, st in writer.stats.items()}
+    writer.add_metadata(RECORDING_END_META, {"per_topic": json.dumps(per_topic)})
+    writer.close()
+    assert main(["bag", "info", str(tmp_path / "late"), "--json"]) == 0
+    rates = {t["topic"]: t["rate_hz"] for t in json.loads(capsys.readouterr().out)["topics"]}
+    assert rates["/camera/image"] == pytest.approx(100.0) and rates["/camera/info"] == 0.0
+    count, out = export(tmp_path / "late", "/camera/image", tmp_path / "late.mp4")
+    cap = cv2.VideoCapture(str(out))
+    assert count == 40 and cap.get(cv2.CAP_PROP_FPS) == pytest.approx(100.0)
+    cap.release()
+
+
+@pytest.mark.parametrize("fps, written", [(97.2568578553616, 97.26), (12.5, 12.5), (6.024, 6.024), (30000.0, 30000.0)])
+def test_video_rates_are_rounded_to_what_the_writers_take(fps: float, written: float, tmp_path: Path) -> None:
+    """A measured 97.2568578 fps made OpenCV's mp4 writer fail to open (a time base of 1000 / 97257)."""
+    assert video_fps(fps) == written
+    writer = cv2.VideoWriter(str(tmp_path / "v.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), video_fps(fps), (32, 24))
+    assert writer.isOpened()
+    writer.release()
 
 
 def test_export_video_png_csv_npz(bag: tuple[Path, list], tmp_path: Path) -> None:
