@@ -32,7 +32,7 @@ import msgs
 from msgs import Image
 from nodes.bag.clock import PlayClock
 from nodes.bag.codec import split_payload
-from nodes.bag.reader import BagError, BagMessage, BagReader
+from nodes.bag.reader import BagError, BagMessage, BagReader, bag_files, check_magic
 from nodes.bus import PublisherSocket, TopicReader
 from nodes.node import Node
 from nodes.start_gate import StartGate
@@ -100,6 +100,8 @@ class BagPlayParams:
                              "topic, paired in order (or one sync topic and at most one sync_on)")
         if len(set(answers)) < len(answers) or len(set(waiting)) < len(waiting):
             raise ValueError(f"sync_on {waiting} and sync_topic {answers}: a topic is named twice")
+        for file in bag_files(self.path):  # a missing bag, or a file that is none, is refused by `fv launch --check`
+            check_magic(file)
 
 
 def topic_list(value: str | list[str]) -> list[str]:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from nodes.bag.reader import MCAP_MAGIC
 from nodes.bus import resolve_topic
 from nodes.forwarder import ping
 from nodes.launch_file import LaunchError, load_launch
@@ -22,10 +23,13 @@ GOOD_NODE = "  - kind: talker\n    name: t\n"
 
 @pytest.fixture
 def video_files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """clip.avi, a.avi and b.avi in the working folder: a video camera's params need the file."""
+    """clip.avi, a.avi and b.avi in the working folder (a video camera's params need the file), and bag
+    files run1 and session (a bag player's params need an MCAP file)."""
     monkeypatch.chdir(tmp_path)
     for name in ("clip.avi", "a.avi", "b.avi"):
         (tmp_path / name).write_bytes(b"")
+    for name in ("run1", "session"):
+        (tmp_path / name).write_bytes(MCAP_MAGIC)
 
 
 def _write(folder: Path, name: str, text: str) -> Path:
@@ -192,6 +196,8 @@ def test_both_fingers_start_together_and_their_slips_are_the_fusion_inputs(name:
 
 @pytest.mark.parametrize("name, args, error", [
     ("video.yaml", {"video": "nope.avi"}, "video nope.avi: no such file"),
+    ("replay.yaml", {"bag": "nope"}, "bag nope: no such file or folder"),  # the launch started, then stopped
+    ("replay_pair.yaml", {"bag": "clip.avi"}, "bag clip.avi: not an MCAP file"),
     ("video_pair.yaml", {"left": "a.avi", "right": "b.av"}, "video b.av: no such file"),
     ("video.yaml", {"video": "clip.avi", "model": "gelsite_online"}, "model 'gelsite_online' is neither a shipped"),
     ("pipeline.yaml", {"threads": 0}, "threads 0 must be >= 1"),
