@@ -51,7 +51,7 @@ def parse_remaps(items: list[str]) -> dict[str, str]:
 
 
 def _node(args: argparse.Namespace) -> int:
-    from nodes.bus import LINGER_MS
+    from nodes.bus import LINGER_MS, stop_handshake_watchers
     from nodes.params import parse_assignments
     from nodes.registry import NODES, node_class
     if args.kind == "kinds":
@@ -71,6 +71,7 @@ def _node(args: argparse.Namespace) -> int:
     # the launcher's grace time when a whole launch stopped at once on 2 cores (it was killed on every
     # Ctrl-C): send what ZeroMQ still queues (its last frames and status, within the sockets' linger),
     # flush, and leave without it.
+    stop_handshake_watchers()
     node.ctx.destroy(linger=LINGER_MS)
     logging.shutdown()
     sys.stdout.flush()

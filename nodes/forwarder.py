@@ -31,6 +31,7 @@ from nodes.endpoints import BUS_ENV, BusAddress, bus_address, secure_server
 log = logging.getLogger("fv.forwarder")
 FWD_HWM = 200
 TCP_PING_S = 2.0  # the least time a ping over TCP waits for its answer
+AUTHORIZED_CHECK_S = 1.0  # how often a TCP forwarder looks for changed client keys in authorized/
 
 
 class ForwarderRunning(RuntimeError):
@@ -53,13 +54,19 @@ class Forwarder:
             except BlockingIOError:
                 raise ForwarderRunning(f"a forwarder already serves {self.address.url}") from None
         self.auth: ThreadAuthenticator | None = None
+        self.authorized: Path | None = None  # the client keys' folder of a TCP bus
+        self._authorized_seen: list[tuple[str, int]] | None = None  # its key files (name, mtime) when last loaded
         self.sides: list[tuple[zmq.Socket, zmq.Socket, zmq.Socket]] = []
-        if self.address.is_tcp:
-            self.sides.append(self._bind_side(self.address, keys))
-        else:
-            self.sides.append(self._bind_side(self.address, None))
-        if tcp_url:
-            self.sides.append(self._bind_side(bus_address(tcp_url), keys))
+        try:
+            if self.address.is_tcp:
+                self.sides.append(self._bind_side(self.address, keys))
+            else:
+                self.sides.append(self._bind_side(self.address, None))
+            if tcp_url:
+                self.sides.append(self._bind_side(bus_address(tcp_url), keys))
+        except BaseException:
+            self.close()
+            raise
         self.latched: dict[bytes, list[zmq.Frame]] = {}
         self.forwarded = 0
         self.started = time.time()
@@ -72,7 +79,8 @@ class Forwarder:
             if self.auth is None:
                 self.auth = ThreadAuthenticator(self.ctx)
                 self.auth.start()
-                self.auth.configure_curve(domain="*", location=str(keys / "authorized"))
+                self.authorized = keys / "authorized"
+                self.reload_authorized()
         xsub = self.ctx.socket(zmq.XSUB)
         xpub = self.ctx.socket(zmq.XPUB)
         ctl = self.ctx.socket(zmq.REP)
@@ -83,9 +91,32 @@ class Forwarder:
             sock.linger = LINGER_MS
             if secure:
                 secure_server(sock, keys)
-            sock.bind(endpoint)
+            try:
+                sock.bind(endpoint)
+            except zmq.ZMQError as exc:  # a port another program holds: a line, not a traceback
+                for made in (xsub, xpub, ctl):
+                    made.close(linger=0)
+                raise ValueError(f"cannot listen on {endpoint}: {exc.strerror}") from None
         xsub.send(b"\x01" + LATCHED)
         return xsub, xpub, ctl
+
+    def reload_authorized(self) -> bool:
+        """(Re)load the client keys of `authorized/` when its key files changed since they were last
+        loaded: a key copied in while the forwarder runs is taken within a second (it was taken only
+        after a restart, though the refused client is told to copy its key there). True when reloaded."""
+        if self.auth is None or self.authorized is None:
+            return False
+        try:
+            seen = sorted((f.name, f.stat().st_mtime_ns) for f in self.authorized.iterdir() if f.is_file())
+        except OSError:
+            seen = []
+        if seen == self._authorized_seen:
+            return False
+        self.auth.configure_curve(domain="*", location=str(self.authorized))
+        if self._authorized_seen is not None:
+            log.info("authorized client keys reloaded from %s: %d file(s)", self.authorized, len(seen))
+        self._authorized_seen = seen
+        return True
 
     def info(self) -> dict:
         return {"pid": os.getpid(), "url": self.address.url, "uptime_s": time.time() - self.started,
@@ -99,7 +130,11 @@ class Forwarder:
         xsubs = [s[0] for s in self.sides]
         xpubs = [s[1] for s in self.sides]
         ctls = [s[2] for s in self.sides]
+        keys_checked = time.monotonic()
         while not stop.is_set():
+            if time.monotonic() - keys_checked >= AUTHORIZED_CHECK_S:
+                self.reload_authorized()
+                keys_checked = time.monotonic()
             for sock, _ in poller.poll(100):
                 if sock in xsubs:
                     frames = sock.recv_multipart(copy=False)
