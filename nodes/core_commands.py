@@ -63,7 +63,7 @@ def _node(args: argparse.Namespace) -> int:
     params = _json_params(args.params_json)
     params.update(parse_assignments(args.param))
     cls = node_class(args.kind)
-    if args.standby and not _wait_for_takeover(cls):
+    if args.standby and not _wait_for_takeover(cls, params):
         return 0
     node = cls(args.name or args.kind, params, namespace=args.ns, remap=parse_remaps(args.remap))
     node.spin()
@@ -97,14 +97,14 @@ def _json_params(text: str) -> dict:
     return params
 
 
-def _wait_for_takeover(cls: type, check_s: float = 0.5) -> bool:
-    """Preload `cls`, print STANDBY_READY and block: True on SIGUSR1 (take over), False on
-    SIGTERM / SIGINT (the launch is stopping) or when the launcher has died (checked every
+def _wait_for_takeover(cls: type, params: dict, check_s: float = 0.5) -> bool:
+    """Preload `cls` for `params`, print STANDBY_READY and block: True on SIGUSR1 (take over), False
+    on SIGTERM / SIGINT (the launch is stopping) or when the launcher has died (checked every
     `check_s` seconds)."""
     import signal
 
     from nodes.node import STANDBY_READY, launcher_gone
-    cls.preload()
+    cls.preload(params)
     signals = {signal.SIGUSR1, signal.SIGTERM, signal.SIGINT}
     signal.pthread_sigmask(signal.SIG_BLOCK, signals)
     print(STANDBY_READY, flush=True)

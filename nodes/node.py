@@ -237,9 +237,10 @@ class Node:
 
     # -- life cycle ----------------------------------------------------------------
     @classmethod
-    def preload(cls) -> None:
-        """Import what `setup()` will need, so a standby process (`fv node KIND --standby`)
-        can take over at once; override when setup imports heavy modules (torch)."""
+    def preload(cls, params: dict[str, Any]) -> None:
+        """Import (and load) what `setup()` will need with these `params`, so a standby process
+        (`fv node KIND --standby`) can take over at once; override when setup imports heavy modules
+        (torch) or reads files (a model)."""
 
     def setup(self) -> None:
         """Create the node's publishers, subscriptions and timers (override)."""

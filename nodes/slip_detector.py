@@ -33,13 +33,14 @@ import collections
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
 from fv_algos.visualize import as_bgr
 from msgs import DisplacementField, Image, MarkerArray, SlipState
 from nodes.node import Node
+from nodes.params import build_params
 
 if TYPE_CHECKING:  # torch is imported only where a model is used
     from fv_algos.trial_net import TrialModel
@@ -103,10 +104,21 @@ class SlipDetectorNode(Node):
     """Publishes a slip decision per field: from a sliding window, or from the grasp so far."""
 
     Params = SlipDetectorParams
+    # a standby process's window model, loaded and run once before it takes over: (model file, device,
+    # threads), the classifier, its first pass in s
+    prepared: ClassVar[tuple[tuple[str, str, int], Any, float] | None] = None
 
     @classmethod
-    def preload(cls) -> None:
-        import fv_algos.slip.classifier  # noqa: F401  (torch: the bulk of a cold start)
+    def preload(cls, params: dict[str, Any]) -> None:
+        """Import torch and, for a window model, load it and run its first pass: a spare that did this at
+        takeover left `/slip` silent 0.94 s after a `kill -9` of the slip detector (30 fps)."""
+        from fv_algos.slip.classifier import SlipClassifier
+        from fv_algos.trial_net import read_trial_model
+        p = build_params(cls.Params, params, where="slip_detector standby")
+        path = model_path(p.model)
+        if read_trial_model(path) is None:
+            classifier = SlipClassifier(path, device=p.device, threads=p.threads)
+            cls.prepared = ((str(path), p.device, p.threads), classifier, classifier.warm_up())
 
     def setup(self) -> None:
         from fv_algos.trial_net import read_trial_model
@@ -124,7 +136,12 @@ class SlipDetectorNode(Node):
     def setup_window(self, path: Path) -> None:
         from fv_algos.slip.classifier import SlipClassifier
         p = self.params
-        self.classifier = SlipClassifier(path, device=p.device, threads=p.threads)
+        prepared, type(self).prepared = type(self).prepared, None
+        if prepared is not None and prepared[0] == (str(path), p.device, p.threads):
+            _, self.classifier, warm_up_s = prepared
+        else:
+            self.classifier = SlipClassifier(path, device=p.device, threads=p.threads)
+            warm_up_s = self.classifier.warm_up()
         cfg = self.classifier.config
         self.window: collections.deque = collections.deque(maxlen=cfg.window)
         self.frame_width_px: int | None = None  # of the tracker's reference frame
@@ -133,7 +150,6 @@ class SlipDetectorNode(Node):
             self.subscribe("markers/reference", MarkerArray, self.on_window_reference, depth=1)
         self.field_sub = self.subscribe("field", DisplacementField, self.on_field, depth=cfg.window,
                                         stale_after_s=p.input_timeout_s or None)
-        warm_up_s = self.classifier.warm_up()
         self.log.info("model %s: window %d, grid %d, fields read at %s px wide frames; on %s, first pass %.0f ms",
                       p.model, cfg.window, cfg.grid, cfg.field_width_px or "any", p.device, 1e3 * warm_up_s)
 
