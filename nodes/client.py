@@ -41,7 +41,7 @@ from typing import Callable, Iterator, TypeVar
 
 from msgs import CameraInfo, ContactSummary, DisplacementField, Image, MarkerArray, Message, NodeStatus, SlipState
 from msgs.wire import check_message
-from nodes.bus import PublisherSocket, TopicReader
+from nodes.bus import PublisherSocket, TopicReader, validate_topic
 from nodes.endpoints import BusAddress
 
 log = logging.getLogger("fv.client")
@@ -93,7 +93,7 @@ class Subscription(_Closing):
 
     def __init__(self, topic: str, msg_type: type[Message] | None = None, *, timeout_s: float | None = None,
                  latest: bool = False, address: BusAddress | None = None) -> None:
-        self.topic = topic
+        self.topic = validate_topic(topic)  # '' (an unset variable) would be every topic
         self.msg_type = expected_type(topic) if msg_type is None else msg_type
         self.timeout_s = timeout_s
         self.latest = latest

@@ -328,10 +328,10 @@ def build_message(type_name: str, text: str) -> Any:
 
 
 def _pub(args: argparse.Namespace) -> int:
-    from nodes.bus import PublisherSocket, validate_topic
+    from nodes.bus import PublisherSocket
 
     msg = build_message(args.type, args.values)
-    topic = validate_topic(args.topic)
+    topic = args.topic  # checked by its argument type
     count = 1 if args.once else args.count
     sock = PublisherSocket(f"fv_topic_pub_{os.getpid()}")
     try:
@@ -368,6 +368,15 @@ def window_size(text: str) -> int:
     return value
 
 
+def _topic_name(text: str) -> str:
+    """A topic argument, checked as the bus checks it (argparse names the verb and the value)."""
+    from nodes.bus import validate_topic
+    try:
+        return validate_topic(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     topic = sub.add_parser("topic", help="inspect and publish topics (list, info, echo, hz, bw, delay, pub)")
     verbs = topic.add_subparsers(dest="verb", required=True, metavar="VERB")
@@ -375,8 +384,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     def verb(name: str, help_text: str, func: Callable, with_topic: bool = True,
              with_json: bool = True) -> argparse.ArgumentParser:
         p = verbs.add_parser(name, help=help_text)
-        if with_topic:
-            p.add_argument("topic", help="topic name, e.g. /slip")
+        if with_topic:  # '' (an unset variable) listened to every topic; "slip" was named only by some verbs
+            p.add_argument("topic", type=_topic_name, help="topic name, e.g. /slip")
         if with_json:
             p.add_argument("--json", action="store_true", help="machine-readable JSON output")
         p.set_defaults(func=func)

@@ -389,14 +389,17 @@ def test_client_publish_refuses_what_subscribers_would_drop(bus: Bus) -> None:
         assert reader.malformed == 0
 
 
-@pytest.mark.parametrize("bad", ["topic", "tcp bus without keys"])
+@pytest.mark.parametrize("bad", ["topic", "empty topic", "tcp bus without keys"])
 def test_client_listen_raises_what_subscribe_raises(bus_env: Bus, monkeypatch: pytest.MonkeyPatch, bad: str) -> None:
     """`listen("slip", print)` and a TCP bus without FV_CURVE_DIR returned after 2 s with the listener's
-    thread dead (a traceback on stderr the only sign): the robot went on with nothing watching for slip."""
+    thread dead (a traceback on stderr the only sign): the robot went on with nothing watching for slip.
+    `subscribe("")` (an unset variable) received every topic."""
     from nodes.client import listen, subscribe
 
     topic, error, match = "slip", ValueError, "topic 'slip': must start with '/'"
-    if bad != "topic":
+    if bad == "empty topic":
+        topic, match = "", "topic '': must start with '/'"
+    if bad == "tcp bus without keys":
         topic, error, match = "/slip", RuntimeError, CURVE_ENV
         monkeypatch.setenv("FV_BUS", "tcp://127.0.0.1:17600")
         monkeypatch.delenv(CURVE_ENV, raising=False)

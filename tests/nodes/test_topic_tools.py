@@ -171,6 +171,8 @@ def test_hz_counts_a_played_bag_whose_messages_keep_their_recorded_pub_ns(bus: B
     (("topic", "bw", "/slip", "-w", "1"), "'1' is not a whole number >= 2"),
     (("topic", "echo", "/slip", "--count", "-1"), "--count/-n: -1 is not >= 1"),  # exited 0 silently
     (("topic", "pub", "/tq", "SlipState", "{stamp_ns: 1180591620717411303424}"), "stamp_ns"),  # msgpack traceback
+    (("topic", "echo", ""), "topic '': must start with '/'"),  # an unset variable: echoed every topic
+    (("topic", "info", "slip"), "topic 'slip': must start with '/'"),  # "no running node publishes 'slip'"
 ])
 def test_bad_topic_arguments_are_usage_errors(args: tuple, says: str) -> None:
     result = run_fv(*args)
