@@ -16,7 +16,10 @@ def parse_size(text: str) -> int:
     match = re.fullmatch(r"\s*(\d+(?:\.\d+)?)\s*([KMG]?)i?B?\s*", text, re.IGNORECASE)
     if not match:
         raise argparse.ArgumentTypeError(f"{text!r} is not a size such as 1048576, 512K, 100M, 2G")
-    return int(float(match.group(1)) * SIZE_UNITS[match.group(2).upper()])
+    size = int(float(match.group(1)) * SIZE_UNITS[match.group(2).upper()])
+    if size == 0 and float(match.group(1)) > 0:  # `-b 0.1` meant 0 bytes, which is "never split"
+        raise argparse.ArgumentTypeError(f"{text!r} is less than a byte (a bare number is bytes: 100M is 100 MiB)")
+    return size
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -6,6 +6,7 @@ by a finalizer.
 """
 from __future__ import annotations
 
+import argparse
 import json
 import shutil
 import signal
@@ -24,6 +25,7 @@ import yaml
 import msgs
 from msgs import CameraInfo, Image, SlipState
 from nodes.bag.reader import BagError, BagReader, read_bag
+from nodes.bag.commands import parse_size
 from nodes.bag.recorder import BagRecord
 from nodes.bag.player import BagPlay
 from nodes.bag.recover import recover
@@ -304,6 +306,9 @@ def test_a_loop_over_nothing_ends_and_numbers_that_mean_nothing_are_refused(bus:
         BagRecord("rec", {"output": str(tmp_path / "r"), "topics": ["/a"], "max_bag_duration_s": float("inf")},
                   address=bus)
     assert not (tmp_path / "r").exists()
+    assert parse_size("1.5K") == 1536 and parse_size("0") == 0
+    with pytest.raises(argparse.ArgumentTypeError, match="'0.1' is less than a byte"):
+        parse_size("0.1")  # 0 bytes: "never split", without a word
 
 
 def test_optional_topics_are_played_when_recorded_and_skipped_when_not(bus: BusAddress, tmp_path: Path) -> None:
