@@ -32,6 +32,11 @@ OUTLIER_FACTOR = 3.0
 """A view is dropped as an outlier only when its reprojection RMS is over `CalibrationParams.max_rms_px`
 and over this many times the median view's."""
 
+MIN_TILT_DEG = 10.0  # at least one view's board this far from face-on: face-on views fit any focal length
+# (8 face-on views of a 300 px lens: fx 10,772 px, RMS 0.69 px, its distortion folding back 2.8 deg off the axis)
+SAME_VIEW_PX = 1.0  # a view whose corners lie within this RMS of an earlier view's is that view again
+# (six copies of one image calibrated to fx 10,818 px for a 300 px lens, RMS 1.29 px)
+
 SUBPIX_SPACING_SHARE = 1.0 / 3.0
 """The cornerSubPix half window is at most this share of the distance to the nearest neighbouring corner:
 a larger one takes in the next corner's edges and pulls the refined corner off."""
@@ -217,7 +222,7 @@ def _not_found_error(n_found: int, n_views: int, rejected: dict[str, str], param
              for why, names in by_reason.items()]
     cols, rows = params.board.inner_corners
     return ValueError(
-        f"chessboard found in {n_found} of {n_views} views, need at least {params.min_views}"
+        f"chessboard usable in {n_found} of {n_views} views, need at least {params.min_views}"
         f"{'; rejected: ' + '; '.join(parts) if parts else ''}. The board size counts INNER corners: {cols}x{rows} "
         f"is a board of {cols + 1}x{rows + 1} squares"
     )
@@ -225,11 +230,13 @@ def _not_found_error(n_found: int, n_views: int, rejected: dict[str, str], param
 
 @dataclass(frozen=True)
 class _Fit:
-    """One cv2.fisheye.calibrate solution: the camera (without rms_px and date) and (V,) float64
-    per-view reprojection RMS, px (inf for a view whose board it puts partly behind the camera)."""
+    """One cv2.fisheye.calibrate solution: the camera (without rms_px and date), (V,) float64
+    per-view reprojection RMS, px (inf for a view whose board it puts partly behind the camera), and
+    (V,) float64 tilt of each view's board, deg (0: face-on to the camera)."""
 
     camera: FisheyeCamera
     per_view_rms_px: np.ndarray
+    tilt_deg: np.ndarray
 
     @property
     def rms_px(self) -> float:
@@ -265,7 +272,8 @@ def _fit_from(start_K: np.ndarray, object_points: np.ndarray, image_points: Sequ
         size, start_K.copy(), np.zeros(4), flags=flags, criteria=criteria,
     )
     camera = FisheyeCamera(K=K, D=D.ravel(), width=size[0], height=size[1])
-    return _Fit(camera, _per_view_rms(camera, object_points, image_points, rvecs, tvecs))
+    tilt_deg = np.array([np.degrees(np.arccos(min(1.0, abs(cv2.Rodrigues(rvec)[0][2, 2])))) for rvec in rvecs])
+    return _Fit(camera, _per_view_rms(camera, object_points, image_points, rvecs, tvecs), tilt_deg)
 
 
 def _best_fit(object_points: np.ndarray, image_points: Sequence[np.ndarray], size: tuple[int, int],
@@ -327,8 +335,9 @@ def calibrate_fisheye(views: Sequence[tuple[str, np.ndarray]], params: Calibrati
         not found, or dropped as outliers are listed in `rejected` with the reason.
     Raises:
         ValueError: no views, malformed images, fewer than params.min_views boards found
-            (counted by reason, a few views named), the solver failed, or the RMS is over
-            params.max_rms_px (its worst views named).
+            (counted by reason, a few views named), the solver failed, the RMS is over
+            params.max_rms_px (its worst views named), or every view shows the board within
+            MIN_TILT_DEG of face-on.
     """
     if len(views) == 0:
         raise ValueError("views is empty: calibration needs chessboard images")
@@ -344,6 +353,11 @@ def calibrate_fisheye(views: Sequence[tuple[str, np.ndarray]], params: Calibrati
         if corners is None:
             rejected[name] = f"chessboard with {board.inner_corners[0]}x{board.inner_corners[1]} inner corners not found"
             continue
+        same = [other for other, seen in zip(used, image_points)
+                if np.sqrt(np.mean(np.sum((corners - seen) ** 2, axis=1))) < SAME_VIEW_PX]
+        if same:  # frames of a board held still: one view counted several times pins nothing down
+            rejected[name] = f"the board where {same[0]} shows it (corners within {SAME_VIEW_PX:g} px): adds nothing"
+            continue
         used.append(name)
         image_points.append(corners)
     if len(used) < params.min_views:
@@ -356,6 +370,11 @@ def calibrate_fisheye(views: Sequence[tuple[str, np.ndarray]], params: Calibrati
         fit = _best_fit(object_points, image_points, size, params, used)
     if not fit.rms_px <= params.max_rms_px:
         raise _rms_error(fit, used, params.max_rms_px)
+    if fit.tilt_deg.max() < MIN_TILT_DEG:
+        raise ValueError(
+            f"every view shows the board nearly face-on (the most tilted {fit.tilt_deg.max():.1f} deg; fit: RMS "
+            f"{fit.rms_px:.2f} px, fx {fit.camera.K[0, 0]:.0f} px): such views fit any focal length, so the lens is "
+            f"not known. Tilt the board {MIN_TILT_DEG:g} to 45 deg in several views, near the image's corners too")
     camera = replace(fit.camera, rms_px=fit.rms_px, date=utc_timestamp())
     return CalibrationResult(camera=camera, rms_px=fit.rms_px, used=used, rejected=rejected,
                              per_view_rms_px=fit.per_view_rms_px)

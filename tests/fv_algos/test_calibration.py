@@ -95,7 +95,7 @@ def test_unusable_views_are_rejected_by_name(views) -> None:
 def test_too_few_boards_is_a_clear_error(views) -> None:
     blank = np.full((480, 640), 128, np.uint8)
     few = views[:2] + [(f"blank{i}", blank) for i in range(3)]
-    with pytest.raises(ValueError, match=r"found in 2 of 5 views, need at least 5.*blank0"):
+    with pytest.raises(ValueError, match=r"usable in 2 of 5 views, need at least 5.*blank0"):
         calibrate_fisheye(few, CalibrationParams(board=BOARD))
     with pytest.raises(ValueError, match="empty"):
         calibrate_fisheye([], CalibrationParams(board=BOARD))
@@ -211,6 +211,30 @@ def test_a_calibration_over_the_rms_limit_is_refused_with_its_worst_views(monkey
     assert 2.0 < result.rms_px < 10.0
 
 
+def test_face_on_views_are_refused(monkeypatch) -> None:
+    """Eight views of the board face-on to a 300 px lens calibrated to fx 12,851 px (RMS 0.58 px), and
+    every undistorted frame came out one flat grey: such views fit any focal length."""
+    camera, rng = FisheyeCamera.default(), np.random.default_rng(0)
+    poses = random_board_poses(camera, BOARD, 8, distance_range_mm=(15.0, 30.0), max_tilt_deg=0.0, seed=0)
+    corners = []
+    for rvec, tvec in poses:
+        projected, _ = cv2.fisheye.projectPoints(BOARD.object_points_mm()[None], rvec, tvec, camera.K, camera.D)
+        corners.append(projected.reshape(-1, 2) + rng.normal(0.0, 0.3, (projected.shape[1], 2)))
+    with pytest.raises(ValueError, match=r"every view shows the board nearly face-on \(the most tilted \d+\.\d deg"):
+        calibrate_corners(monkeypatch, corners, CalibrationParams(board=BOARD))
+
+
+def test_one_board_position_seen_again_counts_once(monkeypatch) -> None:
+    """Six copies of one image (a board held still in a video) calibrated to fx 10,818 px for a 300 px
+    lens, RMS 1.29 px."""
+    corners = projected_views(STRONG_FISHEYE, 6, seed=0)
+    again = [corners[0] + np.random.default_rng(k).normal(0.0, 0.2, corners[0].shape) for k in range(4)]
+    with pytest.raises(ValueError, match=r"usable in 2 of 6 views.*4 x the board where v00 shows it"):
+        calibrate_corners(monkeypatch, [*corners[:2], *again], CalibrationParams(board=BOARD))
+    result = calibrate_corners(monkeypatch, [*corners, *again], CalibrationParams(board=BOARD))
+    assert result.used == [f"v{i:02d}" for i in range(6)] and len(result.rejected) == 4
+
+
 def test_an_odd_sized_image_first_does_not_reject_the_others(views) -> None:
     small = views[0][1][:240, :320].copy()
     result = calibrate_fisheye([("a_small.png", small)] + views[:6], CalibrationParams(board=BOARD))
@@ -243,7 +267,7 @@ def test_no_board_anywhere_is_one_short_error_with_counts() -> None:
         calibrate_fisheye(frames, CalibrationParams(board=BOARD))
     message = str(info.value)
     assert len(message) < 400 and "\n" not in message
-    assert "found in 0 of 300 views" in message
+    assert "usable in 0 of 300 views" in message
     assert "300 x chessboard with 7x5 inner corners not found (frame_000000, frame_000010, frame_000020, ...)" in message
     assert "INNER corners: 7x5 is a board of 8x6 squares" in message
 
