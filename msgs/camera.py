@@ -47,11 +47,15 @@ class Image(Message):
         return int(self.data.shape[0])
 
 
+CAMERA_MODELS = ("fisheye", "pinhole")
+
+
 @dataclass(kw_only=True)
 class CameraInfo(Message):
-    """Fisheye camera calibration (OpenCV fisheye model), published latched.
+    """The camera model of the published frames, latched.
 
-    K: (3, 3) float64 camera matrix in px. D: (4,) float64 fisheye coefficients k1..k4.
+    model: "fisheye" (OpenCV's fisheye model: D its coefficients k1..k4) or "pinhole" (frames the
+    camera node undistorted: D zeros). K: (3, 3) float64 camera matrix in px. D: (4,) float64.
     width, height: image size in px the calibration applies to. rms_px: calibration
     reprojection error (0 when unknown, e.g. a simulated camera with exact intrinsics).
     """
@@ -73,4 +77,6 @@ class CameraInfo(Message):
             raise ValueError(f"K: shape {self.K.shape} is not (3, 3)")
         if self.D.shape != (4,):
             raise ValueError(f"D: shape {self.D.shape} is not (4,)")
+        if self.model not in CAMERA_MODELS:
+            raise ValueError(f"model: {self.model!r} is not one of {CAMERA_MODELS}")
         require_image_size(self.width, self.height)

@@ -161,13 +161,14 @@ class CameraNode(Node):
         if cam is None:
             return
         K, D = np.asarray(cam.K, np.float64), np.asarray(cam.D, np.float64).reshape(4)
-        if self.maps is not None:
-            K, D = cam.undistorted_camera_matrix(), np.zeros(4)
+        model = "fisheye"
+        if self.maps is not None:  # a fisheye model with D = 0 would be equidistant: 128 px off at a corner
+            K, D, model = cam.undistorted_camera_matrix(), np.zeros(4), "pinhole"
         width, height = cam.width, cam.height
         if self.crop is not None:
             K, width, height = self.crop.camera_matrix(K, width, height)
-        self.info_pub.publish(CameraInfo(stamp_ns=time.time_ns(), frame_id=self.params.frame_id, width=width,
-                                         height=height, K=K, D=D, rms_px=float(getattr(cam, "rms_px", 0.0) or 0.0)))
+        self.info_pub.publish(CameraInfo(stamp_ns=time.time_ns(), frame_id=self.params.frame_id, model=model,
+                                         width=width, height=height, K=K, D=D, rms_px=float(getattr(cam, "rms_px", 0.0) or 0.0)))
 
     def tick(self) -> None:
         if getattr(self.source, "finished", False):

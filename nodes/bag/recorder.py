@@ -93,7 +93,7 @@ def software_version() -> str:
 
 
 def calibration_yaml(info: CameraInfo, topic: str) -> bytes:
-    """A CameraInfo as the YAML calibration attachment (K, D in px, fisheye model)."""
+    """A CameraInfo as the YAML calibration attachment (its model, K and D in px)."""
     return yaml.safe_dump({"topic": topic, "frame_id": info.frame_id, "model": info.model, "width": info.width,
                            "height": info.height, "K": info.K.tolist(), "D": info.D.tolist(),
                            "rms_px": info.rms_px}, sort_keys=False).encode()

@@ -189,6 +189,12 @@ def test_image_without_pixels_is_refused(shape: tuple[int, ...]) -> None:
     assert err.value.field == "data"
 
 
+def test_camera_info_of_an_unknown_model_is_refused() -> None:
+    with pytest.raises(MessageError, match="'kannala' is not one of") as err:
+        msgs.decode(_frames(CameraInfo(model="kannala", width=640, height=480)), "/camera/info")
+    assert err.value.field == "model"
+
+
 @pytest.mark.parametrize("width, height", [(0, 480), (640, 0), (-640, 480)])
 def test_marker_array_without_a_positive_image_size_is_refused(width: int, height: int) -> None:
     """`width: 0` on /markers/reference stopped /slip until /tracker/reset; -640 was taken."""

@@ -111,6 +111,7 @@ def test_undistorted_frames_come_with_their_pinhole_matrix_and_no_distortion(bus
     cam = SimSource("", 0, 20.0).camera
     np.testing.assert_allclose(info.K, cam.undistorted_camera_matrix())
     assert not info.D.any() and (info.width, info.height) == (cam.width, cam.height)
+    assert info.model == "pinhole"  # it said fisheye: with D = 0 that is equidistant, 128 px off at a corner
 
 
 def test_a_calibration_at_another_resolution_is_scaled_to_the_frames() -> None:
