@@ -108,7 +108,8 @@ def _identity(path: Path) -> tuple[int, int]:
 
 class FolderSource:
     """Images of a folder in name order, optionally looping. An unreadable image is
-    skipped (logged once); a removed one raises SourceError (the folder is reopened)."""
+    skipped (logged once); a removed one raises SourceError (the folder is reopened). Images
+    come as uint8 mono or BGR (`as_uint8`), deeper ones all at the gain of the first."""
 
     def __init__(self, path: str, loop: bool = True) -> None:
         self.path = Path(path)
@@ -117,6 +118,7 @@ class FolderSource:
         self._files: list[Path] = []
         self._unreadable: set[Path] = set()
         self._index = 0
+        self._full_scale: float | None = None  # of images deeper than 8 bits: the first one's
         self.finished = False
 
     def open(self) -> None:
@@ -137,7 +139,9 @@ class FolderSource:
             self._index += 1
             image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
             if image is not None:
-                return Frame(_as_uint8(image), time.time_ns())
+                if image.dtype != np.uint8 and self._full_scale is None:
+                    self._full_scale = full_scale(image)
+                return Frame(as_uint8(image, self._full_scale), time.time_ns())
             if not path.is_file():
                 raise SourceError(f"{self.name}: {path.name} removed")
             if path not in self._unreadable:
@@ -149,10 +153,26 @@ class FolderSource:
         self._files = []
 
 
-def _as_uint8(image: np.ndarray) -> np.ndarray:
-    """`image` scaled to uint8 (16-bit and float images)."""
+def full_scale(image: np.ndarray) -> float:
+    """The white level of an image deeper than 8 bits: 1 for float images in [0, 1], else the
+    largest 2**bits - 1 its maximum needs (4095 for 12-bit data stored in 16 bits), at least 255."""
+    top = float(np.max(image))
+    if image.dtype.kind == "f" and top <= 1.0:
+        return 1.0
+    return float(2 ** max(8, int(np.ceil(np.log2(max(top, 1.0) + 1.0)))) - 1)
+
+
+def as_uint8(image: np.ndarray, white: float | None = None) -> np.ndarray:
+    """`image` as uint8 mono (H, W) or BGR (H, W, 3): an alpha channel dropped (a BGRA image broke
+    `encoding: bgr8`), deeper images scaled so that `white` is 255 (default: `full_scale` of this
+    image; a folder passes its first image's, so every frame gets one gain: scaled by its own
+    maximum, a frame with one hot pixel came out half as bright as the next)."""
+    if image.ndim == 3 and image.shape[2] == 4:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+    elif image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
     if image.dtype != np.uint8:
-        image = cv2.convertScaleAbs(image, alpha=255.0 / max(float(image.max()), 1.0))
+        image = cv2.convertScaleAbs(image, alpha=255.0 / (white or full_scale(image)))
     return image
 
 

@@ -75,6 +75,28 @@ def test_folder_source_bgr(bus, spawn, tmp_path: Path) -> None:
     assert msg.data.shape == (40, 50, 3) and msg.encoding == "bgr8"
 
 
+def test_folder_frames_of_any_depth_and_alpha_come_as_uint8_at_one_gain(tmp_path: Path) -> None:
+    """An RGBA PNG broke `encoding: bgr8` (a 4-channel frame, dropped by every subscriber); 16-bit images
+    were each scaled by their own maximum: 12-bit data with one hot pixel came out half as bright."""
+    from nodes.camera_sources import FolderSource
+    scene = np.full((24, 32), 3000, np.uint16)  # 12-bit data stored in 16 bits
+    scene[8:12, 8:12] = 300  # a marker
+    hot = scene.copy()
+    hot[0, 0] = 4095
+    for name, image in (("a.png", scene), ("b.png", hot)):
+        cv2.imwrite(str(tmp_path / name), image)
+    source = FolderSource(str(tmp_path), loop=False)
+    source.open()
+    first, second = source.read().image, source.read().image
+    assert first.dtype == np.uint8 and first[20, 20] == second[20, 20] == round(3000 * 255 / 4095)
+    rgba = tmp_path / "rgba"
+    rgba.mkdir()
+    cv2.imwrite(str(rgba / "c.png"), np.full((24, 32, 4), 90, np.uint8))
+    source = FolderSource(str(rgba), loop=False)
+    source.open()
+    assert source.read().image.shape == (24, 32, 3)
+
+
 def test_sim_source_publishes_frames_and_latched_info(bus, spawn) -> None:
     spawn("node", "camera", "-p", "fps=20")
     rate, msg = _rate("/camera/image", 2.0)
