@@ -10,6 +10,7 @@ mm; the first inner corner is the origin. Camera frame and pixels as in `fv_algo
 """
 from __future__ import annotations
 
+import logging
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -19,6 +20,8 @@ import cv2
 import numpy as np
 
 from fv_algos.fisheye import FisheyeCamera, utc_timestamp
+
+log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
 
@@ -396,19 +399,26 @@ def image_files(folder: str | Path, suffixes: tuple[str, ...] = IMAGE_SUFFIXES) 
 
 
 def load_images(folder: str | Path, suffixes: tuple[str, ...] = IMAGE_SUFFIXES) -> list[tuple[str, np.ndarray]]:
-    """Read every image in a folder (not recursive) as mono uint8, sorted by file name.
+    """Read every image in a folder (not recursive) as mono uint8, sorted by file name. A file that
+    cannot be decoded (a macOS `._name.png`, a half-copied image) is skipped with a warning naming it:
+    one such file stopped the whole calibration.
 
     Returns:
         (file name, (H, W) uint8 image) pairs.
     Raises:
-        ValueError: the folder does not exist, holds no image, or an image cannot be decoded.
+        ValueError: the folder does not exist, holds no image, or no image can be decoded.
     """
-    views = []
+    views, undecoded = [], []
     for path in image_files(folder, suffixes):
         image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         if image is None:
-            raise ValueError(f"image {path} cannot be decoded")
+            undecoded.append(path.name)
+            log.warning("image %s cannot be decoded: skipped", path)
+            continue
         views.append((path.name, image))
+    if not views:
+        raise ValueError(f"no image of {folder} can be decoded ({', '.join(undecoded[:3])}"
+                         f"{', ...' if len(undecoded) > 3 else ''})")
     return views
 
 

@@ -124,10 +124,12 @@ def test_load_images_errors(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="holds no file"):
         load_images(tmp_path)
     (tmp_path / "broken.png").write_bytes(b"not a png")
-    with pytest.raises(ValueError, match="cannot be decoded"):
+    with pytest.raises(ValueError, match=r"no image of .* can be decoded \(broken.png\)"):
         load_images(tmp_path)
     with pytest.raises(ValueError, match="broken.png is a file, not a folder"):  # it said "does not exist"
         load_images(tmp_path / "broken.png")
+    cv2.imwrite(str(tmp_path / "view.png"), np.zeros((8, 8), np.uint8))  # one undecodable file stopped them all
+    assert [name for name, _ in load_images(tmp_path)] == ["view.png"]
 
 
 def test_load_video_frames_takes_every_kth_frame(tmp_path: Path) -> None:
