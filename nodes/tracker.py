@@ -90,6 +90,13 @@ class TrackerNode(Node):
             self.subscribe(p.recorded_reference, MarkerArray, self.on_recorded_reference, depth=1)
         self.counters.update(references=0, resumed=0, reference_retries=0, other_size=0)
 
+    def teardown(self) -> None:
+        """Say so when frames came but none was tracked: a video of 1 frame, or `reference_frame` past
+        its end, ended the launch with status 0 and not one decision, without a word."""
+        if self.needs_reference and self.frames_seen > 0:
+            self.log.warning("%d frame(s) came and none was tracked: no reference was taken (reference_frame "
+                             "%d)", self.frames_seen, self.params.reference_frame)
+
     def on_reset(self, _msg) -> None:
         self.needs_reference = True
         self.resume_until = 0.0

@@ -195,6 +195,18 @@ def test_a_replay_from_the_camera_s_first_frame_takes_its_own_reference(first_se
         node.close()
 
 
+def test_a_stream_that_ends_before_the_reference_frame_is_said(caplog: pytest.LogCaptureFixture) -> None:
+    """A video of one frame (or reference_frame past its end) ended the launch with status 0 and not one
+    decision, without a word."""
+    from msgs import Image
+    from nodes.tracker import TrackerNode
+    node = TrackerNode("tracker", {"resume": False})
+    node.setup()
+    node.on_image(Image(stamp_ns=1, encoding="mono8", data=np.full((48, 64), 128, np.uint8)))
+    node.close()
+    assert "1 frame(s) came and none was tracked: no reference was taken (reference_frame 1)" in caplog.text
+
+
 def test_a_frame_of_another_size_is_dropped_until_a_new_reference() -> None:
     """A camera reopened at another size: its frame was tracked against the reference's marker positions
     into a wrong field taken as valid (8 of 70 markers valid, |d| 35 px with the skin at rest). It is now
