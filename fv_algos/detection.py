@@ -314,13 +314,18 @@ def detect_blobs(
     return Detections(centres_px=centres, areas_px2=np.pi / 4.0 * sizes**2)
 
 
+MIN_BLOB_CONTRAST = 4  # grey levels a blob must stand out from its surroundings by (an image of noise alone: none)
+
+
 def _candidate_blobs(gray: np.ndarray, polarity: Polarity) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Compact blobs of one polarity found with no prior: centres (N, 2), areas (N,), contrasts (N,)."""
     h, w = gray.shape
     background = cv2.medianBlur(gray, min(_odd(min(h, w) / 8.0), 255))
     diff = cv2.subtract(background, gray) if polarity == "dark" else cv2.subtract(gray, background)
     level, mask = cv2.threshold(diff, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
-    if level < 4:
+    if level < MIN_BLOB_CONTRAST:  # Otsu gives 0 for two levels (a sharp, noise-free pattern): at least this
+        level, mask = cv2.threshold(diff, MIN_BLOB_CONTRAST - 1, 255, cv2.THRESH_BINARY)
+    if not mask.any():
         return np.zeros((0, 2)), np.zeros(0), np.zeros(0)
     n, labels, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_32S)
     area = stats[1:, cv2.CC_STAT_AREA].astype(np.float64)

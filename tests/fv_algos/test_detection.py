@@ -175,6 +175,18 @@ def test_estimate_marker_params_recovers_size_pitch_polarity() -> None:
     assert est.pitch_px == pytest.approx(40.0, rel=0.02)
 
 
+def test_a_sharp_two_level_pattern_is_estimated() -> None:
+    """A drawn dot grid, no blur, no noise: Otsu's threshold on its two levels came out 0, taken as no
+    contrast, and no marker was found (blurred or noisy, the same grid worked)."""
+    sharp = np.full((240, 320), 200, np.uint8)
+    for y in range(15, 240, 30):
+        for x in range(15, 320, 30):
+            cv2.circle(sharp, (x, y), 4, 30, -1)
+    est = estimate_marker_params(sharp)
+    assert est.polarity == "dark" and est.pitch_px == pytest.approx(30.0, rel=0.02)
+    assert len(Perception().reset(sharp).reference_px) == 80
+
+
 def test_crowded_blobs_keep_the_one_on_the_lattice() -> None:
     """Clutter blobs 0.39 and 0.3 pitch beside two markers, larger than a marker (so size cannot
     tell them apart): the markers are kept, whose neighbours come in opposite pairs. A lattice with
