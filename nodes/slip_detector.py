@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import collections
 import re
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
@@ -95,9 +96,12 @@ class SlipDetectorParams:
         if self.window_gap_s <= 0:
             raise ValueError(f"window_gap_s {self.window_gap_s} must be > 0")
         try:  # a misspelt model is refused before a launch starts (fv launch --check), not respawned for good
-            model_path(self.model)
+            path = model_path(self.model)
         except FileNotFoundError as exc:
             raise ValueError(str(exc)) from None
+        if not zipfile.is_zipfile(path):  # as is a file that is none: the .json beside a trained model was
+            raise ValueError(f"model {self.model!r}: {path} is not a model file (torch.save writes a zip "
+                             "archive; give the .pt)")  # respawned for good, the camera waiting for it
 
 
 class SlipDetectorNode(Node):

@@ -94,7 +94,7 @@ def read_torch_file(path: Path) -> object:
             warnings.filterwarnings("ignore", "Detected pickle protocol", UserWarning)
             return torch.load(path, map_location="cpu", weights_only=True)
     except (pickle.UnpicklingError, zipfile.BadZipFile, RuntimeError, EOFError, OSError, KeyError, ValueError,
-            TypeError) as exc:
+            TypeError, IndexError) as exc:  # IndexError: a text file starting with "t" (a labels.csv)
         text = str(exc)
         if "WeightsUnpickler error:" in text:  # keep torch's reason, not its advice on weights_only=False
             text = text.split("WeightsUnpickler error:", 1)[1].strip().split("\n\n", 1)[0]

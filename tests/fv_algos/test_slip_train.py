@@ -142,6 +142,7 @@ def test_checkpoint_errors_are_clear(tmp_path: Path) -> None:
     pickled = tmp_path / "pickled.pt"
     pickled.write_bytes(pickle.dumps(object))
     not_models = {"garbage": b"\x00\x01 not a torch file", "text": b"hello", "empty": b"",
+                  "text starting with t": b"trial,object,label\n",  # a raw IndexError traceback
                   "cut short": real.read_bytes()[:3000], "pickled object": pickled.read_bytes()}
     for name, data in not_models.items():  # any exception torch.load raises becomes one clear ValueError
         bad = tmp_path / f"{name}.pt"

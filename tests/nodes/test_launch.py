@@ -200,6 +200,7 @@ def test_both_fingers_start_together_and_their_slips_are_the_fusion_inputs(name:
     ("replay_pair.yaml", {"bag": "clip.avi"}, "bag clip.avi: not an MCAP file"),
     ("video_pair.yaml", {"left": "a.avi", "right": "b.av"}, "video b.av: no such file"),
     ("video.yaml", {"video": "clip.avi", "model": "gelsite_online"}, "model 'gelsite_online' is neither a shipped"),
+    ("video.yaml", {"video": "clip.avi", "model": "a.avi"}, "a.avi is not a model file"),  # respawned for good
     ("pipeline.yaml", {"threads": 0}, "threads 0 must be >= 1"),
     ("pipeline.yaml", {"scene": "nope.yaml"}, "sim nope.yaml: .*No such file"),  # the camera respawned for good
     ("pipeline.yaml", {"prerender": True}, "prerender needs a scene file"),
