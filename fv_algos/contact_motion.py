@@ -30,6 +30,7 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
+import sys
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from functools import partial
@@ -38,11 +39,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from fv_algos import frame_crop, frame_rate, real_trials
 from fv_algos.atomic_file import write_atomically
 from fv_algos.frame_rate import pick
 from fv_algos.frame_crop import FrameCrop
-from fv_algos.real_trials import (Trial, VideoKey, cache_folder, cache_stem, map_videos, read_cached, read_frames,
-                                   video_key)
+from fv_algos.real_trials import (Trial, VideoKey, cache_folder, cache_stem, code_digest, map_videos, read_cached,
+                                   read_frames, video_key)
 
 SERIES = ("relative_px", "marker_px", "contact_above_min", "imprint_change", "imprint_step_rms")
 SERIES_CACHE_VERSION = 5
@@ -142,7 +144,7 @@ def contact_series(frames: Iterable[np.ndarray], params: ContactMotionParams = C
 def _series_cache_path(cache_dir: Path, video: Path, reference_frame: int, params: ContactMotionParams,
                        rates: tuple[float, float] | None, crop: FrameCrop | None) -> Path:
     key = [SERIES_CACHE_VERSION, *video_key(video, reference_frame, crop), asdict(params),
-           hashlib.sha256(Path(__file__).read_bytes()).hexdigest()]
+           code_digest(sys.modules[__name__], frame_rate, frame_crop, real_trials)]  # it hashed this module alone
     text = json.dumps(key if rates is None else [*key, list(rates)])
     return cache_dir / f"{cache_stem(video)}__contact__{hashlib.sha256(text.encode()).hexdigest()[:16]}.npy"
 

@@ -26,6 +26,7 @@ import hashlib
 import json
 import logging
 import os
+import sys
 import time
 import zipfile
 from collections.abc import Callable, Iterator, Sequence
@@ -40,7 +41,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from fv_algos import detection, perception, tracking
+from fv_algos import detection, frame_crop, perception, reference_markers, tracking
 from fv_algos import field as field_module
 from fv_algos.atomic_file import write_atomically
 from fv_algos.frame_crop import FrameCrop
@@ -135,11 +136,13 @@ def read_trials(root: str | Path) -> list[Trial]:
 
 def _camera_videos(folder: Path, where: str) -> dict[str, Path]:
     """Camera name -> video of a trial ``folder`` (``camera_0`` always): one file per camera, of any of
-    ``VIDEO_SUFFIXES``. FileNotFoundError without a ``camera_0`` video, ValueError for a camera with two;
-    both start with ``where`` (the table's line)."""
+    ``VIDEO_SUFFIXES`` in any case (`camera_2.MP4` was neither read nor warned of). FileNotFoundError
+    without a ``camera_0`` video, ValueError for a camera with two; both start with ``where`` (the
+    table's line)."""
     videos = {}
+    entries = sorted(folder.iterdir()) if folder.is_dir() else []
     for camera in CAMERAS:
-        named = [folder / f"{camera}{suffix}" for suffix in VIDEO_SUFFIXES]
+        named = [path for path in entries if path.stem == camera and path.suffix.lower() in VIDEO_SUFFIXES]
         broken = [path for path in named if (path.is_symlink() and not path.is_file()) or path.is_dir()]
         if broken:
             raise ValueError(f"{where}: {broken[0]} is not a video file (a broken link or a folder)")
@@ -288,13 +291,21 @@ def video_fields(
     )
 
 
-def _perception_digest() -> str:
-    """SHA-256 of the perception code (detection, tracking, field, perception modules): a cached
-    field is stale once any of them changes."""
+def code_digest(*modules: object) -> str:
+    """SHA-256 of the source files of `modules` (module objects): a cached result is stale once the
+    code it came from changes."""
     digest = hashlib.sha256()
-    for module in (detection, tracking, field_module, perception):
+    for module in modules:
         digest.update(Path(module.__file__).read_bytes())
     return digest.hexdigest()
+
+
+def _fields_digest() -> str:
+    """:func:`code_digest` of the code a cached field comes from: the perception modules, the checks they
+    share (reference_markers), the frame crop and this module (reading frames, rounding to float16).
+    It held the perception modules alone: fields rounded by another float16_px were read as current."""
+    return code_digest(detection, tracking, field_module, perception, reference_markers, frame_crop,
+                       sys.modules[__name__])
 
 
 def video_key(video: Path, reference_frame: int, crop: FrameCrop | None) -> list:
@@ -308,8 +319,8 @@ def video_key(video: Path, reference_frame: int, crop: FrameCrop | None) -> list
 
 def cache_path(cache_dir: str | Path, video: Path, reference_frame: int = 1, crop: FrameCrop | None = None) -> Path:
     """Where the fields of ``video`` are cached: one .npz per video, named after :func:`video_key` and the
-    perception code, so a stale entry is never read."""
-    text = json.dumps([CACHE_VERSION, *video_key(video, reference_frame, crop), _perception_digest()])
+    code the fields come from (:func:`_fields_digest`), so a stale entry is never read."""
+    text = json.dumps([CACHE_VERSION, *video_key(video, reference_frame, crop), _fields_digest()])
     return Path(cache_dir) / f"{cache_stem(video)}__{hashlib.sha256(text.encode()).hexdigest()[:16]}.npz"
 
 

@@ -46,8 +46,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     _fit_args(p, window_steps=300)
     p.add_argument("--folds", type=int, default=5, help="object folds (default 5; the number of objects, "
                    "e.g. 29, leaves one object out)")
-    p.add_argument("--init", default=None, help="fine-tune every fold from this checkpoint or shipped model name (e.g. sim); "
-                   "its architecture is used and --steps counts the extra steps")
+    p.add_argument("--init", default=None, help="with --method windows: fine-tune every fold from this checkpoint or "
+                   "shipped model name (e.g. sim); its architecture is used and --steps counts the extra steps")
     online_flags(p)
     p.add_argument("--out", type=output_file, default=None, help="also write the full report (JSON) here")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
@@ -268,6 +268,9 @@ def _trial_inputs(args: argparse.Namespace, reference_frame: int, params: Contac
 def _cv(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     check_online(args, args.method == "trial")
+    if args.method == "trial" and args.init is not None:  # it was ignored, a name that is no model too
+        raise ValueError("--init fine-tunes window models (--method windows): the trial model is trained "
+                         "from scratch in every fold")
     if args.method == "trial":
         from fv_algos.trial_net import cross_validate_trials
         config = _trial_config(args)

@@ -157,6 +157,10 @@ def test_a_camera_video_may_be_any_common_container_but_only_one(tmp_path: Path)
     (tmp_path / "t2/camera_0.avi").write_bytes(b"")
     with pytest.raises(ValueError, match=r"labels.csv line 3: 2 videos for camera_0, keep one: .*t2/camera_0.avi, "):
         read_trials(tmp_path)
+    (tmp_path / "t2/camera_0.avi").unlink()
+    (tmp_path / "t2/camera_2.MP4").write_bytes(b"")  # was neither read nor warned of
+    assert read_trials(tmp_path)[1].videos == {"camera_0": tmp_path / "t2/camera_0.mkv",
+                                               "camera_2": tmp_path / "t2/camera_2.MP4"}
 
 
 def test_video_fields_track_every_frame_without_swaps(isd_data: Path) -> None:
@@ -261,6 +265,28 @@ def test_a_cache_folder_that_cannot_be_one_is_named_before_any_video_is_decoded(
             compute(read_trials(tmp_path), tmp_path / "a_file", progress=False)
         with pytest.raises(ValueError, match=f"cache folder {tmp_path / 'a_file' / 'c'} cannot be created: "):
             compute(read_trials(tmp_path), tmp_path / "a_file" / "c", progress=False)
+
+
+def test_cache_names_hash_all_the_code_their_results_come_from(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The field cache hashed the perception modules alone: fields written by another `float16_px`
+    (real_trials.py) were read as current; the contact series hashed contact_motion.py alone."""
+    import fv_algos.contact_motion as contact_motion
+    import fv_algos.real_trials as real_trials
+    from fv_algos.contact_motion import ContactMotionParams
+    hashed: list[set[str]] = []
+
+    def spy(*modules: object) -> str:
+        hashed.append({Path(m.__file__).name for m in modules})
+        return "0" * 64
+    monkeypatch.setattr(real_trials, "code_digest", spy)
+    monkeypatch.setattr(contact_motion, "code_digest", spy)
+    video = tmp_path / "camera_0.avi"
+    video.write_bytes(b"")
+    real_trials.cache_path(tmp_path, video)
+    contact_motion._series_cache_path(tmp_path, video, 1, ContactMotionParams(), None, None)
+    assert {"real_trials.py", "reference_markers.py", "frame_crop.py", "detection.py", "tracking.py", "field.py",
+            "perception.py"} <= hashed[0]
+    assert {"contact_motion.py", "frame_rate.py", "frame_crop.py", "real_trials.py"} <= hashed[1]
 
 
 def test_cache_files_are_written_whole_or_not_at_all(tmp_path: Path) -> None:
@@ -435,6 +461,7 @@ def test_real_cv_online_reports_how_early_the_held_out_networks_tell_slips(isd_d
 @pytest.mark.parametrize("argv, message", [
     (["real", "cv", "--trials", "x", "--plot", "x.png"], "fv real: error: --plot needs --online"),  # exit 1
     (["real", "cv", "--trials", "x", "--online", "--method", "windows"], "--online needs a trial-level model"),
+    (["real", "cv", "--trials", "x", "--init", "no_such_model"], "--init fine-tunes window models"),  # was ignored
     (["eval", "--trials", "x", "--model", "sim", "--online"], "--online needs a trial-level model"),
     (["eval", "--trials", "x", "--model", "gelsight_trial", "--alarm", "0.9", "--plot", "x.png"],
      "fv eval: error: --alarm and --plot need --online"),
