@@ -182,15 +182,30 @@ def load_yaml(path: Path) -> Any:
         raise LaunchError(f"{path}: bad YAML: {exc}") from None
 
 
+class CommandLineText(str):
+    """A launch argument's value as typed on the command line, typed by `_resolve_args`."""
+
+
 def parse_arg_overrides(items: list[str]) -> dict[str, Any]:
-    """["name:=value", ...] from the command line -> {name: YAML-typed value}."""
+    """["name:=value", ...] from the command line -> {name: CommandLineText(value)}."""
     out: dict[str, Any] = {}
     for item in items:
         name, sep, value = item.partition(":=")
         if not sep or not name:
             raise LaunchError(f"launch argument {item!r} is not name:=value")
-        out[name] = parse_text(value)
+        out[name] = CommandLineText(value)
     return out
+
+
+def typed_arg(text: CommandLineText, default: Any) -> Any:
+    """A command-line argument's value: the text itself where the argument is text (its default is a
+    string, or it has none and YAML would read a string), else as YAML reads it ("0.5" -> 0.5, "[1, 2]"
+    -> list). Read as YAML, `device:=2` (a V4L2 index) was the int 2 and refused, and a path with " #"
+    was cut there (the rest read as a comment)."""
+    if isinstance(default, str):
+        return str(text)
+    value = parse_text(text)
+    return str(text) if default is _NO_DEFAULT and isinstance(value, str) else value
 
 
 def load_launch(path: Path | str, args: dict[str, Any] | None = None, _stack: tuple[Path, ...] = ()) -> list[NodeSpec]:
@@ -277,6 +292,8 @@ def _resolve_args(f: _File, doc: _Dict, given: dict[str, Any]) -> dict[str, Any]
             f.check_keys(spec, ARG_KEYS, key)
             default = spec.get("default", _NO_DEFAULT)
         value = given.get(name, default)
+        if isinstance(value, CommandLineText):
+            value = typed_arg(value, default)
         if value is _NO_DEFAULT:
             raise f.error(line, key, f"no default and not given (fv launch {f.path.name} {name}:=VALUE)")
         values[name] = value

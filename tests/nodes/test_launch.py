@@ -14,7 +14,7 @@ import pytest
 from nodes.bag.reader import MCAP_MAGIC
 from nodes.bus import resolve_topic
 from nodes.forwarder import ping
-from nodes.launch_file import LaunchError, load_launch
+from nodes.launch_file import LaunchError, load_launch, parse_arg_overrides
 from nodes.launcher import Launch
 from tests.nodes.conftest import REPO, Bus, children_of, pid_alive, run_fv, wait_status
 
@@ -91,6 +91,21 @@ def test_args_includes_and_overrides(tmp_path: Path) -> None:
     assert talker.argv()[:4] == ["node", "talker", "--name", "inner_talker"]
     with pytest.raises(LaunchError, match="'speed' given but not declared"):
         load_launch(outer, {"speed": 1})
+
+
+@pytest.mark.usefixtures("video_files")
+def test_command_line_arguments_are_text_where_the_argument_is(tmp_path: Path) -> None:
+    """Read as YAML, `device:=2` (a V4L2 index) was the int 2 and refused ("param 'path' = 2 is not of type
+    str"), and a video path with " #" was cut there, the rest read as a comment."""
+    specs = {s.name: s for s in load_launch(REPO / "launch" / "gelsight_mini.yaml", parse_arg_overrides(["device:=2"]))}
+    assert specs["camera"].params["path"] == "2"
+    odd = tmp_path / "grasp #2.avi"
+    odd.write_bytes(b"")
+    specs = {s.name: s for s in load_launch(REPO / "launch" / "video.yaml", parse_arg_overrides([f"video:={odd}"]))}
+    assert specs["camera"].params["path"] == str(odd)
+    typed = {s.name: s for s in load_launch(REPO / "launch" / "pipeline.yaml",
+                                            parse_arg_overrides(["fps:=12.5", "threads:=2", "standby:=false"]))}
+    assert typed["camera"].params["fps"] == 12.5 and typed["slip_detector"].params["threads"] == 2
 
 
 def test_an_include_in_a_namespace_moves_its_nodes_topics_and_names_there(tmp_path: Path) -> None:
