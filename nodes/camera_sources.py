@@ -109,7 +109,8 @@ def _identity(path: Path) -> tuple[int, int]:
 class FolderSource:
     """Images of a folder in name order, optionally looping. An unreadable image is
     skipped (logged once); a removed one raises SourceError (the folder is reopened). Images
-    come as uint8 mono or BGR (`as_uint8`), deeper ones all at the gain of the first."""
+    come as uint8 mono or BGR (`as_uint8`), deeper ones at one gain: the white level of the deepest
+    bit depth seen so far (`full_scale`), which a frame raises by whole bits only."""
 
     def __init__(self, path: str, loop: bool = True) -> None:
         self.path = Path(path)
@@ -118,7 +119,7 @@ class FolderSource:
         self._files: list[Path] = []
         self._unreadable: set[Path] = set()
         self._index = 0
-        self._full_scale: float | None = None  # of images deeper than 8 bits: the first one's
+        self._full_scale: float | None = None  # of images deeper than 8 bits: the highest so far
         self.finished = False
 
     def open(self) -> None:
@@ -139,8 +140,8 @@ class FolderSource:
             self._index += 1
             image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
             if image is not None:
-                if image.dtype != np.uint8 and self._full_scale is None:
-                    self._full_scale = full_scale(image)
+                if image.dtype != np.uint8:  # the white level only rises (a dark first frame: 255, then 4095)
+                    self._full_scale = max(self._full_scale or 0.0, full_scale(image))
                 return Frame(as_uint8(image, self._full_scale), time.time_ns())
             if not path.is_file():
                 raise SourceError(f"{self.name}: {path.name} removed")
@@ -165,7 +166,7 @@ def full_scale(image: np.ndarray) -> float:
 def as_uint8(image: np.ndarray, white: float | None = None) -> np.ndarray:
     """`image` as uint8 mono (H, W) or BGR (H, W, 3): an alpha channel dropped (a BGRA image broke
     `encoding: bgr8`), deeper images scaled so that `white` is 255 (default: `full_scale` of this
-    image; a folder passes its first image's, so every frame gets one gain: scaled by its own
+    image; a folder passes the highest so far, so its frames share one gain: scaled by its own
     maximum, a frame with one hot pixel came out half as bright as the next)."""
     if image.ndim == 3 and image.shape[2] == 4:
         image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)

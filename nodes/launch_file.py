@@ -199,13 +199,12 @@ def parse_arg_overrides(items: list[str]) -> dict[str, Any]:
 
 def typed_arg(text: CommandLineText, default: Any) -> Any:
     """A command-line argument's value: the text itself where the argument is text (its default is a
-    string, or it has none and YAML would read a string), else as YAML reads it ("0.5" -> 0.5, "[1, 2]"
-    -> list). Read as YAML, `device:=2` (a V4L2 index) was the int 2 and refused, and a path with " #"
-    was cut there (the rest read as a comment)."""
-    if isinstance(default, str):
+    string, or it has none: a node param of another type reads the text as YAML itself), else as YAML
+    reads it ("0.5" -> 0.5, "false", "[1, 2]" -> list). Read as YAML, `device:=2` and `left:=0` (V4L2
+    indices) were ints and refused, and a video path with " #" was cut there (the rest a comment)."""
+    if isinstance(default, str) or default is _NO_DEFAULT:
         return str(text)
-    value = parse_text(text)
-    return str(text) if default is _NO_DEFAULT and isinstance(value, str) else value
+    return parse_text(text)
 
 
 def load_launch(path: Path | str, args: dict[str, Any] | None = None, _stack: tuple[Path, ...] = ()) -> list[NodeSpec]:

@@ -458,7 +458,8 @@ def add_bench_parser(kinds: argparse._SubParsersAction, name: str) -> None:
     """`fv bench slip`: inference time per window of a slip checkpoint in each variant."""
     p = kinds.add_parser(name, help="slip classifier inference speed per variant (fp32, bf16, int8)")
     p.add_argument("--model", default="sim", help="shipped model name or checkpoint path (default sim)")
-    p.add_argument("--variants", default="fp32,bf16,int8", help="comma-separated variants (fp32,bf16,int8,compile)")
+    p.add_argument("--variants", default=None, help="comma-separated variants (fp32,bf16,int8,compile; default "
+                   "fp32,bf16,int8 on the cpu, fp32,bf16 elsewhere: int8 runs on the cpu only)")
     p.add_argument("--threads", default="1,2", help="comma-separated torch thread counts (default 1,2)")
     p.add_argument("--repeats", type=positive_int, default=50, help="timed calls per measurement (default 50)")
     p.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda, cuda:N, mps, xpu[:N]")
@@ -481,7 +482,8 @@ def _bench_slip(args: argparse.Namespace) -> int:
     thread_counts = _csv(args.threads, int)
     if min(thread_counts) < 1:
         raise ValueError(f"--threads {args.threads}: every thread count must be >= 1")
-    for variant in _csv(args.variants, str):
+    variants = args.variants or ("fp32,bf16,int8" if args.device == "cpu" else "fp32,bf16")
+    for variant in _csv(variants, str):
         predictor = variant_predictor(model, variant, args.device)
         for threads in thread_counts:
             rows.append({"model": args.model, "variant": variant, "device": args.device, "threads": threads,

@@ -93,7 +93,8 @@ class TrackerNode(Node):
     def teardown(self) -> None:
         """Say so when frames came but none was tracked: a video of 1 frame, or `reference_frame` past
         its end, ended the launch with status 0 and not one decision, without a word."""
-        if self.needs_reference and self.frames_seen > 0:
+        taken = self.counters.get("references", 0) + self.counters.get("resumed", 0)
+        if not taken and getattr(self, "frames_seen", 0) > 0:  # (after /tracker/reset: frames were tracked)
             self.log.warning("%d frame(s) came and none was tracked: no reference was taken (reference_frame "
                              "%d)", self.frames_seen, self.params.reference_frame)
 

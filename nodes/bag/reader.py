@@ -47,8 +47,8 @@ class BagError(ValueError):
 @dataclass
 class TopicInfo:
     """One topic of a bag: message type, message count, latched, publishing nodes, and the log times
-    (ns) of its first and last message: exact from a finished recording's totals, else the bounds of
-    the chunks that hold it."""
+    (ns) of its first and last message: exact from a finished recording's totals when the bag holds the
+    whole recording (not one of its split files), else the bounds of the chunks that hold it."""
 
     topic: str
     type_name: str
@@ -224,9 +224,9 @@ class BagReader:
                     info.first_ns = min(info.first_ns, first) if info.first_ns else first
                     info.last_ns = max(info.last_ns, last)
         recorded = json.loads(self.metadata().get(RECORDING_END_META, {}).get("per_topic", "{}"))
-        for topic, totals in recorded.items():
-            if topic in out and "first_ns" in totals:  # a recording finished before it kept these had only counts
-                out[topic].first_ns, out[topic].last_ns = int(totals["first_ns"]), int(totals["last_ns"])
+        for topic, totals in recorded.items():  # the whole recording's: for this bag only when it holds all of it
+            if topic in out and "first_ns" in totals and totals["count"] == out[topic].count:  # (one split file
+                out[topic].first_ns, out[topic].last_ns = int(totals["first_ns"]), int(totals["last_ns"])  # does not)
         return out
 
     def attachments(self) -> list[Attachment]:

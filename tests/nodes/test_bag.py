@@ -325,6 +325,22 @@ def test_a_topic_s_rate_is_over_its_own_span(tmp_path: Path, rng: np.random.Gene
     cap.release()
 
 
+def test_one_file_of_a_split_recording_has_its_own_rate(tmp_path: Path, rng: np.random.Generator) -> None:
+    """The whole recording's first and last times (kept in its last file) gave that file alone 10.1 Hz
+    for a 100 Hz camera: they count for a bag only when it holds the whole recording."""
+    writer = BagWriter(tmp_path / "rec", fsync=False, max_bag_duration_s=0.3)
+    seqs: dict[str, int] = {}
+    for topic, latched, msg, t in sample_messages(100, rng):  # frames every 10 ms
+        seq = seqs[topic] = seqs.get(topic, -1) + 1
+        writer.write(topic, "cam", latched, frames_of(msg, seq, "cam", t - 100), t)
+    writer.add_metadata(RECORDING_END_META, {"per_topic": json.dumps(
+        {t: {"count": st.count, "gaps": 0, "first_ns": st.first_ns, "last_ns": st.last_ns}
+         for t, st in writer.stats.items()})})
+    writer.close()
+    assert len(writer.files) > 2 and BagReader(tmp_path / "rec").topics()["/camera/image"].rate_hz == pytest.approx(100.0)
+    assert BagReader(writer.files[-1]).topics()["/camera/image"].rate_hz == pytest.approx(100.0, rel=0.05)
+
+
 @pytest.mark.parametrize("fps, written", [(97.2568578553616, 97.26), (12.5, 12.5), (6.024, 6.024), (30000.0, 30000.0)])
 def test_video_rates_are_rounded_to_what_the_writers_take(fps: float, written: float, tmp_path: Path) -> None:
     """A measured 97.2568578 fps made OpenCV's mp4 writer fail to open (a time base of 1000 / 97257)."""

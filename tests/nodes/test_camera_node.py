@@ -89,6 +89,11 @@ def test_folder_frames_of_any_depth_and_alpha_come_as_uint8_at_one_gain(tmp_path
     source.open()
     first, second = source.read().image, source.read().image
     assert first.dtype == np.uint8 and first[20, 20] == second[20, 20] == round(3000 * 255 / 4095)
+    cv2.imwrite(str(tmp_path / "0_dark.png"), np.full((24, 32), 40, np.uint16))  # a camera starting up
+    source = FolderSource(str(tmp_path), loop=False)
+    source.open()
+    source.read()  # the dark frame's white level, 255, would clip every 12-bit frame after it
+    assert source.read().image[20, 20] == round(3000 * 255 / 4095)
     rgba = tmp_path / "rgba"
     rgba.mkdir()
     cv2.imwrite(str(rgba / "c.png"), np.full((24, 32, 4), 90, np.uint8))

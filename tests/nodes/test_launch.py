@@ -99,6 +99,8 @@ def test_command_line_arguments_are_text_where_the_argument_is(tmp_path: Path) -
     str"), and a video path with " #" was cut there, the rest read as a comment."""
     specs = {s.name: s for s in load_launch(REPO / "launch" / "gelsight_mini.yaml", parse_arg_overrides(["device:=2"]))}
     assert specs["camera"].params["path"] == "2"
+    pair = load_launch(REPO / "launch" / "gelsight_mini_pair.yaml", parse_arg_overrides(["left:=0", "right:=1"]))
+    assert sorted(s.params["path"] for s in pair if s.kind == "camera") == ["0", "1"]  # no defaults: text too
     odd = tmp_path / "grasp #2.avi"
     odd.write_bytes(b"")
     specs = {s.name: s for s in load_launch(REPO / "launch" / "video.yaml", parse_arg_overrides([f"video:={odd}"]))}
