@@ -100,23 +100,22 @@ class Forwarder:
         xsub.send(b"\x01" + LATCHED)
         return xsub, xpub, ctl
 
-    def reload_authorized(self) -> bool:
+    def reload_authorized(self) -> None:
         """(Re)load the client keys of `authorized/` when its key files changed since they were last
         loaded: a key copied in while the forwarder runs is taken within a second (it was taken only
-        after a restart, though the refused client is told to copy its key there). True when reloaded."""
+        after a restart, though the refused client is told to copy its key there)."""
         if self.auth is None or self.authorized is None:
-            return False
+            return
         try:
             seen = sorted((f.name, f.stat().st_mtime_ns) for f in self.authorized.iterdir() if f.is_file())
         except OSError:
             seen = []
         if seen == self._authorized_seen:
-            return False
+            return
         self.auth.configure_curve(domain="*", location=str(self.authorized))
         if self._authorized_seen is not None:
             log.info("authorized client keys reloaded from %s: %d file(s)", self.authorized, len(seen))
         self._authorized_seen = seen
-        return True
 
     def info(self) -> dict:
         return {"pid": os.getpid(), "url": self.address.url, "uptime_s": time.time() - self.started,

@@ -104,48 +104,55 @@ class SlipDetectorParams:
                              "archive; give the .pt)")  # respawned for good, the camera waiting for it
 
 
+def load_model(p: SlipDetectorParams) -> tuple[TrialModel | None, Any, float]:
+    """The model `p.model` names, as (trial model, None, 0.0), or as (None, window `SlipClassifier` on
+    `p.device` with `p.threads`, the wall time in s of the first pass it has run)."""
+    from fv_algos.slip.classifier import SlipClassifier
+    from fv_algos.trial_net import read_trial_model
+    path = model_path(p.model)
+    trial_model = read_trial_model(path)
+    if trial_model is not None:
+        return trial_model, None, 0.0
+    classifier = SlipClassifier(path, device=p.device, threads=p.threads)
+    return None, classifier, classifier.warm_up()
+
+
 class SlipDetectorNode(Node):
     """Publishes a slip decision per field: from a sliding window, or from the grasp so far."""
 
     Params = SlipDetectorParams
-    # a standby process's window model, loaded and run once before it takes over: (model file, device,
-    # threads), the classifier, its first pass in s
+    # a standby process's window model, loaded and run once before it takes over: (model, device,
+    # threads) it was loaded for, the classifier, its first pass in s
     prepared: ClassVar[tuple[tuple[str, str, int], Any, float] | None] = None
 
     @classmethod
     def preload(cls, params: dict[str, Any]) -> None:
         """Import torch and, for a window model, load it and run its first pass: a spare that did this at
         takeover left `/slip` silent 0.94 s after a `kill -9` of the slip detector (30 fps)."""
-        from fv_algos.slip.classifier import SlipClassifier
-        from fv_algos.trial_net import read_trial_model
         p = build_params(cls.Params, params, where="slip_detector standby")
-        path = model_path(p.model)
-        if read_trial_model(path) is None:
-            classifier = SlipClassifier(path, device=p.device, threads=p.threads)
-            cls.prepared = ((str(path), p.device, p.threads), classifier, classifier.warm_up())
+        _, classifier, warm_up_s = load_model(p)
+        if classifier is not None:
+            cls.prepared = ((p.model, p.device, p.threads), classifier, warm_up_s)
 
     def setup(self) -> None:
-        from fv_algos.trial_net import read_trial_model
         p = self.params
-        path = model_path(p.model)
         self.slip = False
         self.slip_pub = self.publisher("slip", SlipState)
         self.counters.update(decisions=0, invalid_windows=0, skipped=0, empty_references=0)
-        trial_model = read_trial_model(path)
+        prepared, type(self).prepared = type(self).prepared, None
+        if prepared is not None and prepared[0] == (p.model, p.device, p.threads):
+            trial_model, classifier, warm_up_s = None, prepared[1], prepared[2]
+        else:
+            trial_model, classifier, warm_up_s = load_model(p)
         if trial_model is not None:
             self.setup_grasp(trial_model)
         else:
-            self.setup_window(path)
+            self.setup_window(classifier, warm_up_s)
 
-    def setup_window(self, path: Path) -> None:
-        from fv_algos.slip.classifier import SlipClassifier
+    def setup_window(self, classifier: Any, warm_up_s: float) -> None:
+        """Judge windows of fields with `classifier` (a `SlipClassifier` whose first pass took `warm_up_s`)."""
         p = self.params
-        prepared, type(self).prepared = type(self).prepared, None
-        if prepared is not None and prepared[0] == (str(path), p.device, p.threads):
-            _, self.classifier, warm_up_s = prepared
-        else:
-            self.classifier = SlipClassifier(path, device=p.device, threads=p.threads)
-            warm_up_s = self.classifier.warm_up()
+        self.classifier = classifier
         cfg = self.classifier.config
         self.window: collections.deque = collections.deque(maxlen=cfg.window)
         self.frame_width_px: int | None = None  # of the tracker's reference frame

@@ -97,9 +97,10 @@ def variant_predictor(model: nn.Module, variant: str = "fp32", device: str = "cp
     """
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
-    if variant == "int8" and usable_device(device).type != "cpu":
+    target = usable_device(device)
+    if variant == "int8" and target.type != "cpu":
         raise ValueError(f"variant int8 runs on the cpu only, not device {device!r}")
-    model = copy.deepcopy(model).to(usable_device(device)).eval()
+    model = copy.deepcopy(model).to(target).eval()
     if variant == "bf16":
         return partial(predict_proba, fast_layout(model, torch.bfloat16), autocast=torch.bfloat16, device=device)
     if variant == "int8":

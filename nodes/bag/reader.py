@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import struct
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -223,11 +224,16 @@ class BagReader:
                     first, last = min(c.message_start_time for c in chunks), max(c.message_end_time for c in chunks)
                     info.first_ns = min(info.first_ns, first) if info.first_ns else first
                     info.last_ns = max(info.last_ns, last)
-        recorded = json.loads(self.metadata().get(RECORDING_END_META, {}).get("per_topic", "{}"))
-        for topic, totals in recorded.items():  # the whole recording's: for this bag only when it holds all of it
+        for topic, totals in self._recorded_totals.items():  # the whole recording's: for this bag only when it holds all of it
             if topic in out and "first_ns" in totals and totals["count"] == out[topic].count:  # (one split file
                 out[topic].first_ns, out[topic].last_ns = int(totals["first_ns"]), int(totals["last_ns"])  # does not)
         return out
+
+    @cached_property
+    def _recorded_totals(self) -> dict[str, dict[str, int]]:
+        """Per topic, the finished recording's totals (count, gaps, first_ns, last_ns), read once: {} for a
+        bag without them (a recovered one, or recorded before they were kept)."""
+        return json.loads(self.metadata().get(RECORDING_END_META, {}).get("per_topic", "{}"))
 
     def attachments(self) -> list[Attachment]:
         """All attachments of every file (a split bag repeats the sticky ones per file)."""

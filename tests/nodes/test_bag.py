@@ -48,9 +48,11 @@ def sample_messages(n: int, rng: np.random.Generator, size: tuple[int, int] = (2
     return out
 
 
-def write_bag(folder: Path, messages: list[tuple[str, bool, msgs.Message, int]], **kwargs) -> BagWriter:
+def write_bag(folder: Path, messages: list[tuple[str, bool, msgs.Message, int]], finished: bool = False,
+              **kwargs) -> BagWriter:
     """Write `messages` through BagWriter as if received at their log times; seq counts
-    per topic, node "cam" (info, image) or "proc" (others), pub_ns = log time - 100 ns."""
+    per topic, node "cam" (info, image) or "proc" (others), pub_ns = log time - 100 ns. `finished`:
+    end with the per-topic totals a finished recording keeps (count, gaps, first and last log time)."""
     writer = BagWriter(folder, metadata={"fv_recording": {"host": "test"}}, fsync=False, **kwargs)
     writer.attach("launch.yaml", b"nodes: []\n", "application/yaml")
     seqs: dict[str, int] = {}
@@ -58,6 +60,10 @@ def write_bag(folder: Path, messages: list[tuple[str, bool, msgs.Message, int]],
         seq = seqs[topic] = seqs.get(topic, -1) + 1
         node = "cam" if topic.startswith("/camera") else "proc"
         writer.write(topic, node, latched, frames_of(msg, seq, node, t - 100), t)
+    if finished:
+        writer.add_metadata(RECORDING_END_META, {"per_topic": json.dumps(
+            {t: {"count": st.count, "gaps": 0, "first_ns": st.first_ns, "last_ns": st.last_ns}
+             for t, st in writer.stats.items()})})
     writer.close()
     return writer
 
@@ -307,15 +313,7 @@ def test_a_topic_s_rate_is_over_its_own_span(tmp_path: Path, rng: np.random.Gene
     half speed. A finished recording keeps each topic's first and last log time."""
     messages = sample_messages(40, rng)  # frames every 10 ms: 100 Hz
     late = [(t, latched, m, ts + (0 if latched else 4_000_000_000)) for t, latched, m, ts in messages]
-    writer = BagWriter(tmp_path / "late", fsync=False)
-    seqs: dict[str, int] = {}
-    for topic, latched, msg, t in late:
-        seq = seqs[topic] = seqs.get(topic, -1) + 1
-        writer.write(topic, "cam", latched, frames_of(msg, seq, "cam", t - 100), t)
-    per_topic = {t: {"count": st.count, "gaps": 0, "first_ns": st.first_ns, "last_ns": st.last_ns}
-                 for t, st in writer.stats.items()}
-    writer.add_metadata(RECORDING_END_META, {"per_topic": json.dumps(per_topic)})
-    writer.close()
+    write_bag(tmp_path / "late", late, finished=True)
     assert main(["bag", "info", str(tmp_path / "late"), "--json"]) == 0
     rates = {t["topic"]: t["rate_hz"] for t in json.loads(capsys.readouterr().out)["topics"]}
     assert rates["/camera/image"] == pytest.approx(100.0) and rates["/camera/info"] == 0.0
@@ -328,15 +326,8 @@ def test_a_topic_s_rate_is_over_its_own_span(tmp_path: Path, rng: np.random.Gene
 def test_one_file_of_a_split_recording_has_its_own_rate(tmp_path: Path, rng: np.random.Generator) -> None:
     """The whole recording's first and last times (kept in its last file) gave that file alone 10.1 Hz
     for a 100 Hz camera: they count for a bag only when it holds the whole recording."""
-    writer = BagWriter(tmp_path / "rec", fsync=False, max_bag_duration_s=0.3)
-    seqs: dict[str, int] = {}
-    for topic, latched, msg, t in sample_messages(100, rng):  # frames every 10 ms
-        seq = seqs[topic] = seqs.get(topic, -1) + 1
-        writer.write(topic, "cam", latched, frames_of(msg, seq, "cam", t - 100), t)
-    writer.add_metadata(RECORDING_END_META, {"per_topic": json.dumps(
-        {t: {"count": st.count, "gaps": 0, "first_ns": st.first_ns, "last_ns": st.last_ns}
-         for t, st in writer.stats.items()})})
-    writer.close()
+    writer = write_bag(tmp_path / "rec", sample_messages(100, rng), finished=True,  # frames every 10 ms
+                       max_bag_duration_s=0.3)
     assert len(writer.files) > 2 and BagReader(tmp_path / "rec").topics()["/camera/image"].rate_hz == pytest.approx(100.0)
     assert BagReader(writer.files[-1]).topics()["/camera/image"].rate_hz == pytest.approx(100.0, rel=0.05)
 

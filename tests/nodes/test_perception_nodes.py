@@ -130,6 +130,15 @@ def test_tracker_of_a_new_launch_takes_its_own_reference(bus, spawn, monkeypatch
     camera.close()
 
 
+def _skin_at_rest() -> np.ndarray:
+    """A simulated camera frame (H, W) uint8 of the skin at rest, its markers undeformed."""
+    from fv_algos.sim.scene import scene_from_dict
+    from fv_algos.sim.sensor import SimSensor
+    sensor = SimSensor(scene_from_dict({"object": {"shape": "sphere"}, "fps": 10,
+                                        "steps": [{"action": "hold", "duration_s": 0.2}]}), seed=0)
+    return sensor.renderer.render(np.column_stack([sensor.markers_ref_mm, np.zeros(len(sensor.markers_ref_mm))])).image
+
+
 def _markers(n: int) -> MarkerArray:
     ref = np.random.default_rng(n).random((n, 2)).astype(np.float32) * 300
     return MarkerArray(stamp_ns=1, ref_px=ref, cur_px=ref, valid=np.ones(n, bool),
@@ -139,13 +148,9 @@ def _markers(n: int) -> MarkerArray:
 def test_a_dark_first_frame_is_no_reference_and_the_next_is_taken() -> None:
     """A black frame at the start (a camera warming up) raised in the tracker's callback, logged with its
     traceback; it is now warned and counted, and the next frame with markers becomes the reference."""
-    from fv_algos.sim.scene import scene_from_dict
-    from fv_algos.sim.sensor import SimSensor
     from msgs import Image
     from nodes.tracker import TrackerNode
-    sensor = SimSensor(scene_from_dict({"object": {"shape": "sphere"}, "fps": 10,
-                                        "steps": [{"action": "hold", "duration_s": 0.2}]}), seed=0)
-    rest = sensor.renderer.render(np.column_stack([sensor.markers_ref_mm, np.zeros(len(sensor.markers_ref_mm))])).image
+    rest = _skin_at_rest()
     node = TrackerNode("tracker", {"reference_frame": 0, "resume": False})
     references: list = []
     try:
@@ -168,13 +173,9 @@ def test_a_replay_from_the_camera_s_first_frame_takes_its_own_reference(first_se
     (349 of 500 decisions differed from the live ones). A recording that holds the camera's first frames
     holds the frame the live tracker took its reference from: the replay takes its own there. One that
     starts later (a recording begun mid-session) is tracked against the recorded reference, as before."""
-    from fv_algos.sim.scene import scene_from_dict
-    from fv_algos.sim.sensor import SimSensor
     from msgs import Image
     from nodes.tracker import TrackerNode
-    sensor = SimSensor(scene_from_dict({"object": {"shape": "sphere"}, "fps": 10,
-                                        "steps": [{"action": "hold", "duration_s": 0.2}]}), seed=0)
-    rest = sensor.renderer.render(np.column_stack([sensor.markers_ref_mm, np.zeros(len(sensor.markers_ref_mm))])).image
+    rest = _skin_at_rest()
     node = TrackerNode("tracker", {"resume": False, "recorded_reference": "recorded/markers/reference"})
     references: list = []
     try:
@@ -212,13 +213,9 @@ def test_a_frame_of_another_size_is_dropped_until_a_new_reference() -> None:
     into a wrong field taken as valid (8 of 70 markers valid, |d| 35 px with the skin at rest). It is now
     dropped, warned and counted; after /tracker/reset a frame of the new size is the reference."""
     import cv2
-    from fv_algos.sim.scene import scene_from_dict
-    from fv_algos.sim.sensor import SimSensor
     from msgs import Image
     from nodes.tracker import TrackerNode
-    sensor = SimSensor(scene_from_dict({"object": {"shape": "sphere"}, "fps": 10,
-                                        "steps": [{"action": "hold", "duration_s": 0.2}]}), seed=0)
-    rest = sensor.renderer.render(np.column_stack([sensor.markers_ref_mm, np.zeros(len(sensor.markers_ref_mm))])).image
+    rest = _skin_at_rest()
     big = cv2.resize(rest, (rest.shape[1] * 2, rest.shape[0] * 2))
     node = TrackerNode("tracker", {"reference_frame": 0, "resume": False})
     references: list = []
