@@ -189,10 +189,13 @@ def test_record_play_record_round_trip_with_recorded_timing(bus: BusAddress, spa
     assert sorted((key(m), m.payload, m.publish_time_ns, m.node, m.latched) for m in a) == \
            sorted((key(m), m.payload, m.publish_time_ns, m.node, m.latched) for m in b)
     assert {t: i.latched for t, i in two.topics().items()}["/camera/info"]
+    # The intervals are drawn from 4 to 25 ms: played evenly spaced they would be off by 5.6 ms (median), played as
+    # fast as possible by 13 ms. A timed player is off by 0.2 to 0.3 ms here; 2 ms leaves room for a loaded machine
+    # (1 ms failed about one run in eight beside other tests).
     for topic in ("/camera/image", "/slip"):
         rec_t = np.diff([m.log_time_ns for m in a if m.topic == topic]) / 1e6
         play_t = np.diff([m.log_time_ns for m in b if m.topic == topic]) / 1e6
-        assert np.median(np.abs(play_t - rec_t)) < 1.0, f"{topic}: intervals off by {np.abs(play_t - rec_t)}"
+        assert np.median(np.abs(play_t - rec_t)) < 2.0, f"{topic}: intervals off by {np.abs(play_t - rec_t)}"
 
 
 def _answer_slowly(bus: BusAddress, image_topic: str, answer_topic: str, work_s: float, seen: list[int],
