@@ -11,8 +11,8 @@ STOP_CHECK_S = 0.1
 class PlayClock:
     """Maps bag log time to monotonic time: due = origin + (bag_ns - bag0_ns) / rate.
 
-    Time spent paused shifts the origin, so playback resumes where it stopped. Thread-safe:
-    `toggle_pause()` may come from a signal handler or a keyboard thread.
+    Time spent paused shifts the origin, so playback resumes where it stopped, and is summed in
+    `paused_s`. Thread-safe: `toggle_pause()` may come from a signal handler or a keyboard thread.
     """
 
     def __init__(self, rate: float, paused: bool = False) -> None:
@@ -24,10 +24,18 @@ class PlayClock:
         self._paused_at = time.monotonic()
         self._origin = time.monotonic()
         self._bag0_ns = 0
+        self._pause_began = self._paused_at
+        self._paused_total_s = 0.0
 
     @property
     def paused(self) -> bool:
         return self._paused
+
+    @property
+    def paused_s(self) -> float:
+        """Seconds spent paused since this clock was made, the current pause included."""
+        with self._cond:
+            return self._paused_total_s + (time.monotonic() - self._pause_began if self._paused else 0.0)
 
     def start(self, bag0_ns: int) -> None:
         """Bag time `bag0_ns` is due now (or at resume when paused)."""
@@ -41,8 +49,9 @@ class PlayClock:
             now = time.monotonic()
             if self._paused:
                 self._origin += now - self._paused_at
+                self._paused_total_s += now - self._pause_began
             else:
-                self._paused_at = now
+                self._paused_at = self._pause_began = now
             self._paused = not self._paused
             self._cond.notify_all()
             return self._paused

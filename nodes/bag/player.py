@@ -18,6 +18,7 @@ a subscriber.
 from __future__ import annotations
 
 import collections
+import math
 import os
 import select
 import signal
@@ -177,13 +178,14 @@ class BagPlay(Node):
                 self._wait_for_subscribers()
             if self.clock.paused:
                 self.log.info("paused before the first message: space/enter or `kill -USR1 %d` starts", os.getpid())
-            started = time.monotonic()
+            started, paused_s = time.monotonic(), self.clock.paused_s
             while not self.stopped:
                 if not self._play_once() or not self.params.loop:  # nothing to play: no loop over nothing
                     break
                 self.counters["loops"] += 1
             self._await_sync(1)
-            self.log.info("%s", self.summary_line(time.monotonic() - started))
+            paused_s = self.clock.paused_s - paused_s
+            self.log.info("%s", self.summary_line(time.monotonic() - started - paused_s, paused_s))
         except BagError as exc:
             self.error = str(exc)
             self.state, self.message = "error", self.error
@@ -205,7 +207,7 @@ class BagPlay(Node):
         """One pass over the selected stretch of the bag; False when it holds nothing to play."""
         p = self.params
         start_ns = self.bag.start_ns + int(p.start_offset_s * 1e9)
-        end_ns = start_ns + int(p.duration_s * 1e9) if p.duration_s else None
+        end_ns = start_ns + math.ceil(p.duration_s * 1e9) if p.duration_s else None  # >= 1 ns: holds the first message
         latched = [t for t in self.played_topics if self.bag.topics()[t].latched]
         if p.start_offset_s and latched:
             last: dict[tuple[str, str], BagMessage] = {}
@@ -265,11 +267,13 @@ class BagPlay(Node):
                     pending.popleft()
             deadline = time.monotonic() + self.params.sync_timeout_s
 
-    def summary_line(self, elapsed_s: float) -> str:
+    def summary_line(self, elapsed_s: float, paused_s: float) -> str:
+        """The closing line; `elapsed_s` is the time spent playing, the `paused_s` seconds paused left out."""
         c = self.counters
         what = f"on {', '.join(self.sync_on)}" if self.sync_on else "messages"
         sync = f", sync timeouts {c['sync_timeouts']}" if self._sync is not None else ""
-        return (f"played {c['played']} messages ({c['frames']} {what}) in {elapsed_s:.2f} s: "
+        paused = f" (and {paused_s:.2f} s paused)" if paused_s > 0 else ""
+        return (f"played {c['played']} messages ({c['frames']} {what}) in {elapsed_s:.2f} s{paused}: "
                 f"{c['frames'] / max(elapsed_s, 1e-9):.1f} frames/s{sync}")
 
     def teardown(self) -> None:

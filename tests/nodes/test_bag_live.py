@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import shutil
 import signal
 import subprocess
@@ -292,6 +293,20 @@ def test_play_offset_duration_topics_remap_and_latched_first(bus: BusAddress, tm
     assert len(want) == 10 and node.counters["played"] == 11
 
 
+def test_a_duration_under_a_nanosecond_plays_the_first_message(bus: BusAddress, tmp_path: Path) -> None:
+    """The stretch [start, start + duration) was cut to whole ns: --duration 1e-12 played nothing."""
+    write_bag(tmp_path / "b", sample_messages(5, np.random.default_rng(2)))  # the camera info opens the bag
+    with TopicReader(["/camera/image", "/camera/info"], bus) as reader:
+        node = BagPlay("play", {"path": str(tmp_path / "b"), "fast": True, "duration_s": 1e-12,
+                                "topics": ["/camera/image", "/camera/info"]}, address=bus)
+        thread = in_thread(node)
+        got = []
+        while (item := reader.recv(2.0)) is not None:
+            got.append(item.topic)
+        thread.join(5)
+    assert got == ["/camera/info"]
+
+
 def test_a_loop_over_nothing_ends_and_numbers_that_mean_nothing_are_refused(bus: BusAddress, tmp_path: Path) -> None:
     """--loop from past the end spun a core forever, re-sending the latched messages; NaN and
     infinity hung the player (rate) or ended it in a traceback (offsets, durations)."""
@@ -349,6 +364,9 @@ def test_start_paused_until_sigusr1(bus: BusAddress, spawn: Spawn, tmp_path: Pat
         got = [reader.recv(2.0) for _ in range(20)]
     assert [r.msg.seq for r in got] == list(range(20))
     assert play.wait(10) == 0
+    # 20 messages 10 ms apart: the summary's time and rate leave the pause (at least 0.8 s) out
+    played_s, paused_s = map(float, re.search(r"in ([\d.]+) s \(and ([\d.]+) s paused\)", play.stderr.read()).groups())
+    assert played_s < 0.6 and paused_s >= 0.75
 
 
 def test_recording_stops_at_the_stop_on_a_live_bus(bus: BusAddress, tmp_path: Path) -> None:
