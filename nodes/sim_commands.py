@@ -89,8 +89,12 @@ def _calibration_views(args: argparse.Namespace) -> list[tuple[str, object]]:
     views = load_video_frames(args.video, every)
     needed = CalibrationParams().min_views
     if len(views) < needed:  # else it failed as boards not found, with the board size as the hint
+        frames = len(views) if every == 1 else len(load_video_frames(args.video, 1))  # a short video: read again
+        if frames < needed:
+            raise ValueError(f"{args.video} holds {frames} frame(s), fewer than the {needed} views a calibration "
+                             "needs: film the board in more positions")
         raise ValueError(f"--every {every} took {len(views)} frame(s) of {args.video}, fewer than the {needed} views "
-                         "a calibration needs: give a smaller --every")
+                         f"a calibration needs: give --every at most {frames // needed} (the video holds {frames})")
     return views
 
 

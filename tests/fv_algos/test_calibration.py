@@ -319,7 +319,14 @@ def test_fv_calibrate_says_when_every_leaves_too_few_frames(tmp_path: Path, caps
     writer.release()
     assert main(["calibrate", "--video", str(video), "--out", str(tmp_path / "c.json")]) == 2
     err = capsys.readouterr().err
-    assert "--every 10 took 1 frame(s)" in err and "give a smaller --every" in err
+    assert "--every 10 took 1 frame(s)" in err and "give --every at most 1 (the video holds 8)" in err
+    for every in ("1", "10"):  # a video too short for any --every (it said "give a smaller --every" at --every 1)
+        short = tmp_path / "short.avi"
+        writer = cv2.VideoWriter(str(short), cv2.VideoWriter_fourcc(*"MJPG"), 10, (64, 48), False)
+        writer.write(np.full((48, 64), 128, np.uint8))
+        writer.release()
+        assert main(["calibrate", "--video", str(short), "--every", every, "--out", str(tmp_path / "c.json")]) == 2
+        assert "holds 1 frame(s), fewer than the 5 views a calibration needs: film the board" in capsys.readouterr().err
 
 
 def test_too_few_boards_found_names_no_empty_rejection_list() -> None:
