@@ -115,7 +115,8 @@ def trial_rate(trial: Trial, camera: str) -> float:
     except ValueError:
         fps = math.nan
     if not (math.isfinite(fps) and fps > 0):
-        raise ValueError(f"trial {trial.name}: {RATE_COLUMN} {given!r} is not a frame rate > 0 (Hz)")
+        where = f"{trial.row}: " if trial.row else ""
+        raise ValueError(f"{where}trial {trial.name}: {RATE_COLUMN} {given!r} is not a frame rate > 0 (Hz)")
     return fps
 
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import csv
 import hashlib
+import io
 import json
 import logging
 import os
@@ -68,7 +69,8 @@ class Trial:
 
     name: folder relative to the dataset root (e.g. "train/blue_mug/exp_num_4").
     folder: absolute folder. label: 0 no slip, 1 slip. videos: camera name -> video path, for the
-    cameras present (camera_0 always). extra: the table's other columns, as strings.
+    cameras present (camera_0 always). extra: the table's other columns, as strings. row: where the
+    table lists it ("DIR/labels.csv line 7"; empty for a trial made in code), for errors in its cells.
     """
 
     name: str
@@ -77,6 +79,7 @@ class Trial:
     folder: Path
     videos: dict[str, Path]
     extra: dict[str, str] = field(default_factory=dict)
+    row: str = ""
 
 
 def read_trials(root: str | Path) -> list[Trial]:
@@ -94,13 +97,15 @@ def read_trials(root: str | Path) -> list[Trial]:
     table = root / LABELS_FILE
     if not table.is_file():
         raise FileNotFoundError(f"trial table not found: {table} (needs columns {', '.join(REQUIRED_COLUMNS)})")
-    with table.open(newline="", encoding="utf-8-sig") as handle:
-        reader = csv.reader(handle)
-        try:
-            lines = [(reader.line_num, cells) for cells in reader]
-        except UnicodeDecodeError as exc:
-            raise ValueError(f"{table}: not UTF-8 text ({exc.reason} after line {reader.line_num}): save it as "
-                             "UTF-8 (a spreadsheet's \"CSV UTF-8\")") from None
+    raw = table.read_bytes()
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        raise ValueError(f"{table} line {line}: not UTF-8 text ({exc.reason}, byte {raw[exc.start]:#04x}): save it as "
+                         "UTF-8 (a spreadsheet's \"CSV UTF-8\")") from None
+    reader = csv.reader(io.StringIO(text, newline=""))
+    lines = [(reader.line_num, cells) for cells in reader]
     header = [name.strip().lower() for name in lines[0][1]] if lines else []  # as a spreadsheet may write it: " Label"
     missing = [c for c in REQUIRED_COLUMNS if c not in header]
     if missing or len(set(header)) < len(header):
@@ -128,7 +133,7 @@ def read_trials(root: str | Path) -> list[Trial]:
             raise ValueError(f"{where}: trial {name!r} has no object (object-held-out folds need one)")
         seen[same] = line
         extra = {k: v for k, v in row.items() if k not in REQUIRED_COLUMNS}
-        trials.append(Trial(name, obj, LABEL_VALUES[label], folder, _camera_videos(folder, where), extra))
+        trials.append(Trial(name, obj, LABEL_VALUES[label], folder, _camera_videos(folder, where), extra, where))
     if not trials:
         raise ValueError(f"{table} lists no trials")
     return trials

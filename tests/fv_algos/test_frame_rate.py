@@ -3,6 +3,7 @@ jitter; a camera at the model's rate loses none; rates come from the table or th
 camera too slow for the model is refused by name."""
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import cv2
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 
 from fv_algos.frame_rate import FramePicker, check_rate, judged_rates, pick, picked_frames, trial_rate, video_rate
-from fv_algos.real_trials import Trial
+from fv_algos.real_trials import Trial, read_trials
 
 MS = 1_000_000  # ns
 
@@ -66,6 +67,11 @@ def test_rates_come_from_the_table_or_the_video_and_bad_ones_are_named(tmp_path:
         trial_rate(_trial(tmp_path, "fast", video), "camera_0")
     with pytest.raises(ValueError, match="trial t1: fps '-25'"):
         trial_rate(_trial(tmp_path, "-25", video), "camera_0")
+    (tmp_path / "t1").mkdir()
+    shutil.copy(video, tmp_path / "t1" / "camera_0.avi")
+    (tmp_path / "labels.csv").write_text("trial,object,label,fps\nt1,cup,slip,25 fps\n")
+    with pytest.raises(ValueError, match=r"labels.csv line 2: trial t1: fps '25 fps' is not"):  # the table's line
+        trial_rate(read_trials(tmp_path)[0], "camera_0")
     (tmp_path / "notes.avi").write_text("not a video")
     with pytest.raises(ValueError, match="notes.avi: the video gives no frame rate"):
         video_rate(tmp_path / "notes.avi")

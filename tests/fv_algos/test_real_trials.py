@@ -126,7 +126,7 @@ def test_a_spreadsheet_table_reads_as_the_user_meant_it(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r"line 4: trial 't1' is listed twice \(also on line 2\)"):
         read_trials(tmp_path)
     (tmp_path / "labels.csv").write_bytes("trial,object,label\nt1,tasse \xe0 caf\xe9,slip\n".encode("latin-1"))
-    with pytest.raises(ValueError, match=r"labels.csv: not UTF-8 text .*save it as UTF-8"):
+    with pytest.raises(ValueError, match=r"labels.csv line 2: not UTF-8 text .*byte 0xe0.*save it as UTF-8"):
         read_trials(tmp_path)
 
 
