@@ -17,17 +17,24 @@ class Image(Message):
 
     data: (H, W) uint8 for "mono8", (H, W, 3) uint8 for "bgr8" / "rgb8", H and W > 0.
     stamp_ns is the capture time of the frame.
+    frame_index: the frame's number in the video file or image folder it was read from, from 0, and from 0
+    again each time the source starts over (a looped video's next pass, a file reopened); -1 for frames
+    of a live camera or the simulator, and in recordings made before the field existed.
     """
 
     TYPE: ClassVar[str] = "Image"
     VERSION: ClassVar[int] = 1
     ARRAYS: ClassVar[dict[str, ArraySpec]] = {"data": ArraySpec("u", (2, 3))}
+    ADDED: ClassVar[frozenset[str]] = frozenset({"frame_index"})
 
     encoding: str = "mono8"
     data: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.uint8))
+    frame_index: int = -1
 
     def validate(self) -> None:
         super().validate()
+        if self.frame_index < -1:
+            raise ValueError(f"frame_index: {self.frame_index} is not >= -1")
         if self.encoding not in ENCODING_CHANNELS:
             raise ValueError(f"encoding: {self.encoding!r} is not one of {sorted(ENCODING_CHANNELS)}")
         channels = 1 if self.data.ndim == 2 else self.data.shape[2]

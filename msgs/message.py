@@ -77,6 +77,9 @@ class Message:
     TYPE: ClassVar[str] = ""
     VERSION: ClassVar[int] = 1
     ARRAYS: ClassVar[dict[str, ArraySpec]] = {}
+    # scalar fields added since the type's wire version: a message without one (recorded by an earlier
+    # release) decodes with the field's default, so that its bags still play
+    ADDED: ClassVar[frozenset[str]] = frozenset()
 
     seq: int = 0
     stamp_ns: int = 0

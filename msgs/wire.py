@@ -182,11 +182,15 @@ def _is_kind(value: Any, kind: type) -> bool:
 
 def _scalar_values(cls: type[Message], fields: dict[str, Any], topic: str = "?") -> dict[str, Any]:
     """The scalar (non-header, non-array) fields of a `cls` message from `fields` ({name: value}), checked
-    and as decoded (an int of a float field as a float); MessageError for a missing, mistyped or unknown one."""
+    and as decoded (an int of a float field as a float; one of `cls.ADDED` that is missing as its default);
+    MessageError for a missing, mistyped or unknown one."""
     defaults = _defaults(cls)
     values = {}
     for name, default in defaults.items():
         if name not in fields:
+            if name in cls.ADDED:
+                values[name] = default
+                continue
             raise MessageError(topic, cls.TYPE, name, "missing")
         try:
             values[name] = _check_scalar(cls, name, fields[name], default)

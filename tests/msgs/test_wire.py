@@ -16,7 +16,8 @@ from msgs.wire import check_message
 def _examples() -> list[msgs.Message]:
     rng = np.random.default_rng(0)
     return [
-        Image(encoding="bgr8", data=rng.integers(0, 256, (4, 5, 3), dtype=np.uint8), stamp_ns=5, frame_id="cam"),
+        Image(encoding="bgr8", data=rng.integers(0, 256, (4, 5, 3), dtype=np.uint8), stamp_ns=5, frame_id="cam",
+              frame_index=7),
         CameraInfo(width=640, height=480, K=np.array([[300.0, 0, 320], [0, 300, 240], [0, 0, 1]]),
                    D=np.array([0.1, -0.01, 0.001, 0.0]), rms_px=0.3),
         MarkerArray(ref_px=rng.random((6, 2), dtype=np.float32), cur_px=rng.random((6, 2), dtype=np.float32),
@@ -111,6 +112,19 @@ def test_unknown_field_is_named() -> None:
     with pytest.raises(MessageError, match="pressure") as err:
         msgs.decode([msgpack.packb(header)], "/contact")
     assert err.value.field == "pressure"
+
+
+def test_an_image_recorded_before_frame_index_existed_decodes_without_one() -> None:
+    """`Image.frame_index` was added after Image's wire version 1: a bag recorded before it still plays,
+    its frames numbered -1 (not given); any other missing field is still refused."""
+    frames = _frames(Image(data=np.zeros((2, 3), np.uint8), frame_index=4))
+    header = msgpack.unpackb(frames[0])
+    del header["fields"]["frame_index"]
+    assert msgs.decode([msgpack.packb(header), *frames[1:]], "/camera/image").frame_index == -1
+    del header["fields"]["encoding"]
+    with pytest.raises(MessageError, match="missing") as err:
+        msgs.decode([msgpack.packb(header), *frames[1:]], "/camera/image")
+    assert err.value.field == "encoding"
 
 
 def test_unknown_bytes_and_text_fields_together_do_not_crash() -> None:
@@ -268,6 +282,7 @@ def test_check_message_passes_every_decodable_message_unchanged(msg: msgs.Messag
     (SlipState(stamp_ns=-5), "stamp_ns"),
     (MarkerArray(width=0, height=480), "width/height"),
     (Image(data=np.zeros((0, 4), np.uint8)), "data"),
+    (Image(data=np.zeros((2, 4), np.uint8), frame_index=-2), "frame_index"),
     (NodeStatus(state="fine"), "state"),
     (NodeStatus(counters={"lost": "many"}), "counters"),
 ], ids=lambda x: x if isinstance(x, str) else type(x).__name__)
