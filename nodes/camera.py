@@ -15,7 +15,7 @@ after `start_timeout_s` it starts anyway, warned."""
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -183,7 +183,7 @@ class CameraNode(Node):
             return
         held, self.held_frame = self.held_frame, None
         try:  # the held frame is stamped now, when it is played: it was read before the start gate opened
-            frame = Frame(held.image, time.time_ns()) if held is not None else self.source.read()
+            frame = replace(held, stamp_ns=time.time_ns()) if held is not None else self.source.read()
         except SourceError as exc:
             self._lost(str(exc))
             return
@@ -241,7 +241,8 @@ class CameraNode(Node):
         if self.crop is not None:
             image = self.crop.apply(image)
         self.image_pub.publish(Image(stamp_ns=frame.stamp_ns, frame_id=self.params.frame_id,
-                                     encoding=self.params.encoding, data=np.ascontiguousarray(image)))
+                                     encoding=self.params.encoding, data=np.ascontiguousarray(image),
+                                     frame_index=frame.index))
         self.counters["frames"] += 1
 
     def teardown(self) -> None:

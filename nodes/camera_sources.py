@@ -32,10 +32,12 @@ class SourceError(RuntimeError):
 
 @dataclass
 class Frame:
-    """image: (H, W) or (H, W, 3) uint8 (BGR); stamp_ns: capture time (ns since epoch)."""
+    """image: (H, W) or (H, W, 3) uint8 (BGR); stamp_ns: capture time (ns since epoch); index: the frame's
+    number in its video file or image folder, from 0 at each pass (`Image.frame_index`; -1: a live source)."""
 
     image: np.ndarray
     stamp_ns: int
+    index: int = -1
 
 
 class FrameSource(Protocol):
@@ -49,7 +51,8 @@ class FrameSource(Protocol):
 
 
 class VideoFileSource:
-    """Frames of a video file, optionally looping. A file removed or replaced while open
+    """Frames of a video file, optionally looping, numbered from 0 at each pass (`Frame.index`: a
+    looped or reopened file starts over at frame 0). A file removed or replaced while open
     raises SourceError at the next read (one stat() per frame): the node reports it lost
     and reopens it when it is back, as with an unplugged camera."""
 
@@ -61,6 +64,7 @@ class VideoFileSource:
         self._identity: tuple[int, int] | None = None  # (st_dev, st_ino) of the file opened
         self.file_fps = 0.0
         self.finished = False
+        self._index = 0  # number of the next frame in the file
 
     def open(self) -> None:
         if not self.path.is_file():
@@ -71,6 +75,7 @@ class VideoFileSource:
             raise SourceError(f"{self.name}: OpenCV cannot decode it")
         self._cap = cap
         self._identity = identity
+        self._index = 0
         self.file_fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
 
     def read(self) -> Frame | None:
@@ -83,16 +88,17 @@ class VideoFileSource:
         if identity != self._identity:
             raise SourceError(f"{self.name}: file replaced")
         ok, image = self._cap.read()
-        stamp = time.time_ns()
-        if ok:
-            return Frame(image, stamp)
-        if not self.loop:
-            self.finished = True
-            return None
-        self.close()
-        self.open()  # raises SourceError when the file has gone: the node reopens with backoff
-        ok, image = self._cap.read()
-        return Frame(image, time.time_ns()) if ok else None
+        if not ok:
+            if not self.loop:
+                self.finished = True
+                return None
+            self.close()
+            self.open()  # raises SourceError when the file has gone: the node reopens with backoff
+            ok, image = self._cap.read()
+            if not ok:
+                return None
+        index, self._index = self._index, self._index + 1
+        return Frame(image, time.time_ns(), index)
 
     def close(self) -> None:
         if self._cap is not None:
@@ -107,7 +113,8 @@ def _identity(path: Path) -> tuple[int, int]:
 
 
 class FolderSource:
-    """Images of a folder in name order, optionally looping. An unreadable image is
+    """Images of a folder in name order, optionally looping, each numbered by its place in that order
+    (`Frame.index`). An unreadable image is
     skipped (logged once); a removed one raises SourceError (the folder is reopened). Images
     come as uint8 mono or BGR (`as_uint8`), deeper ones at one gain: the white level of the deepest
     bit depth seen so far (`full_scale`), which a frame raises by whole bits only."""
@@ -142,7 +149,7 @@ class FolderSource:
             if image is not None:
                 if image.dtype != np.uint8:  # the white level only rises (a dark first frame: 255, then 4095)
                     self._full_scale = max(self._full_scale or 0.0, full_scale(image))
-                return Frame(as_uint8(image, self._full_scale), time.time_ns())
+                return Frame(as_uint8(image, self._full_scale), time.time_ns(), self._index - 1)
             if not path.is_file():
                 raise SourceError(f"{self.name}: {path.name} removed")
             if path not in self._unreadable:

@@ -66,6 +66,31 @@ def test_a_video_played_once_stops_its_camera_after_its_end(bus, spawn, tmp_path
         looping.wait(2.0)
 
 
+def test_a_looped_video_numbers_its_frames_from_0_at_each_pass(bus, spawn, tmp_path: Path) -> None:
+    """A looped video's frames carried nothing that told a pass from the next (the tracker kept the first
+    pass's reference for good): each frame now carries its number in the file, from 0 again at each pass,
+    the held first frame too; seq and stamps run on across the loop."""
+    video = tmp_path / "clip.avi"
+    _write_video(video, frames=6)
+    with TopicReader(["/camera/image"]) as reader:
+        spawn("node", "camera", "-p", "source=video", "-p", f"path={video}", "-p", "fps=50")
+        images = [reader.recv(15.0 if k == 0 else 2.0) for k in range(15)]
+    assert all(item is not None for item in images)
+    images = [item.msg for item in images]
+    assert [m.frame_index for m in images] == [0, 1, 2, 3, 4, 5] * 2 + [0, 1, 2]
+    assert [m.seq for m in images] == list(range(15))
+    assert all(a.stamp_ns < b.stamp_ns for a, b in zip(images, images[1:]))
+
+
+def test_a_looped_folder_numbers_its_images_by_their_place(tmp_path: Path) -> None:
+    from nodes.camera_sources import FolderSource
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / f"f{i}.png"), np.full((4, 5), 50 * i, np.uint8))
+    source = FolderSource(str(tmp_path), loop=True)
+    source.open()
+    assert [source.read().index for _ in range(7)] == [0, 1, 2, 0, 1, 2, 0]
+
+
 def test_folder_source_bgr(bus, spawn, tmp_path: Path) -> None:
     for i in range(3):
         cv2.imwrite(str(tmp_path / f"f{i}.png"), np.full((40, 50, 3), 50 * i, np.uint8))
