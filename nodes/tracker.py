@@ -1,7 +1,11 @@
 """The `tracker` node: Image -> MarkerArray on `/markers` at camera rate.
 
 The frame number `reference_frame` (frame 0 of a real camera is often stale) becomes the
-reference: its markers are published latched on `/markers/reference`. Any message on
+reference: its markers are published latched on `/markers/reference`. A frame's number is its
+`Image.frame_index` where the camera gives one (a video file or image folder), else the frames this
+tracker has seen. A source that starts over (a looped video: a frame_index lower than the frame
+before's) starts a new grasp: frame `reference_frame` of the new pass is its reference, as for the
+first pass, so that every pass is judged as the video is judged once. Any message on
 `/tracker/reset` makes the next frame the new reference. A frame of another size than the
 reference's (a camera reopened in another mode) is dropped, warned of and counted (`other_size`)
 until then: its markers would be matched to positions of another image.
@@ -11,9 +15,10 @@ its frame: replayed from its first frame (taken as the reference), the skin may 
 With `recorded_reference`, a replay plays the recorded `/markers/reference` on that topic
 (`replay.yaml`, `replay_pair.yaml`), and the tracker tracks the first frame on against it when it is
 stamped no later than that frame. A recording that holds its camera's first frames (the first one's
-seq no more than `reference_frame`) holds the frame the live tracker took its reference from, and the
-replay takes its own there: a recorder started before the session also got the reference an earlier
-session had left on the bus (latched), and tracking against that one changed 349 of 500 decisions.
+number, its frame_index or else its seq, no more than `reference_frame`) holds the frame the live
+tracker took its reference from, and the replay takes its own there: a recorder started before the
+session also got the reference an earlier session had left on the bus (latched), and tracking against
+that one changed 349 of 500 decisions.
 
 A tracker that restarts (respawned after a crash) while the skin may be deformed must not
 take a deformed frame as the reference: with `resume`, it first waits up to
@@ -72,6 +77,8 @@ class TrackerNode(Node):
         p = self.params
         self.perception = Perception(PerceptionParams.preset(p.preset))
         self.frames_seen = 0
+        self.last_index = -1  # the frame_index of the frame before (-1: none, or a live camera's)
+        self.take_next = False  # after /tracker/reset: the next frame is the reference, whatever its number
         self.needs_reference = True
         self.started_ns = time.time_ns()
         self.launch_ns = launch_started_ns()  # references published before it are an earlier session's
@@ -88,7 +95,7 @@ class TrackerNode(Node):
             self.subscribe("markers/reference", MarkerArray, self.on_reference, depth=1)
         if p.recorded_reference:
             self.subscribe(p.recorded_reference, MarkerArray, self.on_recorded_reference, depth=1)
-        self.counters.update(references=0, resumed=0, reference_retries=0, other_size=0)
+        self.counters.update(references=0, resumed=0, reference_retries=0, other_size=0, source_restarts=0)
 
     def teardown(self) -> None:
         """Say so when frames came but none was tracked: a video of 1 frame, or `reference_frame` past
@@ -99,10 +106,21 @@ class TrackerNode(Node):
                              "%d)", self.frames_seen, self.params.reference_frame)
 
     def on_reset(self, _msg) -> None:
+        self.new_grasp()
+        self.take_next = True
+
+    def new_grasp(self) -> None:
+        """Take a new reference (neither the previous process's nor the recording's) at frame
+        `reference_frame` of the stream, or at the next frame after /tracker/reset (`take_next`)."""
         self.needs_reference = True
         self.resume_until = 0.0
         self.inherited = None
-        self.frames_seen = self.params.reference_frame
+        self.take_next = False
+
+    def frame_number(self, msg: Image) -> int:
+        """The number of `msg` in its camera's stream (0 first): its frame_index when the camera gives one,
+        else the frames this process has seen before it."""
+        return msg.frame_index if msg.frame_index >= 0 else self.frames_seen - 1
 
     def on_reference(self, msg: MarkerArray) -> None:
         """Keep the reference a previous process of this node published (latched), in this launch."""
@@ -120,9 +138,18 @@ class TrackerNode(Node):
 
     def on_image(self, msg: Image) -> None:
         self.frames_seen += 1
+        if 0 <= msg.frame_index < self.last_index:  # the source started over (a looped video's next pass)
+            if not self.counters["source_restarts"]:
+                self.log.info("the camera's source started over (frame %d after frame %d): a new grasp, its "
+                              "reference at frame %d (reference_frame); each restart counted in source_restarts",
+                              msg.frame_index, self.last_index, self.params.reference_frame)
+            self.counters["source_restarts"] += 1
+            self.new_grasp()
+        self.last_index = msg.frame_index
         if self.first_stamp_ns is None:
             self.first_stamp_ns = msg.stamp_ns
-            self.recording_from_start = msg.seq <= self.params.reference_frame
+            number = msg.frame_index if msg.frame_index >= 0 else msg.seq
+            self.recording_from_start = number <= self.params.reference_frame
             if self.recording_from_start and self.inherited is not None and self.inherited_from == "the recording's":
                 self.log.info("the recording holds its camera's first frames, so the live tracker took its "
                               "reference from one of them: the older reference recorded (stamped %.1f s before "
@@ -138,7 +165,7 @@ class TrackerNode(Node):
                 self.log.info("tracking against %s reference (%d markers)", self.inherited_from, len(old.ref_px))
             elif time.monotonic() < self.resume_until:
                 return
-            elif self.frames_seen <= self.params.reference_frame:
+            elif not self.take_next and self.frame_number(msg) < self.params.reference_frame:
                 if self.frames_seen == 1:  # a video shorter than that is never tracked: say why
                     self.log.info("frames before frame %d (reference_frame) are not tracked",
                                   self.params.reference_frame)
@@ -154,6 +181,7 @@ class TrackerNode(Node):
                 self.counters["references"] += 1
                 self.clear_warning()
             self.needs_reference = False
+            self.take_next = False
             self.inherited = None
             self.reference_pub.publish(marker_array(state, msg))
         try:

@@ -26,6 +26,17 @@ def isd_data() -> Path:
     return path
 
 
+def dots_image(shift_px: float) -> "np.ndarray":
+    """(240, 320) uint8: a 12x9 grid of dark dots (pitch 24 px) moved `shift_px` in x."""
+    import cv2
+    import numpy as np
+    image = np.full((240, 320), 200, np.uint8)
+    for y in range(24, 240 - 12, 24):
+        for x in range(28, 320 - 20, 24):
+            cv2.circle(image, (int(round(x + shift_px)), y), 5, 40, -1, cv2.LINE_AA)
+    return image
+
+
 def write_raw_mini(video: Path, out: Path) -> None:
     """A GelSight Mini's frames before its software cuts 1/7 off each border: every frame of the
     recorded ``video`` (320x240) inside a 448x336 frame with a dark housing and a bright rim, written

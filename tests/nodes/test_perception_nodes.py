@@ -11,6 +11,7 @@ import pytest
 
 from msgs import MarkerArray
 from nodes.bus import TopicReader
+from tests.conftest import dots_image
 from tests.nodes.conftest import REPO, run_fv
 
 
@@ -42,16 +43,6 @@ def test_sim_press_reaches_field_and_contact(bus, spawn) -> None:
     assert stamps == sorted(stamps)
     # each field carries the capture stamp of the frame its markers came from
     assert {x.stamp_ns for x in fields[5:]} <= {x.stamp_ns for x in markers}
-
-
-def dots_image(shift_px: float) -> np.ndarray:
-    """(240, 320) uint8: a 12x9 grid of dark dots (pitch 24 px) moved `shift_px` in x."""
-    import cv2
-    image = np.full((240, 320), 200, np.uint8)
-    for y in range(24, 240 - 12, 24):
-        for x in range(28, 320 - 20, 24):
-            cv2.circle(image, (int(round(x + shift_px)), y), 5, 40, -1, cv2.LINE_AA)
-    return image
 
 
 def _frames_until(camera, reader: TopicReader, image: np.ndarray, done, stamp_ns=time.time_ns) -> object:
@@ -166,13 +157,17 @@ def test_a_dark_first_frame_is_no_reference_and_the_next_is_taken() -> None:
         node.close()
 
 
-@pytest.mark.parametrize("first_seq, resumed", [(0, False), (40, True)])
-def test_a_replay_from_the_camera_s_first_frame_takes_its_own_reference(first_seq: int, resumed: bool) -> None:
+@pytest.mark.parametrize("first_seq, first_index, resumed", [(0, -1, False), (40, -1, True), (120, 0, False),
+                                                              (120, 40, True)])
+def test_a_replay_from_the_camera_s_first_frame_takes_its_own_reference(first_seq: int, first_index: int,
+                                                                         resumed: bool) -> None:
     """A recorder started before a session also gets the reference an earlier session left on the bus
     (latched), stamped before the recording's first frame: the replay tracked the whole bag against it
     (349 of 500 decisions differed from the live ones). A recording that holds the camera's first frames
     holds the frame the live tracker took its reference from: the replay takes its own there. One that
-    starts later (a recording begun mid-session) is tracked against the recorded reference, as before."""
+    starts later (a recording begun mid-session) is tracked against the recorded reference, as before.
+    A camera's first frames are those numbered from 0 (frame_index: a looped video's pass begins there
+    too), or without numbers the first seqs."""
     from msgs import Image
     from nodes.tracker import TrackerNode
     rest = _skin_at_rest()
@@ -189,7 +184,9 @@ def test_a_replay_from_the_camera_s_first_frame_takes_its_own_reference(first_se
                                                frames_since_seen=np.zeros(len(earlier.valid), np.int32),
                                                width=rest.shape[1], height=rest.shape[0]))
         for k in range(3):
-            node.on_image(Image(seq=first_seq + k, stamp_ns=24_000_000_000 + k, encoding="mono8", data=rest))
+            index = first_index + k if first_index >= 0 else -1
+            node.on_image(Image(seq=first_seq + k, stamp_ns=24_000_000_000 + k, encoding="mono8", data=rest,
+                                frame_index=index))
         assert node.counters["resumed"] == int(resumed) and node.counters["references"] == int(not resumed)
         assert len(references) == 1 and references[0].stamp_ns == (24_000_000_000 if resumed else 24_000_000_001)
     finally:
@@ -233,6 +230,36 @@ def test_a_frame_of_another_size_is_dropped_until_a_new_reference() -> None:
         node.on_image(Image(stamp_ns=3, encoding="mono8", data=big))
         assert len(references) == 2 and (references[-1].width, references[-1].height) == (2 * w, 2 * h)
         assert len(markers) == 2 and node.state == "ok" and markers[-1].valid.all()
+    finally:
+        node.close()
+
+
+@pytest.mark.parametrize("second_pass_from", [0, 1])
+def test_each_pass_of_a_looped_video_is_tracked_from_its_own_reference_frame(second_pass_from: int) -> None:
+    """A looped video went on being tracked against its first pass's reference: the next pass's stale
+    frame 0 was tracked, and the slip detector judged the passes as one grasp that jumped back in time.
+    A frame number that goes back (the source started over) now starts a new grasp, its reference at
+    frame reference_frame of the pass, also when the pass's frame 0 never reached the tracker (its queue
+    keeps the latest frame): every pass is tracked as the first."""
+    from msgs import Image
+    from nodes.tracker import TrackerNode
+    video = [dots_image(6.0), dots_image(0.0), dots_image(1.5), dots_image(3.0)]  # frame 0 stale, as in real ones
+    node = TrackerNode("tracker", {"resume": False})
+    references: list = []
+    markers: list = []
+    try:
+        node.setup()
+        node.reference_pub.publish = references.append
+        node.markers_pub.publish = markers.append
+        frames = [(0, k) for k in range(len(video))] + [(1, k) for k in range(second_pass_from, len(video))]
+        for stamp, (_, k) in enumerate(frames, start=1):
+            node.on_image(Image(seq=stamp - 1, stamp_ns=stamp, encoding="mono8", data=video[k], frame_index=k))
+        assert [r.stamp_ns for r in references] == [2, frames.index((1, 1)) + 1]
+        assert node.counters["source_restarts"] == 1 and node.counters["references"] == 2
+        assert len(markers) == 6
+        for first, second in zip(markers[:3], markers[3:]):
+            np.testing.assert_array_equal(first.cur_px, second.cur_px)
+            np.testing.assert_array_equal(first.ref_px, second.ref_px)
     finally:
         node.close()
 

@@ -1,7 +1,8 @@
 """A recorded session replayed: a real grasp played live (video.yaml, video_pair.yaml) with the gripper's
-/tracker/reset in the middle, recorded with `fv bag record -a`, then replayed through replay.yaml /
-replay_pair.yaml. The replay gives every slip state the live run gave, at the same frame stamps, with
-the same grasp starts (the reset replayed) and the same P(slip): one camera at the recorded speed, two
+/tracker/reset in the middle and then into the video's next pass (looped), recorded with `fv bag record -a`,
+then replayed through replay.yaml / replay_pair.yaml. The replay gives every slip state the live run gave,
+at the same frame stamps, with the same grasp starts (the reset replayed, and the pass's, from the
+recorded frame numbers) and the same P(slip): one camera at the recorded speed, two
 fingers as a batch paced by the pipeline's answers. The launches run without standby spares: their imports
 at start, beside the nodes' own, made a live run on a loaded 2-core machine drop a frame (the replay, which
 loses none, then gave one state more)."""
@@ -62,7 +63,8 @@ def _assert_replayed_as_live(recorded: list[SlipState], replayed: list[SlipState
     live = {s.stamp_ns: s for s in recorded}
     again = {s.stamp_ns: s for s in replayed}
     assert sorted(again) == sorted(live), f"{topic}: {len(live)} live states, {len(again)} replayed"
-    assert len({int(s.window_stamps_ns[0]) for s in recorded}) == 2, f"{topic}: the reset did not start a grasp"
+    grasps = len({int(s.window_stamps_ns[0]) for s in recorded})
+    assert grasps == 3, f"{topic}: {grasps} grasps, not 3 (the first, the reset's and the loop's)"
     for stamp, state in live.items():
         assert int(again[stamp].window_stamps_ns[0]) == int(state.window_stamps_ns[0]), topic
         assert again[stamp].probability == pytest.approx(state.probability, abs=1e-4), topic

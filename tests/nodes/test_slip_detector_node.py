@@ -13,7 +13,7 @@ import pytest
 from msgs import DisplacementField, MarkerArray, SlipState
 from nodes.bus import PublisherSocket, TopicReader
 from nodes.slip_detector import model_path
-from tests.conftest import write_raw_mini
+from tests.conftest import dots_image, write_raw_mini
 from tests.nodes.conftest import REPO, wait_status
 
 
@@ -341,6 +341,41 @@ def test_tracker_reset_starts_a_new_grasp(bus_env, spawn, isd_data: Path) -> Non
     assert new, "no new grasp after /tracker/reset"
     assert later[new[0]].msg.stamp_ns == starts[new[0]] > start  # the new grasp starts at its reference frame
     assert len(set(starts[new[0]:])) == 1
+
+
+def _write_stale_start_clip(path: Path, frames: int) -> None:
+    """A colour clip (FFV1, 25 fps) of a skin whose frame 0 is stale (the dots 6 px off, as in a camera's
+    start-up frame), at rest in frames 1 to 4, then sheared 0.6 px further each frame."""
+    import cv2
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 25.0, (320, 240))
+    for k in range(frames):
+        shift = 6.0 if k == 0 else 0.6 * max(0, k - 4)
+        writer.write(cv2.cvtColor(dots_image(shift), cv2.COLOR_GRAY2BGR))
+    writer.release()
+
+
+def test_each_pass_of_a_looped_video_is_judged_as_the_first(bus_env, spawn, tmp_path: Path) -> None:
+    """`video.yaml loop:=true` judged every pass as one grasp: the tracker kept the first pass's reference
+    and the trial model's grasp ran on across the loop (from the second pass on, P(slip) of a grasp that
+    jumped back in time). Each pass is now a new grasp from frame reference_frame of the pass, judged as
+    the first: the same states, the same P(slip), stamps and seq running on."""
+    frames = 20
+    video = tmp_path / "stale_start.avi"
+    _write_stale_start_clip(video, frames)
+    per_pass = frames - 1  # frame 0 is not tracked (reference_frame 1)
+    with TopicReader(["/slip"]) as reader:  # at half the clip's rate: a loaded machine drops no frame
+        spawn("launch", str(REPO / "launch" / "video.yaml"), f"video:={video}", "loop:=true", "fps:=12.5",
+              "standby:=false")
+        states = [reader.recv(60.0 if k == 0 else 10.0) for k in range(2 * per_pass + 1)]
+    assert all(s is not None for s in states), f"{sum(s is not None for s in states)} of {2 * per_pass + 1} states"
+    states = [s.msg for s in states]
+    starts = [int(s.window_stamps_ns[0]) for s in states]
+    assert [starts.count(start) for start in dict.fromkeys(starts)] == [per_pass, per_pass, 1], \
+        "each pass is a grasp of its own"
+    first, second = states[:per_pass], states[per_pass:2 * per_pass]
+    assert first[0].stamp_ns == starts[0] and second[0].stamp_ns == starts[per_pass]  # each from its reference
+    np.testing.assert_allclose([s.probability for s in second], [s.probability for s in first], atol=1e-6)
+    assert all(a.stamp_ns < b.stamp_ns and a.seq + 1 == b.seq for a, b in zip(states, states[1:]))
 
 
 def test_a_reference_without_markers_is_ignored() -> None:
