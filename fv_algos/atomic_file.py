@@ -5,6 +5,8 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 
 def write_atomically(path: Path, write: Callable[[Path], None]) -> None:
     """Create ``path`` through ``write(tmp)`` on a temporary file beside it (named after this process,
@@ -17,3 +19,16 @@ def write_atomically(path: Path, write: Callable[[Path], None]) -> None:
         tmp.replace(path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def write_image(path: Path, image: np.ndarray) -> None:
+    """Write ``image`` ((H, W) or (H, W, 3) BGR uint8) whole or not at all, in the format ``path``'s suffix
+    names (.png, .jpg ...). OSError naming ``path`` when it cannot be written (OpenCV only returns False,
+    e.g. on a full disk, so a caller that did not look said it wrote a file that is not there)."""
+    import cv2  # here, not above: the interpolator's process imports this module without OpenCV
+
+    def write(tmp: Path) -> None:
+        if not cv2.imwrite(str(tmp), image):
+            raise OSError(f"cannot write the image {path} (a full disk, a read-only or special folder?)")
+
+    write_atomically(Path(path), write)

@@ -37,7 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _sim(args: argparse.Namespace) -> int:
-    import cv2
+    from fv_algos.atomic_file import write_image
     from fv_algos.sim.scene import load_scene
     from fv_algos.sim.sensor import SimSensor, preview_image, write_sequence
     if args.out is None and args.preview is None:
@@ -68,7 +68,7 @@ def _sim(args: argparse.Namespace) -> int:
             frame = None
             for frame, _ in zip(SimSensor(scene, seed=args.seed), range(index + 1)):
                 pass
-            cv2.imwrite(str(args.preview), preview_image(frame))
+            write_image(args.preview, preview_image(frame))
             state, area = frame.truth.slip_state, frame.truth.contact_area_mm2
         print(f"wrote preview of frame {index} to {args.preview} (slip state {state}, contact {area:.1f} mm^2)")
     return 0

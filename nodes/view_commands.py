@@ -197,7 +197,7 @@ def write_still(bag_path: str | Path, out: Path, at_s: float, style: ViewStyle |
                 topics: ViewTopics | None = None) -> tuple[int, int]:
     """Write the picture of the first frame at or after `at_s` seconds into the bag to
     `out` (.png / .jpg); returns its (width, height) in px."""
-    import cv2
+    from fv_algos.atomic_file import write_image
     topics = topics or ViewTopics()
     session = _Session(bag_path, topics, style or ViewStyle(), at_s, 0.0)
     image = next(session.images(), None)
@@ -205,9 +205,7 @@ def write_still(bag_path: str | Path, out: Path, at_s: float, style: ViewStyle |
         raise ValueError(f"no {topics.image} message at or after {at_s:g} s "
                          f"(the bag is {session.bag.duration_s:.2f} s long)")
     picture = session.compose(image)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(out), picture):
-        raise RuntimeError(f"OpenCV cannot write {out}")
+    write_image(out, picture)
     return picture.shape[1], picture.shape[0]
 
 

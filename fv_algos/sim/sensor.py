@@ -18,6 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from fv_algos.atomic_file import write_image
 from fv_algos.fisheye import DEFAULT_CAMERA_DISTANCE_MM, FisheyeCamera
 from fv_algos.sim.contact import ContactModel, ContactParams, ContactState
 from fv_algos.sim.halfspace import SurfaceGrid
@@ -340,7 +341,10 @@ def write_sequence(sensor: SimSensor, out_dir: str | Path, n_frames: int) -> int
     partial = out.with_name(f"{out.name}.partial-{secrets.token_hex(4)}")
     partial.mkdir(parents=True)  # a new name: a folder that exists (someone else's) is never taken or removed
     try:
-        written = _write_frames(sensor, partial, n_frames)
+        try:
+            written = _write_frames(sensor, partial, n_frames)
+        except OSError as exc:  # numpy's and json's errors do not name the file (a full disk: "[Errno 28] ...")
+            raise OSError(exc.errno, exc.strerror, str(out)) if exc.filename is None and exc.errno else exc
         if out.exists():
             out.rmdir()
         partial.rename(out)
@@ -356,8 +360,8 @@ def _write_frames(sensor: SimSensor, out: Path, n_frames: int) -> int:
     for i, frame in zip(range(n_frames), sensor):
         t = frame.truth
         state = t.mechanics.state
-        cv2.imwrite(str(out / f"frame_{i:05d}.png"), frame.image)
-        cv2.imwrite(str(out / f"preview_{i:05d}.png"), preview_image(frame))
+        write_image(out / f"frame_{i:05d}.png", frame.image)
+        write_image(out / f"preview_{i:05d}.png", preview_image(frame))
         for key, value in (("stamp_s", frame.stamp_s), ("marker_displacement_mm", t.marker_displacement_mm), ("markers_px", t.markers_px), ("visible", t.visible), ("contact", state.contact), ("slip", state.slip), ("displacement_mm", state.displacement_mm), ("slip_label", t.is_slip)):
             arrays[key].append(np.asarray(value))
         records.append({

@@ -81,7 +81,7 @@ PNG_NAME = re.compile(r"\d{6,}_\d+\.png")  # <index>_<stamp_ns>.png
 def _png(messages: Iterator[tuple[str, Message, int]], output: Path) -> int:
     """Frames as PNG files in folder ``output``; the frames of an earlier export there are replaced
     (they were kept, and two exports' frames mixed), any other file is left alone."""
-    import cv2
+    from fv_algos.atomic_file import write_image
     output.mkdir(parents=True, exist_ok=True)
     for earlier in output.iterdir():
         if PNG_NAME.fullmatch(earlier.name) and earlier.is_file():
@@ -89,8 +89,7 @@ def _png(messages: Iterator[tuple[str, Message, int]], output: Path) -> int:
     count = 0
     for _topic, msg, _t in messages:
         path = output / f"{count:06d}_{msg.stamp_ns}.png"
-        if not cv2.imwrite(str(path), _bgr(msg)):
-            raise RuntimeError(f"OpenCV cannot write {path}")
+        write_image(path, _bgr(msg))
         count += 1
     return count
 

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fv_algos.atomic_file import write_image
 from fv_algos.sim.scene import Loads, scene_from_dict
 from fv_algos.sim.sensor import SimSensor, preview_image, write_sequence
 
@@ -82,6 +83,24 @@ def test_write_sequence_and_preview(tmp_path, monkeypatch: pytest.MonkeyPatch) -
     assert [r["index"] for r in records] == [0, 1, 2, 3]
     frame = next(iter(SimSensor(scene_from_dict(SCENE), seed=0)))
     assert preview_image(frame).shape == frame.image.shape + (3,)
+
+
+def test_files_that_cannot_be_written_are_errors_naming_them(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """OpenCV only returns False for an image it cannot write (a full disk): `fv sim --preview` said it wrote
+    one that is not there, and `--out` on a full disk ended in numpy's "[Errno 28] ..." naming no file."""
+    image = np.zeros((4, 6), np.uint8)
+    with pytest.raises(OSError, match="cannot write the image /proc/fv_no.png"):
+        write_image(Path("/proc/fv_no.png"), image)
+    write_image(tmp_path / "ok.png", image)
+    assert [p.name for p in tmp_path.iterdir()] == ["ok.png"]
+
+    def full_disk(*_args, **_kwargs) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(np, "savez_compressed", full_disk)
+    with pytest.raises(OSError, match=r"No space left on device: '.*/seq'"):
+        write_sequence(SimSensor(scene_from_dict(SCENE), seed=0), tmp_path / "seq", 2)
+    assert [p.name for p in tmp_path.iterdir()] == ["ok.png"]  # no partial folder left
 
 
 def test_random_loop_mode_plays_grasps_from_rest_and_frame_time() -> None:
