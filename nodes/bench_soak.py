@@ -4,7 +4,8 @@ nodes killed on purpose, to show it can run for hours (issue #8).
 The pipeline is `launch/pipeline.yaml` with the default configuration on a private bus,
 the camera replaying a pre-rendered scene (see `nodes.bench_pipeline`). Every `sample_s`
 the resident memory of every process is read from /proc; every `/slip` is counted per
-minute; NodeStatus gives the queue drops and the slip detector's skipped decisions. Every
+minute (a last, partial minute over its own length), each minute's rate checked against
+`GOAL_SLIP_SHARE` of the camera's; NodeStatus gives the queue drops and the slip detector's skipped decisions. Every
 `kill_every_s` one node (tracker, interpolator, slip_detector in turn) gets SIGKILL; the
 launcher respawns it and the recovery time is the time from the kill to the first `/slip`
 judging a frame captured after the kill.
@@ -19,6 +20,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import math
 import os
 import signal
 import time
@@ -36,6 +38,18 @@ MIN_SERIES_SHARE = 0.3  # a series shorter than this share of the run gets no gr
 GOAL_GROWTH_PERCENT = 1.0
 GOAL_RECOVERY_S = 2.0
 KILL_MARGIN_S = 15.0  # no kill this close to the end: its recovery must be seen
+GOAL_SLIP_SHARE = 0.9  # every minute's /slip rate at least this share of the camera's
+MIN_RATE_SPAN_S = 10.0  # a last, partial minute shorter than this gets no rate (too few decisions to count)
+
+
+def per_minute_rates(counts: dict[int, int], run_s: float) -> list[float]:
+    """/slip rates (Hz) of each minute of a run of `run_s` seconds from `counts` (minute index -> decisions),
+    the last, partial minute over its own length (a run under a minute has that one), unless it is shorter
+    than MIN_RATE_SPAN_S and not the only one."""
+    spans = [min(60.0, run_s - 60.0 * m) for m in range(math.ceil(run_s / 60.0))]
+    if len(spans) > 1 and spans[-1] < MIN_RATE_SPAN_S:
+        spans.pop()
+    return [counts.get(m, 0) / span for m, span in enumerate(spans)]
 
 
 def memory_growth(series: dict[tuple[str, int], list[tuple[float, int]]], run_s: float) -> list[dict[str, Any]]:
@@ -103,7 +117,7 @@ def run_soak(minutes: float, fps: float, kill_every_s: float, sample_s: float, t
                     os.kill(pid, signal.SIGKILL)
         if pending is not None:
             kills.append({"node": pending["node"], "at_s": pending["at_s"], "recovery_s": None})
-    minutes_done = [per_minute.get(m, 0) / 60.0 for m in range(int(minutes))]
+    minutes_done = per_minute_rates(per_minute, 60.0 * minutes)
     growth = memory_growth(series, 60.0 * minutes)
     statuses = list(last_status.values())
     recoveries = [k["recovery_s"] for k in kills]
@@ -122,6 +136,7 @@ def run_soak(minutes: float, fps: float, kill_every_s: float, sample_s: float, t
         "checks": {
             "memory_flat": all(r["growth_percent"] < GOAL_GROWTH_PERCENT for r in growth),
             "recovered_within_2s": all(r is not None and r <= GOAL_RECOVERY_S for r in recoveries),
+            "slip_rate_steady": bool(minutes_done) and min(minutes_done) >= GOAL_SLIP_SHARE * fps,
         },
         "load_average": os.getloadavg(),
     }

@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 from nodes.bench_pipeline import Record, percentiles_ms, stage_latencies
-from nodes.bench_soak import memory_growth
+from nodes.bench_soak import memory_growth, per_minute_rates
 from tests.nodes.conftest import run_fv
 
 MS = 1_000_000
@@ -40,6 +40,14 @@ def test_memory_growth_per_process_series() -> None:
     assert rows["flat"]["growth_percent"] == 0.0
     assert 7.0 < rows["leak"]["growth_percent"] < 9.0  # ~100 MB -> ~109 MB after the warm-up minute
     assert "short" not in rows
+
+
+def test_slip_rates_per_minute_count_a_partial_last_minute() -> None:
+    """Only whole minutes had a rate: a 0.4 minute soak reported none (`/slip None..None Hz`)."""
+    assert per_minute_rates({0: 1440}, 24.0) == [60.0]
+    assert per_minute_rates({0: 3600, 1: 900}, 75.0) == [60.0, 60.0]  # 15 s of the second minute
+    assert per_minute_rates({0: 3600, 1: 30}, 61.0) == [60.0]  # 1 s: too short to count
+    assert per_minute_rates({1: 3000}, 120.0) == [0.0, 50.0]
 
 
 def test_bench_pipeline_short_run_reports_every_stage(tmp_path: Path) -> None:
