@@ -262,7 +262,8 @@ def measure(max_frames: int, repeats: int, names: list[str] | None = None) -> di
 
 
 def goals(paper: dict[str, Any], default: dict[str, Any], shear_max_step_pitches: float) -> dict[str, Any]:
-    """Issue #4's goals for the default configuration, each with its measured value and `met`."""
+    """Issue #4's goals for the default configuration, each with its measured value and `met`: None for the
+    no-swap goal when the large-shear scene, cut short (`--frames`, `--quick`), never reached its step."""
     speedup = paper["total_ms_median"] / default["total_ms_median"]
     as_accurate = (default["tracking_rms_px"] <= paper["tracking_rms_px"]
                    and default["field_rmse_px"] <= paper["field_rmse_px"]
@@ -277,7 +278,7 @@ def goals(paper: dict[str, Any], default: dict[str, Any], shear_max_step_pitches
                             "met": default["clean_tracking_rms_px"] <= GOAL_CLEAN_RMS_PX},
         "no_swap_1.5_pitches": {"swaps": default["large_shear_swaps"], "max_step_pitches": shear_max_step_pitches,
                                 "met": default["large_shear_swaps"] == 0
-                                and shear_max_step_pitches >= GOAL_SHEAR_PITCHES - 0.05},
+                                if shear_max_step_pitches >= GOAL_SHEAR_PITCHES - 0.05 else None},
     }
 
 
@@ -341,5 +342,6 @@ def _bench_perception(args: argparse.Namespace) -> int:
     print(markdown_table(result["rows"], TABLE_COLUMNS))
     print(f"\ndefault is {result['speedup_default_vs_paper']:.2f}x faster per frame than paper (same run)")
     for name, goal in result["goals"].items():
-        print(f"goal {name}: {'met' if goal['met'] else 'MISSED'}  {goal}")
+        verdict = {True: "met", False: "MISSED", None: "not tested (the scene was cut short of it: whole scenes test it)"}
+        print(f"goal {name}: {verdict[goal['met']]}  {goal}")
     return 0

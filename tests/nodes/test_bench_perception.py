@@ -43,8 +43,9 @@ def test_quick_benchmark_json_and_report(tmp_path: Path, capsys: pytest.CaptureF
     speedup = result["speedup_default_vs_paper"]
     assert math.isfinite(speedup) and speedup > 0.0
     assert set(result["goals"]) == {"speedup_5x_equal_accuracy", "total_2ms", "clean_rms_0.1px", "no_swap_1.5_pitches"}
+    no_swap = result["goals"].pop("no_swap_1.5_pitches")
     assert all(isinstance(goal["met"], bool) for goal in result["goals"].values())
-    assert not result["goals"]["no_swap_1.5_pitches"]["met"], "3 frames never reach 1.5 pitches per frame"
+    assert no_swap["met"] is None, "3 frames never reach 1.5 pitches per frame: not tested (it said MISSED)"
     table = (tmp_path / "perception_bench.md").read_text()
     assert table.startswith("| config |") and "| default |" in table
     for name in ("pareto_tracking_rms_px.png", "pareto_field_rmse_px.png", "perception_bench.json"):
