@@ -5,9 +5,12 @@ Every bus message is ``[envelope, header, array frames...]``. The envelope is
 subscribe to ``b"-" + topic + b"\\0"`` and ``b"L" + topic + b"\\0"``: ZeroMQ matches by
 prefix, and the NUL makes the match exact (``/slip`` never receives ``/slip_debug``).
 The forwarder keeps the last latched message per (topic, node) and replays it to each
-new subscriber, so latched topics reach late joiners. A restarted forwarder has lost that
-cache: each publisher notices the new forwarder (its subscription to latched topics
-arrives again) and re-sends its last latched message per topic.
+new subscriber, so latched topics reach late joiners, while its publisher is connected: the
+last latched message of a publisher that is gone reaches only a subscriber that asks for those
+too (FLAG ``b"G"``, `subscription_prefixes(topic, gone=True)`; `nodes.latched_cache`). A restarted
+forwarder has lost that cache: each publisher notices the new forwarder (its subscription to
+latched topics arrives again) and re-sends its last latched message per topic; it re-sends them
+too when the forwarder asks (a subscription to ``REFRESH`` + a number).
 """
 from __future__ import annotations
 
@@ -26,6 +29,9 @@ from nodes.endpoints import BusAddress, bus_address, curve_dir, secure_client
 
 LATCHED = b"L"
 VOLATILE = b"-"
+GONE = b"G"  # the flag of a latched message whose publisher is gone, as the forwarder replays it
+REFRESH = b"?"  # the forwarder's subscription that asks every publisher to re-send its latched messages
+ANSWER_PERIOD_S = 0.2  # how often an idle publisher of latched messages reads the forwarder's requests
 LINGER_MS = 100
 PUB_HWM = 200
 SUB_HWM = 200
@@ -43,17 +49,19 @@ def envelope(topic: str, node: str, latched: bool) -> bytes:
 def parse_envelope(frame: Any) -> tuple[str, str, bool]:
     """(topic, node, latched) of an envelope frame; ValueError when it is not one."""
     raw = frame.bytes if hasattr(frame, "bytes") else bytes(frame)
-    if len(raw) < 3 or raw[:1] not in (LATCHED, VOLATILE) or b"\0" not in raw:
+    if len(raw) < 3 or raw[:1] not in (LATCHED, VOLATILE, GONE) or b"\0" not in raw:
         raise ValueError(f"not a bus envelope: {raw[:40]!r}")
     topic, _, node = raw[1:].partition(b"\0")
-    return topic.decode(errors="replace"), node.decode(errors="replace"), raw[:1] == LATCHED
+    return topic.decode(errors="replace"), node.decode(errors="replace"), raw[:1] != VOLATILE
 
 
-def subscription_prefixes(topic: str) -> list[bytes]:
-    """The ZeroMQ prefixes that receive exactly `topic` ("" = every topic)."""
+def subscription_prefixes(topic: str, gone: bool = False) -> list[bytes]:
+    """The ZeroMQ prefixes that receive exactly `topic` ("" = every topic); with `gone`, also the last
+    latched message of each of its publishers that are gone (a respawned node's predecessor's)."""
+    flags = (LATCHED, VOLATILE, GONE) if gone else (LATCHED, VOLATILE)
     if topic == ALL_TOPICS:
-        return [LATCHED, VOLATILE]
-    return [flag + topic.encode() + b"\0" for flag in (LATCHED, VOLATILE)]
+        return list(flags)
+    return [flag + topic.encode() + b"\0" for flag in flags]
 
 
 def validate_topic(topic: str) -> str:
@@ -160,9 +168,11 @@ class PublisherSocket:
     passes subscriptions upstream) and whether the forwarder is there: the forwarder
     always subscribes to latched topics, so its subscription arriving means connected and
     its removal (ZMQ_IMMEDIATE: the connection's pipe goes with the connection) means
-    gone. When a forwarder connects (the first, or a restarted one), the last latched
-    message of each topic is sent again, unchanged, to fill the forwarder's cache;
-    subscribers that saw it already drop it by its seq. Thread-safe.
+    gone. When a forwarder connects (the first, or a restarted one), or asks (`REFRESH`: a
+    publisher has left it, and it learns which of its cached latched messages still have theirs), the
+    last latched message of each topic is sent again, unchanged; subscribers that saw it already drop
+    it by its seq. The forwarder's requests are read with its other subscription events, on each
+    publish or `update()`. Thread-safe.
 
     connected: the forwarder is connected now. reconnects: forwarder connections after
     the first. down_since_s: monotonic time the forwarder went away (None while connected).
@@ -188,6 +198,10 @@ class PublisherSocket:
     def _drain_subscriptions(self) -> None:
         while self._sock.poll(0):
             event = self._sock.recv()
+            if event[1:2] == REFRESH:
+                if event[:1] == b"\x01":
+                    self._send_latched()
+                continue
             if event[:1] == b"\x01":
                 self._prefixes.add(event[1:])
                 if event[1:] == LATCHED and not self.connected:
@@ -207,16 +221,22 @@ class PublisherSocket:
         self.down_since_s = None
         self._connections += 1
         self.reconnects += self._connections > 1
-        for env, frames in self._latched.items():
-            self._send([env, *frames])
+        self._send_latched()
         if self._latched:
             log.debug("%s: forwarder %s connected (reconnects %d); %d latched messages sent", self.node,
                       self.address.url, self.reconnects, len(self._latched))
 
+    def _send_latched(self) -> None:
+        """Send the last latched message of each topic again, unchanged."""
+        for env, frames in self._latched.items():
+            self._send([env, *frames])
+
     def update(self) -> None:
         """Process the forwarder's subscription events: track the connection and re-send
-        latched messages after a reconnect. Every publish does this; a publisher that may
-        stay idle calls it periodically (the node runtime does, from its status thread)."""
+        latched messages after a reconnect or when the forwarder asks. Every publish does this; a
+        publisher of latched messages that may stay idle calls it periodically (the node runtime does,
+        from its status thread; `nodes.client.Publisher` from a thread of its own): unanswered, the
+        forwarder takes its latched messages for a gone publisher's."""
         with self._lock:
             self._drain_subscriptions()
 

@@ -29,7 +29,8 @@ Publishing (the gripper closed: every tracker takes a new reference, a new grasp
     gripper.close()
     reset_grasp()
 
-or, for any topic, ``with advertise("/my/topic") as pub: pub.publish(msg)``.
+or, for any topic, ``with advertise("/my/topic") as pub: pub.publish(msg)``. A latched message
+(``advertise(..., latched=True)``) reaches later subscribers while its publisher is open, as in ROS.
 """
 from __future__ import annotations
 
@@ -41,7 +42,7 @@ from typing import Callable, Iterator, TypeVar
 
 from msgs import CameraInfo, ContactSummary, DisplacementField, Image, MarkerArray, Message, NodeStatus, SlipState
 from msgs.wire import check_message
-from nodes.bus import PublisherSocket, TopicReader, validate_topic
+from nodes.bus import ANSWER_PERIOD_S, PublisherSocket, TopicReader, validate_topic
 from nodes.endpoints import BusAddress
 
 log = logging.getLogger("fv.client")
@@ -228,6 +229,8 @@ class Publisher(_Closing):
     It waits up to `connect_timeout_s` for the bus to take its messages (TimeoutError naming the
     bus when none answers): a message sent before that would be lost without a word. `publish` checks
     each message as subscribers will (`check_message`): one they would drop as malformed raises here.
+    A latched publisher's last message reaches later subscribers until it is closed: a thread answers
+    the forwarder's refreshes (`nodes.latched_cache`) while the caller publishes nothing.
     """
 
     def __init__(self, topic: str, *, name: str = "robot", latched: bool = False, connect_timeout_s: float = 2.0,
@@ -240,6 +243,15 @@ class Publisher(_Closing):
             self._sock.close()
             raise TimeoutError(f"no forwarder took {topic} on {url} within {connect_timeout_s} s "
                                "(is a launch running on this FV_BUS?)")
+        self._closed = threading.Event()
+        self._keeper: threading.Thread | None = None
+        if latched:
+            self._keeper = threading.Thread(target=self._keep_latched, name=f"fv-latched{topic}", daemon=True)
+            self._keeper.start()
+
+    def _keep_latched(self) -> None:
+        while not self._closed.wait(ANSWER_PERIOD_S):
+            self._sock.update()
 
     def publish(self, msg: Message) -> None:
         """Send `msg` (stamped with seq, pub_ns and node); ValueError "Type.field: reason" for a message
@@ -249,6 +261,9 @@ class Publisher(_Closing):
         self._sock.publish(self.topic, msg, self.latched)
 
     def close(self) -> None:
+        self._closed.set()
+        if self._keeper is not None:
+            self._keeper.join()
         self._sock.close()
 
 

@@ -1,7 +1,8 @@
 """The forwarder: one per host, like roscore. XSUB (publishers) <-> XPUB (subscribers).
 
 It forwards every message, caches the last latched message per (topic, node) and
-replays it to each new subscriber, and answers pings on the control socket. Locally it
+replays it to each new subscriber while its publisher is connected (`nodes.latched_cache`: a gone
+publisher's only to subscribers that ask for those), and answers pings on the control socket. Locally it
 binds IPC only; with `tcp` it also listens for other hosts, and then only with CURVE
 encryption and authenticated client keys.
 
@@ -24,9 +25,11 @@ from pathlib import Path
 import msgpack
 import zmq
 from zmq.auth.thread import ThreadAuthenticator
+from zmq.utils.monitor import recv_monitor_message
 
 from nodes.bus import LATCHED, LINGER_MS, connect_client, new_context
 from nodes.endpoints import BUS_ENV, BusAddress, bus_address, secure_server
+from nodes.latched_cache import LatchedCache
 
 log = logging.getLogger("fv.forwarder")
 FWD_HWM = 200
@@ -57,6 +60,7 @@ class Forwarder:
         self.authorized: Path | None = None  # the client keys' folder of a TCP bus
         self._authorized_seen: list[tuple[str, int]] | None = None  # its key files (name, mtime) when last loaded
         self.sides: list[tuple[zmq.Socket, zmq.Socket, zmq.Socket]] = []
+        self.monitors: list[zmq.Socket] = []  # each side's publisher connections closing (EVENT_DISCONNECTED)
         try:
             if self.address.is_tcp:
                 self.sides.append(self._bind_side(self.address, keys))
@@ -67,7 +71,7 @@ class Forwarder:
         except BaseException:
             self.close()
             raise
-        self.latched: dict[bytes, list[zmq.Frame]] = {}
+        self.latched = LatchedCache()
         self.forwarded = 0
         self.started = time.time()
 
@@ -98,6 +102,7 @@ class Forwarder:
                     made.close(linger=0)
                 raise ValueError(f"cannot listen on {endpoint}: {exc.strerror}") from None
         xsub.send(b"\x01" + LATCHED)
+        self.monitors.append(xsub.get_monitor_socket(zmq.EVENT_DISCONNECTED))
         return xsub, xpub, ctl
 
     def reload_authorized(self) -> None:
@@ -119,13 +124,12 @@ class Forwarder:
 
     def info(self) -> dict:
         return {"pid": os.getpid(), "url": self.address.url, "uptime_s": time.time() - self.started,
-                "forwarded": self.forwarded, "latched": sorted(k.decode(errors="replace") for k in self.latched)}
+                "forwarded": self.forwarded, "latched": _names(self.latched.live), "gone": _names(self.latched.gone)}
 
     def run(self, stop: threading.Event) -> None:
         poller = zmq.Poller()
-        for side in self.sides:
-            for sock in side:
-                poller.register(sock, zmq.POLLIN)
+        for sock in [sock for side in self.sides for sock in side] + self.monitors:
+            poller.register(sock, zmq.POLLIN)
         xsubs = [s[0] for s in self.sides]
         xpubs = [s[1] for s in self.sides]
         ctls = [s[2] for s in self.sides]
@@ -134,12 +138,12 @@ class Forwarder:
             if time.monotonic() - keys_checked >= AUTHORIZED_CHECK_S:
                 self.reload_authorized()
                 keys_checked = time.monotonic()
+            self._ask_publishers(xsubs, self.latched.expire(time.monotonic()))
             for sock, _ in poller.poll(100):
                 if sock in xsubs:
                     frames = sock.recv_multipart(copy=False)
-                    env = frames[0].bytes
-                    if env[:1] == LATCHED:
-                        self.latched[env] = frames
+                    if frames[0].bytes[:1] == LATCHED and not self.latched.received(frames):
+                        continue  # a publisher's answer to a refresh: subscribers have had it
                     for out in xpubs:
                         out.send_multipart(frames, copy=False, flags=zmq.NOBLOCK)
                     self.forwarded += 1
@@ -148,15 +152,26 @@ class Forwarder:
                     for up in xsubs:
                         up.send(event)
                     if event[:1] == b"\x01":
-                        prefix = event[1:]
-                        for env, frames in list(self.latched.items()):
-                            if env.startswith(prefix) and prefix:
-                                sock.send_multipart(frames, copy=False, flags=zmq.NOBLOCK)
+                        for frames in list(self.latched.replay(event[1:])):
+                            sock.send_multipart(frames, copy=False, flags=zmq.NOBLOCK)
+                elif sock in self.monitors:
+                    recv_monitor_message(sock)
+                    self._ask_publishers(xsubs, self.latched.publisher_left(time.monotonic()))
                 elif sock in ctls:
                     sock.recv()
                     sock.send(msgpack.packb(self.info()))
 
+    @staticmethod
+    def _ask_publishers(xsubs: list[zmq.Socket], events: list[bytes]) -> None:
+        """Send subscription events (a refresh made or ended) to every publisher."""
+        for event in events:
+            for up in xsubs:
+                up.send(event)
+
     def close(self) -> None:
+        for (xsub, _, _), monitor in zip(self.sides, self.monitors):
+            xsub.disable_monitor()
+            monitor.close(linger=0)
         for side in self.sides:
             for sock in side:
                 sock.close(linger=0)
@@ -165,6 +180,11 @@ class Forwarder:
         self.ctx.term()
         if self._lock_file is not None:
             self._lock_file.close()
+
+
+def _names(messages: dict[bytes, list]) -> list[str]:
+    """The envelopes of cached messages as text (flag, topic, NUL, publisher node), sorted."""
+    return sorted(env.decode(errors="replace") for env in messages)
 
 
 def ping(address: BusAddress | None = None, timeout_s: float = 0.3) -> dict | None:

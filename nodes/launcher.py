@@ -282,6 +282,7 @@ class Launch:
                     self.say("all nodes have exited")
                     break
                 self._read_statuses(now)
+                self._status_pub.update()  # answers the forwarder's refreshes of latched messages
                 if now >= next_status_s:
                     self._publish_status(now)
                     next_status_s = now + STATUS_PERIOD_S

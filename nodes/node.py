@@ -45,8 +45,8 @@ import zmq
 
 import msgs
 from msgs import Message, MessageError, NodeStatus
-from nodes.bus import (ALL_TOPICS, LINGER_MS, SUB_HWM, PublisherSocket, SeqTracker, connect_client, new_context,
-                       absolute_namespace, parse_envelope, resolve_topic, subscription_prefixes)
+from nodes.bus import (ALL_TOPICS, GONE, LINGER_MS, SUB_HWM, PublisherSocket, SeqTracker, connect_client,
+                       new_context, absolute_namespace, parse_envelope, resolve_topic, subscription_prefixes)
 from nodes.endpoints import BusAddress, bus_address
 from nodes.params import build_params
 
@@ -94,12 +94,13 @@ class Subscription:
     """A callback on one topic with its queue (depth None = keep all).
 
     stale_after_s: report "no <topic> for N s" in NodeStatus when no message came for
-    this long (None = never: the topic may legitimately stay quiet). last_rx_s: monotonic
+    this long (None = never: the topic may legitimately stay quiet). gone: also the last latched
+    message of each publisher of the topic that is gone (`nodes.latched_cache`). last_rx_s: monotonic
     time of the last message received (or of the subscription / node start).
     """
 
     def __init__(self, topic: str, msg_type: type[Message] | None, callback: Callable[[Message], None],
-                 depth: int | None, stale_after_s: float | None = None) -> None:
+                 depth: int | None, stale_after_s: float | None = None, gone: bool = False) -> None:
         if depth is not None and depth < 1:
             raise ValueError(f"subscription {topic}: depth {depth} must be >= 1 or None (keep all)")
         if stale_after_s is not None and stale_after_s <= 0:
@@ -109,6 +110,7 @@ class Subscription:
         self.callback = callback
         self.depth = depth
         self.stale_after_s = stale_after_s
+        self.gone = gone
         self.queue: collections.deque = collections.deque()
         self.drops = 0
         self.received = 0
@@ -214,17 +216,25 @@ class Node:
         return pub
 
     def subscribe(self, topic: str, msg_type: type[Message] | None, callback: Callable[[Message], None],
-                  depth: int | None = 10, stale_after_s: float | None = None) -> Subscription:
+                  depth: int | None = 10, stale_after_s: float | None = None, gone: bool = False) -> Subscription:
         """Call `callback(msg)` for each message on `topic` (msg_type None = any type).
         With `stale_after_s` (s), NodeStatus warns when no message came for that long: give
-        it for inputs that should stream (camera frames), not for occasional commands."""
-        sub = Subscription(self.resolve(topic), msg_type, callback, depth, stale_after_s)
+        it for inputs that should stream (camera frames), not for occasional commands. With `gone`,
+        the last latched message of a publisher of `topic` that is gone comes too (a latched topic
+        reaches late joiners only from publishers that are there: `nodes.latched_cache`)."""
+        sub = Subscription(self.resolve(topic), msg_type, callback, depth, stale_after_s, gone)
         with self._cond:
             first = sub.topic not in self._subs
             self._subs.setdefault(sub.topic, []).append(sub)
-        if first and self._receiver is not None and self._receiver.is_alive():
+        if (first or gone) and self._receiver is not None and self._receiver.is_alive():
             self._ctl_out.send_string("sub " + sub.topic)
         return sub
+
+    def _prefixes(self, topic: str) -> list[bytes]:
+        """The subscription prefixes of `topic`: with those of gone publishers where a subscription asks."""
+        with self._cond:
+            gone = any(s.gone for s in self._subs.get(topic, ()))
+        return subscription_prefixes(topic, gone)
 
     def timer(self, period_s: float, callback: Callable[[], None]) -> Timer:
         if period_s <= 0:
@@ -312,7 +322,7 @@ class Node:
         with self._cond:
             topics = list(self._subs)
         for topic in topics:
-            for prefix in subscription_prefixes(topic):
+            for prefix in self._prefixes(topic):
                 sub.setsockopt(zmq.SUBSCRIBE, prefix)
         poller = zmq.Poller()
         poller.register(sub, zmq.POLLIN)
@@ -324,7 +334,7 @@ class Node:
                     cmd = ctl.recv_string()
                     if cmd == "stop":
                         return
-                    for prefix in subscription_prefixes(cmd[4:]):
+                    for prefix in self._prefixes(cmd[4:]):
                         sub.setsockopt(zmq.SUBSCRIBE, prefix)
                 if sub in ready:
                     while sub.poll(0):
@@ -342,10 +352,12 @@ class Node:
         except (ValueError, MessageError) as exc:
             self._malformed(exc)
             return
+        gone = frames[0].bytes[:1] == GONE
         with self._cond:
             if not self._seq.accept(topic, node, header["seq"], latched, header["pub_ns"]):
                 return
-            targets = list(self._subs.get(topic, ())) + list(self._subs.get(ALL_TOPICS, ()))
+            targets = [s for s in list(self._subs.get(topic, ())) + list(self._subs.get(ALL_TOPICS, ()))
+                       if s.gone or not gone]
             now = time.monotonic()
             self._arrivals += 1
             for s in targets:

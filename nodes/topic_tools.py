@@ -328,7 +328,7 @@ def build_message(type_name: str, text: str) -> Any:
 
 
 def _pub(args: argparse.Namespace) -> int:
-    from nodes.bus import PublisherSocket
+    from nodes.bus import ANSWER_PERIOD_S, PublisherSocket
 
     msg = build_message(args.type, args.values)
     topic = args.topic  # checked by its argument type
@@ -351,6 +351,11 @@ def _pub(args: argparse.Namespace) -> int:
             next_t += 1.0 / args.rate
             if count is None or sent < count:
                 time.sleep(max(0.0, next_t - time.monotonic()))
+        if args.latched:  # a latched message goes with its publisher (nodes.latched_cache): stay
+            print(f"latched: {topic} kept for later subscribers until Ctrl-C", flush=True)
+            while True:
+                sock.update()  # answers the forwarder's refreshes
+                time.sleep(ANSWER_PERIOD_S)
     finally:
         sock.close()
     return 0
@@ -417,8 +422,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("values", nargs="?", default="", help="fields as YAML, e.g. '{slip: true}'")
     p.add_argument("--rate", "-r", type=positive_float, default=1.0, help="messages per second (default 1)")
     p.add_argument("--count", "--times", "-t", type=positive_int, default=None, help="publish N messages, then exit")
-    p.add_argument("--once", "-1", action="store_true", help="publish one message and exit")
-    p.add_argument("--latched", action="store_true", help="latched: late subscribers get the last message")
+    p.add_argument("--once", "-1", action="store_true", help="publish one message and exit (with --latched: stay)")
+    p.add_argument("--latched", action="store_true",
+                   help="latched: later subscribers get the last message while this command runs (it stays "
+                        "after its last message, until Ctrl-C)")
     p.add_argument("--wait-matching", type=float, default=1.0,
                    help="seconds to wait for a subscriber before the first message (default 1)")
 

@@ -24,9 +24,10 @@ A tracker that restarts (respawned after a crash) while the skin may be deformed
 take a deformed frame as the reference: with `resume`, it first waits up to
 `resume_wait_s` for the latched `/markers/reference` of its previous process (same node
 name, same image size, stamped no later than the first frame this process sees; under `fv
-launch`, published since the launch started) and goes on tracking against it. A reference
-stamped after that frame belongs to another stream (e.g. the live session a bus still holds,
-when a recording of it is replayed), and one from before the launch to an earlier session (a
+launch`, published since the launch started) and goes on tracking against it: its publisher is
+gone, and the forwarder gives it to the subscriptions that ask for gone publishers' messages. A
+reference stamped after that frame belongs to another stream (e.g. the live session a bus still
+holds, when a recording of it is replayed), and one from before the launch to an earlier session (a
 forwarder left running keeps it): neither is resumed."""
 from __future__ import annotations
 
@@ -92,7 +93,7 @@ class TrackerNode(Node):
         self.subscribe("camera/image", Image, self.on_image, depth=1, stale_after_s=p.input_timeout_s or None)
         self.subscribe("/tracker/reset", None, self.on_reset, depth=1)
         if p.resume:
-            self.subscribe("markers/reference", MarkerArray, self.on_reference, depth=1)
+            self.subscribe("markers/reference", MarkerArray, self.on_reference, depth=1, gone=True)
         if p.recorded_reference:
             self.subscribe(p.recorded_reference, MarkerArray, self.on_recorded_reference, depth=1)
         self.counters.update(references=0, resumed=0, reference_retries=0, other_size=0, source_restarts=0)

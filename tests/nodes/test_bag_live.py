@@ -425,6 +425,42 @@ def test_record_node_selection_split_attachments(bus: BusAddress, tmp_path: Path
     assert "missing by seq 0" in node.summary_line() and "/a 80" in node.summary_line()
 
 
+def test_a_recording_started_after_a_session_holds_none_of_its_latched_messages(bus: BusAddress,
+                                                                             tmp_path: Path) -> None:
+    """A recorder started on a forwarder left running (`fv forwarder`) after a session, before the next,
+    recorded the latched messages the gone session left there: its camera's CameraInfo, attached to the
+    bag as the calibration (two `calibration/camera_info.yaml`, the earlier camera's 640x480 first), and
+    its nodes' statuses. A latched message now goes with its publisher: the bag holds the next camera's
+    alone."""
+    from msgs import NodeStatus
+    from nodes.latched_cache import REFRESH_WAIT_S
+
+    earlier = PublisherSocket("camera", bus)
+    assert earlier.wait_connected(2.0)
+    earlier.publish("/camera/info", CameraInfo(width=640, height=480, K=np.eye(3) * 300.0), latched=True)
+    earlier.publish("/status", NodeStatus(stamp_ns=time.time_ns()), latched=True)
+    time.sleep(0.2)
+    earlier.close()
+    time.sleep(REFRESH_WAIT_S + 0.5)
+    node = BagRecord("rec", {"output": str(tmp_path / "next"), "all_topics": True}, address=bus)
+    thread = in_thread(node)
+    camera = PublisherSocket("camera", bus)  # the next session's
+    try:
+        wait_subscribed(camera, ["/camera/image"])
+        camera.publish("/camera/info", CameraInfo(width=320, height=240, K=np.eye(3) * 150.0), latched=True)
+        camera.publish("/camera/image", Image(stamp_ns=time.time_ns(), data=np.zeros((240, 320), np.uint8)))
+        time.sleep(0.5)
+    finally:
+        node.stop()
+        thread.join(10)
+        camera.close()
+    bag = BagReader(tmp_path / "next")
+    assert [m.decode().width for m in bag.messages(["/camera/info"])] == [320]
+    assert {m.node for m in bag.messages(["/status"])} == {"rec"}
+    calibrations = [yaml.safe_load(a.data) for a in bag.attachments() if a.name.startswith("calibration/")]
+    assert [(c["width"], c["K"][0][0]) for c in calibrations] == [(320, 150.0)]
+
+
 def test_replay_launch_plays_the_camera_topics(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
     """The bag part of launch/replay.yaml alone, waiting for no pipeline node (test_session_replay.py
     replays whole sessions through it)."""
@@ -437,15 +473,13 @@ def test_replay_launch_plays_the_camera_topics(bus: BusAddress, spawn: Spawn, tm
     assert set(doc["nodes"][0]["params"].pop("start_after")) == {"tracker", "interpolator", "slip_detector"}
     only_bag = tmp_path / "replay_bag.yaml"
     only_bag.write_text(yaml.safe_dump({"args": doc["args"], "nodes": doc["nodes"][:1]}))
-    with TopicReader(["/camera/image"], bus) as reader:
+    with TopicReader(["/camera/image", "/camera/info"], bus) as reader:
         launch = spawn("launch", str(only_bag), f"bag:={tmp_path / 'b'}", "fast:=true")
-        frames = [reader.recv(10.0) for _ in range(30)]
-    assert [f.msg.seq for f in frames] == list(range(30))
+        got = [reader.recv(10.0) for _ in range(31)]
+    assert [f.msg.seq for f in got if f.topic == "/camera/image"] == list(range(30))
+    assert [(f.latched, f.msg.width) for f in got if f.topic == "/camera/info"] == [(True, 32)]
     launch.wait(30)  # bag_play is required: the launch ends with it (the launcher then exits 1)
     assert "bag_play exited with code 0" in launch.stdout.read() + launch.stderr.read()
-    with TopicReader(["/camera/info"], bus) as late:  # latched: still there for a late joiner
-        item = late.recv(2.0)
-    assert item is not None and item.latched and item.msg.width == 32
 
 
 def test_bench_bag_reports_completeness_and_cpu(bus: BusAddress, spawn: Spawn) -> None:

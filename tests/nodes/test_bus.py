@@ -75,13 +75,54 @@ def test_latched_message_reaches_late_joiner_once(bus: Bus) -> None:
     pub.publish("/camera_info", CameraInfo(width=640, height=480), latched=True)
     pub.publish("/image_note", SlipState())  # volatile: a late joiner never sees it
     time.sleep(0.2)
-    pub.close()
-    with TopicReader(["/camera_info", "/image_note"]) as first:
-        item = first.recv(timeout_s=2.0)
-        assert item is not None and item.latched and item.msg.width == 640
-        with TopicReader(["/camera_info"]) as second:  # its join replays the latched message to both
-            assert second.recv(timeout_s=2.0).msg.width == 640
-            assert first.recv(timeout_s=0.3) is None, "a replay seen before must be dropped"
+    try:
+        with TopicReader(["/camera_info", "/image_note"]) as first:
+            item = first.recv(timeout_s=2.0)
+            assert item is not None and item.latched and item.msg.width == 640
+            with TopicReader(["/camera_info"]) as second:  # its join replays the latched message to both
+                assert second.recv(timeout_s=2.0).msg.width == 640
+                assert first.recv(timeout_s=0.3) is None, "a replay seen before must be dropped"
+    finally:
+        pub.close()
+
+
+def test_a_gone_publisher_s_latched_message_reaches_only_those_who_ask(bus: Bus) -> None:
+    """A latched message goes with its publisher, as in ROS: on a forwarder left running, a reader
+    joining after a session got that session's camera info as a live one (a bag recorded before the
+    next session took it for its calibration). A subscription that asks for gone publishers' messages
+    (a respawned tracker's, for its predecessor's reference) still gets it, flagged; an idle latched
+    publisher keeps its message by answering the forwarder's refreshes."""
+    from nodes.client import advertise
+    from nodes.latched_cache import REFRESH_WAIT_S
+    from nodes.node import Node
+
+    old = PublisherSocket("old_camera", bus.address)
+    assert old.wait_connected(2.0)
+    old.publish("/camera/info", CameraInfo(width=640, height=480), latched=True)
+    with advertise("/camera/info", name="camera", latched=True) as live:
+        live.publish(CameraInfo(width=320, height=240))
+        old.close()
+        time.sleep(REFRESH_WAIT_S + 0.5)
+        with TopicReader(["/camera/info"]) as late:
+            got = [(item.msg.node, item.msg.width) for item in iter(lambda: late.recv(0.5), None)]
+        assert got == [("camera", 320)]
+        assert ping()["gone"] == ["L/camera/info\0old_camera"]
+        asking = Node("resumer", address=bus.address)
+        heard: list[tuple[str, int]] = []
+        asking.subscribe("/camera/info", CameraInfo, lambda msg: heard.append((msg.node, msg.width)), gone=True)
+        thread = threading.Thread(target=asking.spin, kwargs={"install_signals": False}, daemon=True)
+        thread.start()
+        try:
+            deadline = time.monotonic() + 5.0
+            while len(heard) < 2 and time.monotonic() < deadline:
+                time.sleep(0.05)
+        finally:
+            asking.stop()
+            thread.join(5.0)
+        assert sorted(heard) == [("camera", 320), ("old_camera", 640)]
+    time.sleep(REFRESH_WAIT_S + 0.5)
+    with TopicReader(["/camera/info"]) as after:
+        assert after.recv(0.5) is None, "a closed publisher's latched message is gone"
 
 
 def test_a_latched_message_published_before_any_forwarder_is_delivered(bus_env: Bus) -> None:

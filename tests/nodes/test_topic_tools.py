@@ -3,6 +3,7 @@ with what the nodes do."""
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 import time
@@ -75,13 +76,31 @@ def test_pub_reaches_a_subscriber(bus: Bus) -> None:
     assert [g.msg.seq for g in got] == [0, 1, 2]
 
 
-def test_latched_pub_reaches_a_later_echo(bus: Bus) -> None:
-    assert run_fv("topic", "pub", "/info", "CameraInfo", "{width: 640, height: 480, K: [[1, 0, 0], [0, 1, 0], "
-                  "[0, 0, 1]]}", "--once", "--latched").returncode == 0
-    result = run_fv("topic", "echo", "/info", "--once", "--json", "--timeout", "3")
-    assert result.returncode == 0, result.stderr
-    info = json.loads(result.stdout)
-    assert info["width"] == 640 and info["K"]["data"] == [[1, 0, 0], [0, 1, 0], [0, 0, 1]]
+def test_latched_pub_reaches_a_later_echo_while_it_runs(bus: Bus) -> None:
+    """A latched message goes with its publisher, as in ROS: `fv topic pub --latched` stays after its
+    last message until Ctrl-C, and an echo started after that gets nothing. (The forwarder held it for
+    good: an echo or a recorder joining after a session got that session's messages as live ones.)"""
+    pub = _start("topic", "pub", "/info", "CameraInfo", "{width: 640, height: 480, K: [[1, 0, 0], [0, 1, 0], "
+                 "[0, 0, 1]]}", "--once", "--latched")
+    try:
+        assert pub.stdout.readline().startswith("publishing #1")
+        assert "kept for later subscribers until Ctrl-C" in pub.stdout.readline()
+        for k in range(2):
+            result = run_fv("topic", "echo", "/info", "--once", "--json", "--timeout", "3")
+            assert result.returncode == 0, result.stderr
+            info = json.loads(result.stdout)
+            assert info["width"] == 640 and info["K"]["data"] == [[1, 0, 0], [0, 1, 0], [0, 0, 1]]
+            if k == 0:  # another publisher leaves: the forwarder asks which latched messages have theirs
+                passer = PublisherSocket("passer")
+                assert passer.wait_connected(2.0)
+                passer.close()
+                time.sleep(1.5)
+    finally:
+        pub.send_signal(signal.SIGINT)
+        assert pub.wait(10) == 130
+    time.sleep(1.5)
+    result = run_fv("topic", "echo", "/info", "--once", "--timeout", "1")
+    assert result.returncode == 1 and "no message on /info" in result.stderr
 
 
 def test_echo_times_out_and_info_knows_no_topic(bus: Bus) -> None:
