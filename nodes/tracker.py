@@ -14,11 +14,14 @@ A recording started after the tracker took its reference holds that reference (l
 its frame: replayed from its first frame (taken as the reference), the skin may be deformed there.
 With `recorded_reference`, a replay plays the recorded `/markers/reference` on that topic
 (`replay.yaml`, `replay_pair.yaml`), and the tracker tracks the first frame on against it when it is
-stamped no later than that frame. A recording that holds its camera's first frames (the first one's
-number, its frame_index or else its seq, no more than `reference_frame`) holds the frame the live
-tracker took its reference from, and the replay takes its own there: a recorder started before the
-session also got the reference an earlier session had left on the bus (latched), and tracking against
-that one changed 349 of 500 decisions.
+stamped no later than that frame. A recording holds only the reference of a tracker running when
+it began (a gone publisher's latched message is not given to a recorder: `nodes.latched_cache`; of a
+recording made before, the player leaves an earlier session's out: `nodes.bag.player.gone_at_start`),
+so a reference it holds from before its first frame is the one the live tracker tracked that frame
+against, also when that frame is the first of a respawned camera, whose seq starts again at 0. A
+recording whose first frame is numbered no more than `reference_frame` in its video (frame_index: the
+video's first frames, or a loop's next pass) holds the frame the live tracker took its reference
+from, and the replay takes its own there: the one recorded before is the previous pass's.
 
 A tracker that restarts (respawned after a crash) while the skin may be deformed must not
 take a deformed frame as the reference: with `resume`, it first waits up to
@@ -87,7 +90,6 @@ class TrackerNode(Node):
         self.inherited: MarkerArray | None = None
         self.inherited_from = ""  # whose reference `inherited` is, for the log
         self.first_stamp_ns: int | None = None  # stamp of the first frame this process sees
-        self.recording_from_start = False  # that frame is one of its camera's first (seq <= reference_frame)
         self.markers_pub = self.publisher("markers", MarkerArray)
         self.reference_pub = self.publisher("markers/reference", MarkerArray, latched=True)
         self.subscribe("camera/image", Image, self.on_image, depth=1, stale_after_s=p.input_timeout_s or None)
@@ -133,8 +135,7 @@ class TrackerNode(Node):
         (frames and references may be taken in either order): the recording began after the live tracker
         took it, and is tracked against it as live. Stamped later, it belongs to a frame of the
         recording, which this tracker takes itself."""
-        if self.needs_reference and (self.first_stamp_ns is None or msg.stamp_ns <= self.first_stamp_ns) \
-                and not self.recording_from_start:
+        if self.needs_reference and (self.first_stamp_ns is None or msg.stamp_ns <= self.first_stamp_ns):
             self.inherited, self.inherited_from = msg, "the recording's"
 
     def on_image(self, msg: Image) -> None:
@@ -149,12 +150,11 @@ class TrackerNode(Node):
         self.last_index = msg.frame_index
         if self.first_stamp_ns is None:
             self.first_stamp_ns = msg.stamp_ns
-            number = msg.frame_index if msg.frame_index >= 0 else msg.seq
-            self.recording_from_start = number <= self.params.reference_frame
-            if self.recording_from_start and self.inherited is not None and self.inherited_from == "the recording's":
-                self.log.info("the recording holds its camera's first frames, so the live tracker took its "
-                              "reference from one of them: the older reference recorded (stamped %.1f s before "
-                              "the first frame, another session's) is not used",
+            if (0 <= msg.frame_index <= self.params.reference_frame and self.inherited is not None
+                    and self.inherited_from == "the recording's"):
+                self.log.info("the recording starts at frame %d of its video, so the live tracker took its "
+                              "reference within it: the reference recorded before it (stamped %.1f s before the "
+                              "first frame, the previous pass's) is not used", msg.frame_index,
                               1e-9 * (msg.stamp_ns - self.inherited.stamp_ns))
                 self.inherited = None
         if self.needs_reference:

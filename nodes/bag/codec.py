@@ -33,7 +33,10 @@ HEADER_PROBE_B = 512
 
 META_NODE = "node"
 META_LATCHED = "latched"
+RECORDING_META = "fv_recording"  # metadata record of a recording: host, start, software, command line, topics
 RECORDING_END_META = "fv_recording_end"  # metadata record of a finished recording: totals, per-topic counts and times
+LATCHED_ENTRY = "latched"  # the entry of RECORDING_META that says which latched messages a recorder got as it began
+LATCHED_OF_RUNNING = "of running publishers"  # its value (a recording without it may hold gone publishers' too)
 
 
 def join_frames(frames: Iterable[Any]) -> bytes:

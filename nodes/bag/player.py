@@ -14,6 +14,10 @@ e.g. one camera per finger: each `sync_on` topic waits for its own answer topic)
 first message the player waits for the nodes of `start_after` to report (a replay
 pipeline's nodes, every subscription made) and until every played volatile topic has
 a subscriber.
+
+A recording made before a recorder got only running publishers' latched messages as it began
+(`nodes.latched_cache`; its metadata lacks the entry that says so) may hold an earlier session's,
+left on a forwarder that stayed up: `gone_at_start` finds them, and they are not played.
 """
 from __future__ import annotations
 
@@ -32,7 +36,7 @@ from dataclasses import dataclass, field
 import msgs
 from msgs import Image
 from nodes.bag.clock import PlayClock
-from nodes.bag.codec import split_payload
+from nodes.bag.codec import LATCHED_ENTRY, RECORDING_META, split_payload
 from nodes.bag.reader import BagError, BagMessage, BagReader, bag_files, check_magic
 from nodes.bus import PublisherSocket, TopicReader
 from nodes.node import Node
@@ -105,6 +109,39 @@ class BagPlayParams:
             check_magic(file)
 
 
+def message_id(m: BagMessage) -> tuple[str, str, int, int]:
+    """(topic, publishing node, seq, log time ns): one recorded message."""
+    return m.topic, m.node, m.sequence, m.log_time_ns
+
+
+def gone_at_start(bag: BagReader, topics: list[str]) -> set[tuple[str, str, int, int]]:
+    """The `message_id`s of the latched messages among `topics` that the recorder of a bag made before
+    recorders got only running publishers' latched messages (`RECORDING_META` without `LATCHED_ENTRY`)
+    got from gone publishers as it began: where the bag begins with a camera's first frame (an `Image`
+    of seq 0), those logged before that frame whose publisher started again next (the same topic and
+    node, the seq not going on). A recorder started before a session on a forwarder left running got
+    the tracker reference an earlier session had left there, and a replay tracked the whole bag against
+    it (19 of 56 decisions of a real grasp differed from the live ones)."""
+    meta = bag.metadata().get(RECORDING_META)
+    known = bag.topics()
+    if meta is None or LATCHED_ENTRY in meta:
+        return set()
+    first = next(bag.messages([t for t in topics if known[t].type_name == Image.TYPE]), None)
+    if first is None or first.sequence != 0:
+        return set()
+    early: dict[tuple[str, str], list[BagMessage]] = {}  # per publisher, its messages before the frame
+    gone: set[tuple[str, str, int, int]] = set()
+    for m in bag.messages([t for t in topics if known[t].latched]):
+        key = (m.topic, m.node)
+        if key in early and m.sequence <= early[key][-1].sequence:  # the publisher started again
+            gone.update(message_id(g) for g in early.pop(key))
+        if m.log_time_ns < first.log_time_ns:
+            early.setdefault(key, []).append(m)
+        else:  # after the frame: what came before from this publisher was a running one's
+            early.pop(key, None)
+    return gone
+
+
 def topic_list(value: str | list[str]) -> list[str]:
     """A topic param as a list: "" -> [], "/a" -> ["/a"], a list as it is."""
     if isinstance(value, str):
@@ -134,6 +171,12 @@ class BagPlay(Node):
         images = [t for t in self.played_topics if known[t].type_name == Image.TYPE]
         self.sync_on = waiting or images[:1]
         self.sync_topics = topic_list(p.sync_topic)
+        self.gone_at_start = gone_at_start(self.bag, self.played_topics)
+        if self.gone_at_start:
+            self.log.info("not played: %s, latched messages the recorder got as it began from processes that "
+                          "their nodes' next ones replaced in the bag (a forwarder left running kept an earlier "
+                          "session's)",
+                          ", ".join(sorted(f"{t} from {n}" for t, n, _, _ in self.gone_at_start)))
         self.clock = PlayClock(p.rate, paused=p.start_paused)
         self.error: str | None = None
         self.counters.update(played=0, frames=0, sync_timeouts=0, loops=0)
@@ -212,7 +255,8 @@ class BagPlay(Node):
         if p.start_offset_s and latched:
             last: dict[tuple[str, str], BagMessage] = {}
             for m in self.bag.messages(latched, end_ns=start_ns):
-                last[(m.topic, m.node)] = m
+                if message_id(m) not in self.gone_at_start:
+                    last[(m.topic, m.node)] = m
             for m in last.values():
                 self._send(m)
         first = True
@@ -222,7 +266,8 @@ class BagPlay(Node):
                 first = False
             if not self.clock.wait(None if p.fast else m.log_time_ns, lambda: self.stopped):
                 return True
-            self._send(m)
+            if message_id(m) not in self.gone_at_start:
+                self._send(m)
         if first:
             self.warn(f"nothing to play in {p.path} from {p.start_offset_s} s for topics {self.played_topics}")
         return not first

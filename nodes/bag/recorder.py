@@ -27,14 +27,13 @@ import yaml
 
 import msgs
 from msgs import CameraInfo, MessageError
-from nodes.bag.codec import RECORDING_END_META
+from nodes.bag.codec import LATCHED_ENTRY, LATCHED_OF_RUNNING, RECORDING_END_META, RECORDING_META
 from nodes.bag.writer import COMPRESSIONS, DEFAULT_CHUNK_B, BagWriter
 from nodes.bus import ALL_TOPICS, SeqTracker, TopicReader
 from nodes.node import Node
 
 DRAIN_IDLE_S = 0.1  # on stop, keep receiving until the queue stays empty this long, a message published
 DRAIN_MAX_S = 2.0   # after the stop comes (a live bus is never quiet), or this long at most
-RECORDING_META = "fv_recording"
 
 
 @dataclass
@@ -132,12 +131,13 @@ class BagRecord(Node):
         return " ".join(words + ([f"except regex {p.exclude_regex!r}"] if p.exclude_regex else []))
 
     def _recording_metadata(self) -> dict[str, str]:
-        """Host, start time, software version, command line, bus and topic selection."""
+        """Host, start time, software version, command line, bus, topic selection, and that the latched
+        messages it gets as it begins are running publishers' (`nodes.latched_cache`)."""
         now_ns = time.time_ns()
         return {"host": socket.gethostname(), "start_time_ns": str(now_ns),
                 "start_time": time.strftime("%Y-%m-%dT%H:%M:%S%z", time.localtime(now_ns / 1e9)),
                 "software": software_version(), "command_line": shlex.join(sys.argv), "node": self.name,
-                "bus": self.address.url, "topics": self._selection()}
+                "bus": self.address.url, "topics": self._selection(), LATCHED_ENTRY: LATCHED_OF_RUNNING}
 
     def _selected(self, topic: str) -> bool:
         if self._exclude is not None and self._exclude.search(topic):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import shutil
 import signal
@@ -24,19 +25,20 @@ import pytest
 import yaml
 
 import msgs
-from msgs import CameraInfo, Image, SlipState
+from msgs import CameraInfo, Image, MarkerArray, SlipState
 from nodes.bag.reader import BagError, BagReader, read_bag
 from nodes.bag.commands import parse_size
 from nodes.bag.recorder import BagRecord
 from nodes.bag.player import BagPlay
 from nodes.bag.recover import recover
+from nodes.bag.writer import BagWriter
 from nodes.bag.bench import stop_process
 from nodes.bus import PublisherSocket, TopicReader
 from nodes.endpoints import BUS_ENV, BusAddress, bus_address
 from nodes.forwarder import ensure_forwarder
 from nodes.launch_file import load_launch
 from tests.nodes.conftest import wait_status
-from tests.nodes.test_bag import T0_NS, sample_messages, write_bag
+from tests.nodes.test_bag import T0_NS, frames_of, sample_messages, write_bag
 
 REPO = Path(__file__).resolve().parents[2]
 Spawn = Callable[..., subprocess.Popen]
@@ -461,6 +463,60 @@ def test_a_recording_started_after_a_session_holds_none_of_its_latched_messages(
     assert [(c["width"], c["K"][0][0]) for c in calibrations] == [(320, 150.0)]
 
 
+def _session_bag(folder: Path, recorded_by: dict[str, str], replaced_tracker: bool) -> BagWriter:
+    """A recording begun before a session's camera: at its start the tracker reference and camera info a
+    forwarder still held (seq 0 of "tracker" and "camera"), then the session's camera info (its camera
+    started again: seq 0), its first 10 frames from seq 0 and, with `replaced_tracker`, a new tracker's
+    reference (seq 0) taken from frame 1. `recorded_by`: its `fv_recording` metadata."""
+    def reference(stamp_ns: int) -> MarkerArray:
+        px = np.zeros((3, 2), np.float32)
+        return MarkerArray(stamp_ns=stamp_ns, ref_px=px, cur_px=px, valid=np.ones(3, bool),
+                           frames_since_seen=np.zeros(3, np.int32), width=32, height=24)
+
+    writer = BagWriter(folder, metadata={"fv_recording": recorded_by}, fsync=False)
+    writer.write("/markers/reference", "tracker", True, frames_of(reference(EARLIER_NS), 0, "tracker", EARLIER_NS),
+                 T0_NS)
+    for k, t in enumerate((T0_NS + 1000, T0_NS + 10**9)):
+        info = CameraInfo(stamp_ns=t, width=32 * (k + 1), height=24, K=np.eye(3), D=np.zeros(4))
+        writer.write("/camera/info", "camera", True, frames_of(info, 0, "camera", t - 100), t)
+    for k in range(10):
+        t = T0_NS + 2 * 10**9 + k * 10**8
+        writer.write("/camera/image", "camera", False,
+                     frames_of(Image(stamp_ns=t - 500, data=np.zeros((24, 32), np.uint8)), k, "camera", t - 100), t)
+        if k == 1 and replaced_tracker:
+            writer.write("/markers/reference", "tracker", True, frames_of(reference(t - 500), 0, "tracker", t + 10**6),
+                         t + 10**7)
+    writer.close()
+    return writer
+
+
+EARLIER_NS = T0_NS - 20 * 10**9  # an earlier session's tracker reference: its stamp and publish time
+
+
+@pytest.mark.parametrize("recorded_by, replaced_tracker, not_played", [
+    ({"host": "test"}, True, {("/markers/reference", EARLIER_NS), ("/camera/info", T0_NS + 1000)}),
+    ({"host": "test"}, False, {("/camera/info", T0_NS + 1000)}),
+    ({"host": "test", "latched": "of running publishers"}, True, set()),
+])
+def test_a_recording_of_gone_publishers_latched_messages_leaves_them_out(
+        bus: BusAddress, tmp_path: Path, recorded_by: dict[str, str], replaced_tracker: bool,
+        not_played: set) -> None:
+    """A bag recorded before recorders got only running publishers' latched messages, begun before a
+    session on a forwarder left running: it holds an earlier session's tracker reference, which the replay
+    tracked the whole bag against (19 of 56 decisions of a real grasp differed from the live ones). Where its
+    publisher started again in the bag (the session's tracker took its own), it is not played. A reference
+    whose tracker ran on (a camera respawned as the recording began) is played; so is every message of a
+    recording made since (its metadata says so)."""
+    bag = BagReader(_session_bag(tmp_path / "b", recorded_by, replaced_tracker).output)
+    with TopicReader(["/markers/reference", "/camera/info"], bus) as reader:
+        thread = in_thread(BagPlay("play", {"path": str(bag.path), "fast": True, "wait_for_subscribers": False},
+                                   address=bus))
+        played = {(item.topic, item.msg.stamp_ns) for item in iter(lambda: reader.recv(2.0), None)}
+        thread.join(5)
+    recorded = {(m.topic, m.decode().stamp_ns) for m in bag.messages(["/markers/reference", "/camera/info"])}
+    assert recorded - played == not_played
+
+
 def test_replay_launch_plays_the_camera_topics(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
     """The bag part of launch/replay.yaml alone, waiting for no pipeline node (test_session_replay.py
     replays whole sessions through it)."""
@@ -494,32 +550,19 @@ def test_bench_bag_reports_completeness_and_cpu(bus: BusAddress, spawn: Spawn) -
     assert result["payload_MBps"] == pytest.approx(result["payload_b"] / 1e6 / result["publish_s"])
 
 
-def test_a_recording_started_mid_session_replays_against_the_live_reference(bus: BusAddress, spawn: Spawn,
-                                                                           tmp_path: Path) -> None:
-    """A recording started while the skin was pressed holds the tracker's reference (latched) but not its
-    frame. replay.yaml took the bag's first frame, a pressed skin, as the reference, and 103 of 106 states
-    differed from the live ones (slip for the whole shear); it now plays the recorded reference to the
-    tracker, which tracks the bag against it as live."""
-    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
-    scene = REPO / "launch" / "scenes" / "press_shear_slide.yaml"
-    bag = tmp_path / "mid"
-    with TopicReader(["/slip"], bus) as reader:
-        live = spawn("launch", str(REPO / "launch" / "pipeline.yaml"), "fps:=15", f"scene:={scene}",
-                     "standby:=false", **quiet)
-        for k in range(25):  # 1.7 s of the scene: pressed, shearing
-            assert reader.recv(90.0 if k == 0 else 10.0) is not None, f"{k} live states"
-        recorder = spawn("bag", "record", "-a", "-x", "^/status$", "--compression", "none", "-o", str(bag), **quiet)
-        wait_status("bag_record", timeout_s=20.0)
-        for _ in range(45):
-            assert reader.recv(10.0) is not None
-    assert stop(recorder) == 0
-    stop(live)
+QUIET = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
+SCENE = REPO / "launch" / "scenes" / "press_shear_slide.yaml"
+
+
+def _replays_as_live(bag: Path, spawn: Spawn) -> None:
+    """Replay `bag` through launch/replay.yaml as a batch: every live /slip state the bag holds comes
+    back with its decision, and P(slip) within 0.02."""
     recorded = {m.stamp_ns: m for m in (msg for _, msg, _ in read_bag(bag, topics=["/slip"]))}
     last = max(recorded)
     replayed: dict[int, SlipState] = {}
-    with TopicReader(["/slip"], bus) as reader:
+    with TopicReader(["/slip"]) as reader:
         spawn("launch", str(REPO / "launch" / "replay.yaml"), f"bag:={bag}", "fast:=true", "sync_topic:=/slip",
-              "standby:=false", **quiet)
+              "standby:=false", **QUIET)
         while last not in replayed:
             item = reader.recv(90.0 if not replayed else 10.0)
             assert item is not None, f"the replay stopped after {len(replayed)} states"
@@ -529,6 +572,63 @@ def test_a_recording_started_mid_session_replays_against_the_live_reference(bus:
     for stamp in common:
         assert replayed[stamp].slip == recorded[stamp].slip
         assert replayed[stamp].probability == pytest.approx(recorded[stamp].probability, abs=0.02)
+
+
+def test_a_recording_started_mid_session_replays_against_the_live_reference(bus: BusAddress, spawn: Spawn,
+                                                                           tmp_path: Path) -> None:
+    """A recording started while the skin was pressed holds the tracker's reference (latched) but not its
+    frame. replay.yaml took the bag's first frame, a pressed skin, as the reference, and 103 of 106 states
+    differed from the live ones (slip for the whole shear); it now plays the recorded reference to the
+    tracker, which tracks the bag against it as live."""
+    bag = tmp_path / "mid"
+    with TopicReader(["/slip"], bus) as reader:
+        live = spawn("launch", str(REPO / "launch" / "pipeline.yaml"), "fps:=15", f"scene:={SCENE}",
+                     "standby:=false", **QUIET)
+        for k in range(25):  # 1.7 s of the scene: pressed, shearing
+            assert reader.recv(90.0 if k == 0 else 10.0) is not None, f"{k} live states"
+        recorder = spawn("bag", "record", "-a", "-x", "^/status$", "--compression", "none", "-o", str(bag), **QUIET)
+        wait_status("bag_record", timeout_s=20.0)
+        for _ in range(45):
+            assert reader.recv(10.0) is not None
+    assert stop(recorder) == 0
+    stop(live)
+    _replays_as_live(bag, spawn)
+
+
+def test_a_recording_begun_as_the_camera_respawns_replays_against_the_live_reference(bus: BusAddress,
+                                                                                    spawn: Spawn,
+                                                                                    tmp_path: Path) -> None:
+    """The camera killed (kill -9) mid-grasp, the recording begun before its respawn: the bag's first frame
+    is the new camera's first, seq 0, and its recorded reference the one the live tracker went on with
+    (here taken at a /tracker/reset while the skin was pressed). The replay took its own reference at the
+    bag's frame 1 (meant for a recorder that got an earlier session's reference): 113 of 179 decisions
+    differed from the live ones. It now tracks against the recorded reference."""
+    from nodes.client import reset_grasp
+
+    bag = tmp_path / "respawn"
+    with TopicReader(["/slip"], bus) as reader:
+        live = spawn("launch", str(REPO / "launch" / "pipeline.yaml"), "fps:=15", f"scene:={SCENE}",
+                     "standby:=false", **QUIET)
+        for k in range(18):  # 1.2 s of the scene: pressed
+            assert reader.recv(90.0 if k == 0 else 10.0) is not None, f"{k} live states"
+    reset_grasp()  # the live tracker's reference: the pressed skin
+    camera = wait_status("camera", lambda st: st.counters["frames"] > 20).pid
+    time.sleep(0.3)
+    os.kill(camera, signal.SIGSTOP)  # no frame until the respawned camera's
+    recorder = spawn("bag", "record", "-a", "-x", "^/status$", "--compression", "none", "-o", str(bag), **QUIET)
+    wait_status("bag_record", timeout_s=20.0)
+    killed_ns = time.time_ns()
+    os.kill(camera, signal.SIGKILL)
+    with TopicReader(["/slip"], bus) as reader:
+        after = 0
+        while after < 60:
+            item = reader.recv(60.0 if not after else 10.0)
+            assert item is not None, f"{after} live states after the respawn"
+            after += item.msg.stamp_ns > killed_ns
+    assert stop(recorder) == 0
+    stop(live)
+    assert next(BagReader(bag).messages(["/camera/image"])).sequence == 0
+    _replays_as_live(bag, spawn)
 
 
 def test_a_node_process_sends_what_it_published_before_it_exits(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
