@@ -6,7 +6,8 @@ leaves nothing of the source's frames is refused at start, the frame size named.
 `calibration` made at another resolution of the same aspect ratio is scaled to the source's
 frames (logged once); one of another aspect ratio is refused at start, both sizes named. A
 lost source is reported in NodeStatus and reopened with backoff; a source that cannot be
-opened at start fails with a clear error.
+opened at start fails with a clear error: a V4L2 camera not there yet with exit code TEMPFAIL (a
+launch starts it again until it is plugged in), any other source with CONFIG (`nodes.exit_codes`).
 
 `start_after` holds the first frame back until the named nodes have reported
 (`nodes.start_gate.StartGate`: a NodeStatus sent since the camera started, once their
@@ -103,7 +104,7 @@ class CameraNode(Node):
     def setup(self) -> None:
         p = self.params
         self.source = make_source(p)
-        self.source.open()  # SourceError at start is fatal, with the source named
+        self.source.open()  # SourceError at start is fatal, with the source named (SourceMissing: not yet)
         self.image_pub = self.publisher("camera/image", Image)
         self.info_pub = self.publisher("camera/info", CameraInfo, latched=True)
         self.held_frame: Frame | None = None  # read at setup for its size, published first

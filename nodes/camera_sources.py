@@ -7,7 +7,13 @@ reopens it with backoff.
 "Unplugged" means the same for every source: a V4L2 device whose read fails (or times
 out after `V4L2_READ_TIMEOUT_S`), a video file or an image that is removed (checked on
 each read, so a deleted file that the open handle could still read counts as gone), a
-folder that is removed or emptied. Plugged back, the next reopen succeeds."""
+folder that is removed or emptied. Plugged back, the next reopen succeeds.
+
+At the camera node's start, a V4L2 camera that is not there yet (no device of its name, one that
+cannot be opened: missing, busy or not yet given its permissions, or one that gives no first frame)
+raises `SourceMissing`: the node exits TEMPFAIL and a launch starts it again until the camera is
+plugged in. Any other `SourceError` there (a video OpenCV cannot decode, a name that matches two
+cameras) is a configuration error: the node exits CONFIG (`nodes.exit_codes`)."""
 from __future__ import annotations
 
 import logging
@@ -21,13 +27,18 @@ import cv2
 import numpy as np
 
 from fv_algos.calibration import image_files
+from nodes.exit_codes import NotReadyError
 
 log = logging.getLogger("fv.camera")
 V4L2_READ_TIMEOUT_S = 1  # a V4L2 read that waits longer fails (a stalled or unplugged camera); OpenCV's default: 10
 
 
 class SourceError(RuntimeError):
-    """A source that cannot be opened; the message names the source and why."""
+    """A source that cannot be opened or read; the message names the source and why."""
+
+
+class SourceMissing(SourceError, NotReadyError):
+    """A device source that is not there yet (unplugged, busy) and may come without a change of params."""
 
 
 @dataclass
@@ -191,7 +202,8 @@ def find_v4l2_device(name: str, sysfs: Path = V4L2_SYSFS) -> str:
     """The /dev path of the one V4L2 capture node whose name holds `name` (case-insensitive;
     e.g. "GelSight Mini", or a serial number to pick one of two). A UVC camera has a
     metadata node of the same name beside its capture node: only index 0 counts. Raises
-    SourceError naming the devices seen when none or several match."""
+    SourceMissing when none matches (not plugged in yet), SourceError when several do, naming the
+    devices seen."""
     seen, matches = [], []
     for node in sorted(sysfs.glob("video*"), key=lambda d: (len(d.name), d.name)):
         try:
@@ -208,7 +220,7 @@ def find_v4l2_device(name: str, sysfs: Path = V4L2_SYSFS) -> str:
     if matches:
         raise SourceError(f"v4l2 {name!r}: {len(matches)} cameras match ({', '.join(matches)}); "
                           f"give more of the name (a serial number) or the /dev path. Devices: {listed}")
-    raise SourceError(f"v4l2 {name!r}: no camera of that name (plugged in?). Devices: {listed}")
+    raise SourceMissing(f"v4l2 {name!r}: no camera of that name (plugged in?). Devices: {listed}")
 
 
 class V4L2Source:
@@ -234,11 +246,14 @@ class V4L2Source:
 
     def open(self) -> None:
         target = self._target()
+        node = Path(f"/dev/video{target}" if isinstance(target, int) else target)  # OpenCV's node of an index
+        if not node.exists():  # unplugged: said without OpenCV's warnings (each carries the time: no two alike)
+            raise SourceMissing(f"{self.name}: no {node} (plugged in?)")
         # OpenCV's V4L2 backend ignores CAP_PROP_READ_TIMEOUT_MSEC; it reads this once, at the first capture
         os.environ.setdefault("OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT", str(V4L2_READ_TIMEOUT_S))
         cap = cv2.VideoCapture(target, cv2.CAP_V4L2)
         if not cap.isOpened():
-            raise SourceError(f"{self.name}: cannot open {target} (missing, busy or no permission)")
+            raise SourceMissing(f"{self.name}: cannot open {target} (missing, busy or no permission)")
         width, height, fps, exposure, white_balance = self.settings
         if width and height:
             cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
@@ -254,12 +269,13 @@ class V4L2Source:
         self._cap = cap
 
     def read(self) -> Frame | None:
+        """The next frame; SourceMissing when the camera gives none (unplugged or stalled)."""
         if self._cap is None:
             return None
         ok = self._cap.grab()
         stamp = time.time_ns()
         if not ok:
-            return None
+            raise SourceMissing(f"{self.name}: no frame (unplugged or stalled?)")
         ok, image = self._cap.retrieve()
         return Frame(image, stamp) if ok else None
 

@@ -10,6 +10,7 @@ import os
 import sys
 
 from fv_algos.allocator import steady_malloc
+from nodes.exit_codes import CONFIG, FAILED, INTERRUPTED, OK, TEMPFAIL, NotReadyError
 
 COMMAND_MODULES = [
     "nodes.core_commands",
@@ -47,22 +48,27 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command; its exit code (`nodes.exit_codes`): a NotReadyError gives TEMPFAIL, an error
+    of input or configuration (ValueError, KeyError, OSError, RuntimeError) CONFIG, each said in one line."""
     args = parse_args(argv)
     steady_malloc()  # every fv process: nodes, training, benchmarks
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="[%(name)s] %(levelname)s: %(message)s", stream=sys.stderr)
     try:
-        return int(args.func(args) or 0)
+        return int(args.func(args) or OK)
     except KeyboardInterrupt:
-        return 130
+        return INTERRUPTED
     except BrokenPipeError:  # `fv bag info x | head`: the reader has gone, nothing to say to it
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
-        return 1
+        return FAILED
+    except NotReadyError as exc:  # a camera not plugged in yet: `fv launch` starts the node again, quietly
+        print(f"fv {args.command}: not ready: {exc}", file=sys.stderr)
+        return TEMPFAIL
     except (ValueError, KeyError, OSError, RuntimeError) as exc:  # OSError: a disk full, a folder gone mid-run, ...
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         logging.getLogger("fv").debug("the error's traceback", exc_info=True)
         print(f"fv {args.command}: error: {msg}", file=sys.stderr)
-        return 2
+        return CONFIG
 
 
 if __name__ == "__main__":

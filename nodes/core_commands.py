@@ -52,11 +52,12 @@ def parse_remaps(items: list[str]) -> dict[str, str]:
 
 def _node(args: argparse.Namespace) -> int:
     from nodes.bus import LINGER_MS, stop_handshake_watchers
+    from nodes.exit_codes import OK
     from nodes.params import parse_assignments
     from nodes.registry import NODES, node_class
     if args.kind == "kinds":
         print("\n".join(sorted(NODES)))
-        return 0
+        return OK
     if args.kind == "list":
         from nodes.topic_tools import node_list
         return node_list(args)
@@ -64,7 +65,7 @@ def _node(args: argparse.Namespace) -> int:
     params.update(parse_assignments(args.param))
     cls = node_class(args.kind)
     if args.standby and not _wait_for_takeover(cls, params):
-        return 0
+        return OK
     node = cls(args.name or args.kind, params, namespace=args.ns, remap=parse_remaps(args.remap))
     node.spin()
     # The node has stopped cleanly. Python's own teardown of torch and numpy took the slip detector past
@@ -76,7 +77,7 @@ def _node(args: argparse.Namespace) -> int:
     logging.shutdown()
     sys.stdout.flush()
     sys.stderr.flush()
-    os._exit(0)
+    os._exit(OK)
 
 
 _JSON_KINDS = {list: "a list", str: "a string", bool: "a boolean", int: "a number", float: "a number",

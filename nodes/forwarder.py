@@ -29,6 +29,7 @@ from zmq.utils.monitor import recv_monitor_message
 
 from nodes.bus import LATCHED, LINGER_MS, connect_client, new_context
 from nodes.endpoints import BUS_ENV, BusAddress, bus_address, secure_server
+from nodes.exit_codes import FAILED, OK
 from nodes.latched_cache import LatchedCache
 
 log = logging.getLogger("fv.forwarder")
@@ -235,7 +236,7 @@ def serve(tcp_url: str | None = None, keys: Path | None = None) -> int:
         fwd = Forwarder(tcp_url=tcp_url, keys=keys)
     except ForwarderRunning as exc:
         log.error("%s", exc)
-        return 1
+        return FAILED
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -244,4 +245,4 @@ def serve(tcp_url: str | None = None, keys: Path | None = None) -> int:
         fwd.run(stop)
     finally:
         fwd.close()
-    return 0
+    return OK

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from nodes.bus import TopicReader
+from nodes.exit_codes import TEMPFAIL
 from tests.nodes.conftest import run_fv, wait_status
 
 
@@ -270,6 +271,21 @@ def test_missing_source_fails_at_start_with_clear_error(bus, tmp_path: Path) -> 
     assert result.returncode != 0
     assert "none.avi" in result.stderr and "no such file" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize("path, said", [
+    ("No Such Tactile Camera 0000", "v4l2 'No Such Tactile Camera 0000': no camera of that name (plugged in?)"),
+    ("/dev/video_fv_absent", "v4l2 /dev/video_fv_absent: no /dev/video_fv_absent (plugged in?)"),
+    ("97", "v4l2 97: no /dev/video97 (plugged in?)"),
+])
+def test_a_camera_not_plugged_in_exits_not_ready(bus, path: str, said: str) -> None:
+    """A V4L2 camera not there yet exits TEMPFAIL (75), which a launch starts again until it is plugged
+    in: it exited 2, as a configuration error does, so a launch could not tell the two apart. A /dev path
+    or index is checked before OpenCV opens it (its warnings carry the time: each try's differed)."""
+    result = run_fv("node", "camera", "-p", "source=v4l2", "-p", f"path={path}", timeout_s=20)
+    assert result.returncode == TEMPFAIL, result.stderr
+    assert f"fv node: not ready: {said}" in result.stderr
+    assert "Traceback" not in result.stderr and "WARN" not in result.stderr
 
 
 def test_unknown_source_param_is_rejected(bus) -> None:

@@ -1,13 +1,14 @@
 """V4L2 devices found by name, as in /sys/class/video4linux: one capture node per camera, the
 metadata node of the same name skipped, and a clear refusal that lists the devices when none
-or several match."""
+or several match: none is a camera not there yet (SourceMissing: its node exits TEMPFAIL and a
+launch waits for it), several a configuration to make more precise."""
 from __future__ import annotations
 
 from pathlib import Path
 
 import pytest
 
-from nodes.camera_sources import SourceError, V4L2Source, find_v4l2_device
+from nodes.camera_sources import SourceError, SourceMissing, V4L2Source, find_v4l2_device
 
 
 def _sysfs(root: Path, devices: dict[str, tuple[str, int]]) -> Path:
@@ -34,21 +35,22 @@ def test_two_sensors_are_told_apart_by_serial_and_refused_by_the_common_name(tmp
     sysfs = _sysfs(tmp_path, {"video2": (MINI_A, 0), "video3": (MINI_A, 1),
                               "video10": (MINI_B, 0), "video11": (MINI_B, 1)})
     assert find_v4l2_device("28G8-PVJ5", sysfs) == "/dev/video10"
-    with pytest.raises(SourceError, match=r"2 cameras match \(/dev/video2, /dev/video10\); give more of the name"):
+    with pytest.raises(SourceError, match=r"2 cameras match \(/dev/video2, /dev/video10\); give more of the name") as err:
         find_v4l2_device("GelSight Mini", sysfs)
+    assert not isinstance(err.value, SourceMissing)  # the name must say which: a configuration error, not a wait
 
 
 def test_a_camera_not_plugged_in_is_refused_with_the_devices_seen(tmp_path: Path) -> None:
     sysfs = _sysfs(tmp_path, {"video0": ("Integrated Webcam", 0)})
-    with pytest.raises(SourceError, match=r"no camera of that name \(plugged in\?\)\. Devices: /dev/video0 \(Integrated Webcam\)"):
+    with pytest.raises(SourceMissing, match=r"no camera of that name \(plugged in\?\)\. Devices: /dev/video0 \(Integrated Webcam\)"):
         find_v4l2_device("GelSight Mini", sysfs)
-    with pytest.raises(SourceError, match="Devices: none"):
+    with pytest.raises(SourceMissing, match="Devices: none"):
         find_v4l2_device("GelSight Mini", tmp_path / "absent")
 
 
 def test_a_source_named_by_a_camera_absent_from_this_machine_fails_to_open_by_name() -> None:
     source = V4L2Source("No Such Tactile Camera 0000", 0, 0, 25.0, -1.0, -1.0)
-    with pytest.raises(SourceError, match="v4l2 'No Such Tactile Camera 0000': no camera of that name"):
+    with pytest.raises(SourceMissing, match="v4l2 'No Such Tactile Camera 0000': no camera of that name"):
         source.open()
 
 
