@@ -13,9 +13,16 @@ reconnect by themselves and re-send their latched messages). A launch that found
 forwarder running on its IPC bus pings it every `FORWARDER_CHECK_S` and starts its own when it is
 gone (the other launch stopped): its nodes would otherwise wait for a forwarder for good. It publishes its own
 `NodeStatus` on `/status` as `launch_<file stem>`: counters `respawns`,
-`<node>.respawns`, `forwarder_restarts`, `running`, and state "error" naming a node
-whose process is stopped (SIGSTOP) or whose NodeStatus has been missing for
-`SILENT_AFTER_S`, "warn" for a node waiting to respawn or gone with an error code.
+`<node>.respawns`, `forwarder_restarts`, `running`, `waiting`, and state "error" naming a node
+whose process is stopped (SIGSTOP), whose NodeStatus has been missing for `SILENT_AFTER_S` or that
+cannot start, "warn" for a node waiting to respawn, waiting for what it needs, or gone with an error code.
+
+A respawning node is started again by its exit code (`nodes.exit_codes`). TEMPFAIL (what it needs
+is not there yet: a camera not plugged in): every `respawn_delay` until it is up (within
+`max_retries`), said once, its repeated output not echoed. CONFIG before its first NodeStatus (a
+configuration error at its start): `START_TRIES` starts in a row at most, then the launch stops with
+CONFIG, as it does at once for a node without respawn, whatever `required` says: the launch as
+configured cannot run. Any other exit: as `respawn` and `max_retries` say.
 
 A node with `standby: true` also gets a spare process (`fv node KIND --standby`) that has
 done its imports and waits; when the node exits, the spare takes over at once (SIGUSR1)
@@ -26,15 +33,17 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import signal
 import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
+from nodes.exit_codes import CONFIG, FAILED, OK, TEMPFAIL
 from nodes.launch_file import NodeSpec, load_launch, parse_arg_overrides
 from nodes.node import LAUNCH_ENV, LAUNCHER_PID_ENV, STANDBY_READY, STOP_SIGNALS
 
@@ -47,6 +56,9 @@ SPARE_RETRY_S = 1.0  # at least this long before replacing a spare that died (a 
 POLL_S = 0.05
 STATUS_PERIOD_S = 1.0  # the launcher's own NodeStatus period
 SILENT_AFTER_S = 3.0  # a running node whose NodeStatus stopped this long is reported (nodes send one per second)
+START_TRIES = 3  # starts in a row that end in a configuration error before the launch stops (a file still being
+# written may pass the next time; a bad param never does)
+LINES_KEPT = 20  # a process's last output lines kept: its error, the lines a waiting node does not repeat
 STATUS_TOPIC = "/status"
 
 
@@ -54,11 +66,15 @@ STATUS_TOPIC = "/status"
 class Child:
     """A node's current process and its supervision state.
 
-    retries: respawns so far. exit_code: the last exit's code. last_status_s: monotonic
-    time of the current process's last NodeStatus (None before its first). fault: the
-    kind of problem last said for it ("stopped", "silent" or ""), so each is said once.
-    spare: the standby process (standby nodes), spare_ready: it said STANDBY_READY,
-    spare_at: when to start the next spare.
+    retries: respawns so far. exit_code: the last exit's code. error: the last line its last
+    process said (its error), lines: the last `LINES_KEPT` lines of the current process's output.
+    last_status_s: monotonic time of the current process's last NodeStatus (None before its first).
+    fault: the kind of problem last said for it ("stopped", "silent" or ""), so each is said once.
+    start_failures: exits with CONFIG before a NodeStatus, in a row. cannot_start: it had
+    START_TRIES of them (or no respawn left). waiting_since: monotonic time of the first of its
+    exits with TEMPFAIL in a row (None when the last exit was another), quiet: the lines those tries
+    printed (`_numbers_masked`), not echoed again. spare: the standby process (standby nodes), spare_ready: it said
+    STANDBY_READY, spare_lines: its output lines, spare_at: when to start the next spare.
     """
 
     spec: NodeSpec
@@ -67,11 +83,18 @@ class Child:
     restart_at: float | None = None
     reader: threading.Thread | None = None
     exit_code: int | None = None
+    error: str = ""
+    lines: list[str] = field(default_factory=list)
     last_status_s: float | None = None
     fault: str = ""
+    start_failures: int = 0
+    cannot_start: bool = False
+    waiting_since: float | None = None
+    quiet: set[str] = field(default_factory=set)
     spare: subprocess.Popen | None = None
     spare_reader: threading.Thread | None = None
     spare_ready: bool = False
+    spare_lines: list[str] = field(default_factory=list)
     spare_at: float | None = None
 
 
@@ -123,13 +146,19 @@ class Launch:
             except OSError:
                 pass
 
-    def _pump(self, name: str, stream: TextIO, child: Child | None = None) -> None:
-        """Echo a process's output; for a spare (`child` given) note its STANDBY_READY line."""
+    def _pump(self, child: Child, stream: TextIO, lines: list[str], spare: bool = False) -> None:
+        """Echo the output of `child`'s process (or its spare's), keeping its last LINES_KEPT lines in
+        `lines`: a spare's STANDBY_READY line is noted, not echoed, and while the node waits (exit
+        TEMPFAIL) the lines its earlier tries printed (but for their numbers) are not echoed again."""
         for line in stream:  # node log lines already start with "[name] ": say() keeps one prefix
-            if child is not None and line.strip() == STANDBY_READY:
+            if spare and line.strip() == STANDBY_READY:
                 child.spare_ready = True
                 continue
-            self.say(line, name)
+            text = line.rstrip("\n")
+            lines.append(text)
+            del lines[:-LINES_KEPT]
+            if child.waiting_since is None or _numbers_masked(text) not in child.quiet:
+                self.say(text, child.spec.name)
         stream.close()
 
     # -- processes -------------------------------------------------------------------
@@ -145,10 +174,12 @@ class Launch:
         child.proc = self._popen(spec)
         child.restart_at = None
         child.last_status_s = None
-        child.reader = threading.Thread(target=self._pump, args=(spec.name, child.proc.stdout),
+        child.lines = []
+        child.reader = threading.Thread(target=self._pump, args=(child, child.proc.stdout, child.lines),
                                         name=f"out-{spec.name}", daemon=True)
         child.reader.start()
-        self.say(f"started {spec.name} ({spec.kind}) pid {child.proc.pid}")
+        if child.waiting_since is None:  # a waiting node's tries are said once, when it starts waiting
+            self.say(f"started {spec.name} ({spec.kind}) pid {child.proc.pid}")
         if spec.standby and child.spare is None:
             child.spare_at = time.monotonic()
 
@@ -157,8 +188,9 @@ class Launch:
         child.spare_ready = False
         child.spare_at = None
         child.spare = self._popen(spec, "--standby")
-        child.spare_reader = threading.Thread(target=self._pump, args=(spec.name, child.spare.stdout, child),
-                                              name=f"out-{spec.name}-spare", daemon=True)
+        child.spare_lines = []
+        child.spare_reader = threading.Thread(target=self._pump, args=(child, child.spare.stdout, child.spare_lines,
+                                                                       True), name=f"out-{spec.name}-spare", daemon=True)
         child.spare_reader.start()
         self.say(f"started a spare {spec.name} pid {child.spare.pid}")
 
@@ -171,18 +203,17 @@ class Launch:
         if child.spare is None and child.spare_at is not None and now >= child.spare_at and child.proc is not None:
             self._spawn_spare(child)
 
-    def _promote_spare(self, child: Child, now: float) -> bool:
-        """Let a ready spare take over the exited node; False when there is none."""
+    def _promote_spare(self, child: Child, now: float, exited: str) -> bool:
+        """Let a ready spare take over the exited node (`exited` says how it exited); False when there is none."""
         spare = child.spare
         if spare is None or not child.spare_ready or spare.poll() is not None:
             return False
         os.kill(spare.pid, signal.SIGUSR1)
-        child.proc, child.reader = spare, child.spare_reader
+        child.proc, child.reader, child.lines = spare, child.spare_reader, child.spare_lines
         child.spare, child.spare_reader, child.spare_ready = None, None, False
         child.last_status_s = None
         child.spare_at = now + child.spec.respawn_delay_s
-        self.say(f"{child.spec.name} exited with code {child.exit_code}; spare pid {spare.pid} took over "
-                 f"(respawn {child.retries})")
+        self.say(f"{exited}; spare pid {spare.pid} took over (respawn {child.retries})")
         return True
 
     def pid(self, name: str) -> int | None:
@@ -271,6 +302,7 @@ class Launch:
             while not self._stop.is_set():
                 now = time.monotonic()
                 self._watch_forwarder(now)
+                self._read_statuses(now)  # before the exits: a node that reported has started
                 for child in self.children:
                     if child.proc is not None and child.proc.poll() is not None:
                         self._exited(child, now)
@@ -281,7 +313,6 @@ class Launch:
                 if not any(c.proc is not None or c.restart_at is not None for c in self.children):
                     self.say("all nodes have exited")
                     break
-                self._read_statuses(now)
                 self._status_pub.update()  # answers the forwarder's refreshes of latched messages
                 if now >= next_status_s:
                     self._publish_status(now)
@@ -324,29 +355,39 @@ class Launch:
         self.say(f"restarted forwarder on {self._address.url} pid {proc.pid} (restart {self.forwarder_restarts})")
 
     def _read_statuses(self, now: float) -> None:
-        """Note the NodeStatus messages of the current processes of this launch's nodes."""
+        """Note the NodeStatus messages of the current processes of this launch's nodes; say when a
+        node that waited is up."""
         by_name = {c.spec.name: c for c in self.children}
         while (item := self._status_reader.recv(0.0)) is not None:
             child = by_name.get(item.msg.node)
             if child is not None and child.proc is not None and item.msg.pid == child.proc.pid:
                 child.last_status_s = now
+                if child.waiting_since is not None:
+                    self.say(f"{child.spec.name} is up (pid {item.msg.pid}) after waiting "
+                             f"{now - child.waiting_since:.1f} s")
+                    child.waiting_since, child.quiet = None, set()
 
     def _check_nodes(self, now: float) -> list[tuple[str, str]]:
         """(state, message) per node in trouble: its process stopped or its NodeStatus
-        missing for SILENT_AFTER_S (error; said once when it starts), waiting to respawn
-        or exited with an error code (warn)."""
+        missing for SILENT_AFTER_S (error; said once when it starts), it cannot start (error),
+        it waits for what it needs (exit TEMPFAIL), waits to respawn or exited with an error
+        code (warn)."""
         faults = []
         for child in self.children:
             name, kind, fault, state = child.spec.name, "", "", "warn"
-            if child.proc is not None:
-                silent_s = None if child.last_status_s is None else now - child.last_status_s
-                if _process_state(child.proc.pid) in ("T", "t"):
-                    kind, fault, state = "stopped", f"{name} is stopped (SIGSTOP?)", "error"
-                elif silent_s is not None and silent_s > SILENT_AFTER_S:
-                    kind, fault, state = "silent", f"{name} sent no /status for {silent_s:.0f} s (hung?)", "error"
-            elif child.restart_at is not None:
+            running = child.proc is not None
+            silent_s = None if not running or child.last_status_s is None else now - child.last_status_s
+            if running and _process_state(child.proc.pid) in ("T", "t"):
+                kind, fault, state = "stopped", f"{name} is stopped (SIGSTOP?)", "error"
+            elif silent_s is not None and silent_s > SILENT_AFTER_S:
+                kind, fault, state = "silent", f"{name} sent no /status for {silent_s:.0f} s (hung?)", "error"
+            elif child.waiting_since is not None:
+                fault = f"{name} waits ({now - child.waiting_since:.0f} s): {child.error}"
+            elif child.cannot_start:
+                fault, state = f"{name} cannot start: {child.error}", "error"
+            elif not running and child.restart_at is not None:
                 fault = f"{name} exited with code {child.exit_code}; respawning"
-            elif child.exit_code:
+            elif not running and child.exit_code:
                 fault = f"{name} exited with code {child.exit_code}"
             if kind and kind != child.fault:
                 self.say(fault)
@@ -363,6 +404,7 @@ class Launch:
         state = "error" if any(s == "error" for s, _ in faults) else ("warn" if faults else "ok")
         counters = {"respawns": sum(c.retries for c in self.children), "forwarder_restarts": self.forwarder_restarts,
                     "running": sum(c.proc is not None for c in self.children),
+                    "waiting": sum(c.waiting_since is not None for c in self.children),
                     **{f"{c.spec.name}.respawns": c.retries for c in self.children if c.retries}}
         self._status_pub.publish(STATUS_TOPIC, NodeStatus(
             stamp_ns=time.time_ns(), state=state, message="; ".join(m for _, m in faults), pid=os.getpid(),
@@ -370,25 +412,67 @@ class Launch:
             subscribes=[[STATUS_TOPIC, "NodeStatus"]], counters=counters), latched=True)
 
     def _exited(self, child: Child, now: float) -> None:
+        """Respawn a node whose process has exited, let it wait, give up on it, or stop the launch,
+        by its exit code (module docstring)."""
         spec, code = child.spec, child.proc.returncode
+        failed_start = code == CONFIG and child.last_status_s is None
         child.exit_code = code
         child.proc = None
         if child.reader is not None:
             child.reader.join(1.0)
         if self._stop.is_set():
             return
-        if spec.respawn and (spec.max_retries is None or child.retries < spec.max_retries):
+        child.error = _error_of(child.lines)
+        child.start_failures = child.start_failures + 1 if failed_start else 0
+        can_respawn = spec.respawn and (spec.max_retries is None or child.retries < spec.max_retries)
+        if can_respawn and code == TEMPFAIL:
             child.retries += 1
-            if self._promote_spare(child, now):
+            self._wait(child, now)
+            return
+        child.waiting_since, child.quiet = None, set()
+        if failed_start and (not can_respawn or child.start_failures >= START_TRIES):
+            self._cannot_start(child, now)
+            return
+        if can_respawn:
+            child.retries += 1
+            exited = f"{spec.name} exited with code {code}" + (
+                f" at its start (a configuration error, {child.start_failures} of {START_TRIES} tries)"
+                if failed_start else "")
+            if self._promote_spare(child, now, exited):
                 return
             child.restart_at = now + spec.respawn_delay_s
-            self.say(f"{spec.name} exited with code {code}; respawn {child.retries} in {spec.respawn_delay_s:g} s")
+            self.say(f"{exited}; respawn {child.retries} in {spec.respawn_delay_s:g} s")
             return
-        self.say(f"{spec.name} exited with code {code}" + ("" if not spec.respawn else " (no retries left)"))
+        self.say(f"{spec.name} exited with code {code}" + (" (no retries left)" if spec.respawn else "")
+                 + (": not ready (`respawn: true` waits for it)" if code == TEMPFAIL and not spec.respawn else ""))
         if spec.required:
             self.say(f"{spec.name} is required: stopping the launch")
-            self.exit_code = 0 if code == 0 else 1  # a replay's player that has played its bag ends it well
+            self.exit_code = OK if code == OK else FAILED  # a replay's player that has played its bag ends it well
             self._stop.set()
+
+    def _wait(self, child: Child, now: float) -> None:
+        """Start a node that exited with TEMPFAIL (what it needs is not there yet) again after its
+        respawn delay, for as long as it takes: said when it starts waiting, its tries then quiet."""
+        spec = child.spec
+        child.restart_at = now + spec.respawn_delay_s
+        child.quiet.update(map(_numbers_masked, child.lines))
+        if child.waiting_since is None:
+            child.waiting_since = now
+            self.say(f"{spec.name} is not ready (exit {TEMPFAIL}): starting it again every {spec.respawn_delay_s:g} s "
+                     "until it is up, without repeating its output")
+
+    def _cannot_start(self, child: Child, now: float) -> None:
+        """Stop the launch, with CONFIG, for a node whose start failed with a configuration error
+        START_TRIES times in a row (or that has no respawn left): the launch as configured cannot run,
+        whatever `required` says (README, "Launch files")."""
+        child.cannot_start = True
+        tries = (f"{child.start_failures} tries in a row" if child.start_failures >= START_TRIES
+                 else "no retries left" if child.spec.respawn else "no respawn")
+        self.say(f"{child.spec.name} cannot start: {child.error or f'exit code {CONFIG}'} (a configuration "
+                 f"error, {tries}); stopping the launch")
+        self.exit_code = CONFIG
+        self._publish_status(now)  # the reason, latched on /status for whoever watches it
+        self._stop.set()
 
     def _shutdown(self) -> None:
         for child in self.children:
@@ -431,6 +515,21 @@ class Launch:
             self._forwarder = None
 
 
+def _error_of(lines: list[str]) -> str:
+    """The error a node's process said: its last line, without the `fv node: error: ` (or `not ready: `)
+    the command line writes before it; "" when it said nothing."""
+    last = next((line.strip() for line in reversed(lines) if line.strip()), "")
+    for prefix in ("fv node: error: ", "fv node: not ready: "):
+        last = last.removeprefix(prefix)
+    return last
+
+
+def _numbers_masked(line: str) -> str:
+    """`line` with each run of digits as "#": a waiting node's tries that differ only in their numbers
+    (the time in OpenCV's `[ WARN:0@2.062]`) say the same."""
+    return re.sub(r"\d+", "#", line)
+
+
 def _process_state(pid: int) -> str:
     """The state letter of process `pid` from /proc (R, S, D, T stopped...; "" if gone)."""
     try:
@@ -463,5 +562,5 @@ def _launch(args: argparse.Namespace) -> int:
             where = (f" namespace={spec.namespace}" if spec.namespace else "") + (
                 f" remap={spec.remap}" if spec.remap else "")
             print(f"{spec.name}: {spec.kind}{where} params={spec.params} ({spec.source})")
-        return 0
+        return OK
     return launch.run()

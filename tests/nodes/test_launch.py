@@ -1,21 +1,28 @@
 """Launch files: validation before anything starts (file, line and key in every error),
-args and includes, respawn, required nodes, and a clean stop on Ctrl-C."""
+args and includes, respawn by exit code (a node not ready waits, one that cannot start ends the
+launch), required nodes, and a clean stop on Ctrl-C."""
 from __future__ import annotations
 
 import io
 import os
+import re
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 
 from nodes.bag.reader import MCAP_MAGIC
-from nodes.bus import resolve_topic
+from nodes.bus import TopicReader, resolve_topic
+from nodes.camera_sources import SourceError, SourceMissing, find_v4l2_device
+from nodes.exit_codes import CONFIG, OK, TEMPFAIL
 from nodes.forwarder import ping
 from nodes.launch_file import LaunchError, load_launch, parse_arg_overrides
-from nodes.launcher import Launch
+from nodes.launcher import START_TRIES, Launch
 from tests.nodes.conftest import REPO, Bus, children_of, pid_alive, run_fv, wait_status
 
 GOOD_NODE = "  - kind: talker\n    name: t\n"
@@ -318,6 +325,132 @@ def test_required_node_death_stops_the_launch(bus_env: Bus, tmp_path: Path, sig:
         code = launch.stop()
     assert code == launch_code and "talker is required" in out.getvalue()
     assert not any(pid_alive(p) for p in pids)
+
+
+def _video(path: Path) -> Path:
+    """A 160x120 MJPG video of 5 frames at `path`."""
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (160, 120))
+    for _ in range(5):
+        writer.write(np.full((120, 160, 3), 200, np.uint8))
+    writer.release()
+    return path
+
+
+@pytest.mark.parametrize("respawn, starts, tries", [(True, START_TRIES, f"{START_TRIES} tries in a row"),
+                                                    (False, 1, "no respawn")])
+def test_a_node_that_cannot_start_ends_the_launch(bus_env: Bus, spawn, tmp_path: Path, respawn: bool, starts: int,
+                                                  tries: str) -> None:
+    """A configuration error found only at a node's start (a crop that leaves nothing of the video's frames:
+    exit 2 before any NodeStatus) was respawned every respawn_delay for good, printing the same error each
+    time while the other nodes waited (without respawn, the launch ran on without it). Now it is started
+    START_TRIES times at most, one line names it and its error, the launcher's last status says it, and
+    `fv launch` ends with 2."""
+    video = _video(tmp_path / "clip.avi")
+    path = _write(tmp_path, "l.yaml", f"nodes:\n  - kind: camera\n    params: {{source: video, path: {video}, "
+                                      f"crop: [0.499]}}\n    respawn: {str(respawn).lower()}\n"
+                                      "    respawn_delay: 0.1\n  - kind: listener\n")
+    error = "crop [0.499, 0.499, 0.499, 0.499] leaves nothing of a 160x120 frame"
+    statuses = []
+    with TopicReader(["/status"]) as reader:
+        proc = spawn("launch", str(path), stdout=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 60.0
+        while proc.poll() is None and time.monotonic() < deadline:
+            item = reader.recv(0.1)
+            if item is not None and item.msg.node == "launch_l":
+                statuses.append(item.msg)
+    assert proc.wait(5.0) == CONFIG
+    out = proc.stdout.read()
+    assert out.count("[launch] started camera (camera)") == starts, out
+    assert f"[launch] camera cannot start: {error} (a configuration error, {tries}); stopping the launch" in out
+    assert statuses and statuses[-1].state == "error" and statuses[-1].message == f"camera cannot start: {error}"
+    assert ping(bus_env.address) is None
+
+
+def _gelsight_mini_plugged_in() -> bool:
+    try:
+        find_v4l2_device("GelSight Mini")
+    except SourceMissing:
+        return False
+    except SourceError:  # several
+        return True
+    return True
+
+
+@pytest.mark.skipif(_gelsight_mini_plugged_in(), reason="a GelSight Mini is plugged in here")
+def test_the_live_gelsight_mini_camera_waits_for_its_sensor_quietly(bus_env: Bus) -> None:
+    """launch/gelsight_mini.yaml's camera with no sensor plugged in exits 75 (not ready) and is started
+    again every second past START_TRIES, said once (the launch printed three lines a second: the same
+    error, the exit, the start); the launcher's status says what it waits for."""
+    camera = next(s for s in load_launch(REPO / "launch" / "gelsight_mini.yaml") if s.kind == "camera")
+    out = io.StringIO()
+    launch = Launch([camera], out, name="launch_mini")
+    launch.start()
+    try:
+        status = wait_status("launch_mini", lambda st: st.counters.get("camera.respawns", 0) > START_TRIES,
+                             timeout_s=30.0)
+        assert not launch.wait(0.0), out.getvalue()
+    finally:
+        code = launch.stop()
+    assert code == OK and status.state == "warn" and status.counters["waiting"] == 1
+    assert re.fullmatch(r"camera waits \(\d+ s\): v4l2 'GelSight Mini': no camera of that name \(plugged in\?\)\. "
+                        r"Devices: .*", status.message), status.message
+    text = out.getvalue()
+    assert text.count("[camera] fv node: not ready: v4l2 'GelSight Mini': no camera of that name") == 1, text
+    assert text.count("[launch] started camera") == 1 and "exited with code" not in text, text
+    assert text.count(f"[launch] camera is not ready (exit {TEMPFAIL}): starting it again every 1 s until it is up, "
+                      "without repeating its output") == 1, text
+
+
+def _talker_wrapped(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, shell: str) -> None:
+    """The launch's python (sys.executable) becomes a script that runs the talker node with `shell` (sh:
+    "$@" the python arguments, $PY the python) and anything else as before."""
+    script = _write(tmp_path, "python", f'#!/bin/sh\nPY={sys.executable}\ncase "$*" in *"node talker"*) {shell};; '
+                                        'esac\nexec "$PY" "$@"\n')
+    script.chmod(0o755)
+    monkeypatch.setattr(sys, "executable", str(script))
+
+
+def _said(out: io.StringIO, text: str, timeout_s: float) -> bool:
+    """Poll the launch's output until it holds `text`."""
+    deadline = time.monotonic() + timeout_s
+    while text not in out.getvalue() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return text in out.getvalue()
+
+
+def test_a_node_not_ready_is_up_once_what_it_waits_for_comes(bus_env: Bus, tmp_path: Path,
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """A talker that is not ready (exit 75) until a file appears (a camera plugged in): said once, then
+    the launcher says when it is up, and its output is heard again."""
+    plugged = tmp_path / "plugged"
+    _talker_wrapped(tmp_path, monkeypatch, f'[ -e {plugged} ] || {{ echo "fv node: not ready: no sensor"; exit {TEMPFAIL}; }}')
+    launch, out = _launch(tmp_path, "nodes:\n  - {kind: talker, respawn: true, respawn_delay: 0.1}\n")
+    launch.start()
+    try:
+        wait_status("launch_l", lambda st: st.counters.get("talker.respawns", 0) > START_TRIES, timeout_s=15.0)
+        plugged.touch()
+        pid = wait_status("talker", timeout_s=15.0).pid
+        assert _said(out, f"[launch] talker is up (pid {pid}) after waiting", 5.0), out.getvalue()
+    finally:
+        assert launch.stop() == OK
+    text = out.getvalue()
+    assert text.count("[talker] fv node: not ready: no sensor") == 1 and text.count("[launch] started talker") == 1
+
+
+def test_a_configuration_error_after_the_node_has_reported_is_respawned_as_before(
+        bus_env: Bus, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Exit 2 ends a node's respawns only before its first NodeStatus: a talker that ran, then exits 2,
+    is respawned past START_TRIES."""
+    _talker_wrapped(tmp_path, monkeypatch, "exec \"$PY\" -c 'import os, sys, threading; from nodes.cli import main; "
+                                           "threading.Timer(1.5, os._exit, [2]).start(); main(sys.argv[3:])' \"$@\"")
+    launch, out = _launch(tmp_path, "nodes:\n  - {kind: talker, respawn: true, respawn_delay: 0.1}\n")
+    launch.start()
+    try:
+        wait_status("launch_l", lambda st: st.counters.get("talker.respawns", 0) >= START_TRIES, timeout_s=30.0)
+        assert not launch.wait(0.0), out.getvalue()
+    finally:
+        assert launch.stop() == OK
+    assert f"talker exited with code 2; respawn {START_TRIES} in 0.1 s" in out.getvalue()
 
 
 def test_ctrl_c_stops_everything_within_2s(bus_env: Bus, spawn) -> None:
