@@ -1,7 +1,7 @@
 """Run a launch file: start the forwarder when none runs, one process per node, prefix
 their output with the node name, respawn what should respawn, and stop everything on
-Ctrl-C, SIGTERM, SIGHUP (its terminal closed) or the exit of a required node
-(`fv launch FILE [name:=value ...]`).
+Ctrl-C, SIGTERM, SIGHUP (its terminal closed), the exit of a required node or a node that
+cannot start (`fv launch FILE [name:=value ...]`).
 
 Each node runs in its own process group, so a terminal's Ctrl-C reaches only the
 launcher, which then stops the nodes in order: SIGTERM to each group, SIGKILL after
@@ -72,9 +72,10 @@ class Child:
     fault: the kind of problem last said for it ("stopped", "silent" or ""), so each is said once.
     start_failures: exits with CONFIG before a NodeStatus, in a row. cannot_start: it had
     START_TRIES of them (or no respawn left). waiting_since: monotonic time of the first of its
-    exits with TEMPFAIL in a row (None when the last exit was another), quiet: the lines those tries
-    printed (`_numbers_masked`), not echoed again. spare: the standby process (standby nodes), spare_ready: it said
-    STANDBY_READY, spare_lines: its output lines, spare_at: when to start the next spare.
+    exits with TEMPFAIL in a row (None when the last exit was another), quiet: the lines those
+    tries printed (`_numbers_masked`), not echoed again. spare: the standby process (standby
+    nodes), spare_ready: it said STANDBY_READY, spare_lines: its output lines, spare_at: when to
+    start the next spare.
     """
 
     spec: NodeSpec
@@ -189,8 +190,8 @@ class Launch:
         child.spare_at = None
         child.spare = self._popen(spec, "--standby")
         child.spare_lines = []
-        child.spare_reader = threading.Thread(target=self._pump, args=(child, child.spare.stdout, child.spare_lines,
-                                                                       True), name=f"out-{spec.name}-spare", daemon=True)
+        child.spare_reader = threading.Thread(target=self._pump, name=f"out-{spec.name}-spare", daemon=True,
+                                              args=(child, child.spare.stdout, child.spare_lines, True))
         child.spare_reader.start()
         self.say(f"started a spare {spec.name} pid {child.spare.pid}")
 
@@ -456,6 +457,7 @@ class Launch:
         spec = child.spec
         child.restart_at = now + spec.respawn_delay_s
         child.quiet.update(map(_numbers_masked, child.lines))
+        child.error = child.error or "not ready"
         if child.waiting_since is None:
             child.waiting_since = now
             self.say(f"{spec.name} is not ready (exit {TEMPFAIL}): starting it again every {spec.respawn_delay_s:g} s "
@@ -466,10 +468,11 @@ class Launch:
         START_TRIES times in a row (or that has no respawn left): the launch as configured cannot run,
         whatever `required` says (README, "Launch files")."""
         child.cannot_start = True
+        child.error = child.error or f"exit code {CONFIG}"
         tries = (f"{child.start_failures} tries in a row" if child.start_failures >= START_TRIES
                  else "no retries left" if child.spec.respawn else "no respawn")
-        self.say(f"{child.spec.name} cannot start: {child.error or f'exit code {CONFIG}'} (a configuration "
-                 f"error, {tries}); stopping the launch")
+        self.say(f"{child.spec.name} cannot start: {child.error} (a configuration error, {tries}); "
+                 "stopping the launch")
         self.exit_code = CONFIG
         self._publish_status(now)  # the reason, latched on /status for whoever watches it
         self._stop.set()

@@ -423,7 +423,8 @@ def test_a_node_not_ready_is_up_once_what_it_waits_for_comes(bus_env: Bus, tmp_p
     """A talker that is not ready (exit 75) until a file appears (a camera plugged in): said once, then
     the launcher says when it is up, and its output is heard again."""
     plugged = tmp_path / "plugged"
-    _talker_wrapped(tmp_path, monkeypatch, f'[ -e {plugged} ] || {{ echo "fv node: not ready: no sensor"; exit {TEMPFAIL}; }}')
+    _talker_wrapped(tmp_path, monkeypatch,
+                    f'[ -e {plugged} ] || {{ echo "fv node: not ready: no sensor"; exit {TEMPFAIL}; }}')
     launch, out = _launch(tmp_path, "nodes:\n  - {kind: talker, respawn: true, respawn_delay: 0.1}\n")
     launch.start()
     try:
