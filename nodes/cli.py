@@ -6,8 +6,12 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import multiprocessing
 import os
+import signal
 import sys
+import threading
+from types import FrameType
 
 from fv_algos.allocator import steady_malloc
 from nodes.exit_codes import CONFIG, FAILED, INTERRUPTED, OK, TEMPFAIL, NotReadyError
@@ -47,15 +51,40 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
+class Stopped(KeyboardInterrupt):
+    """SIGTERM or SIGHUP (`kill`, systemd, `timeout`, a closed terminal), raised where the command runs, so
+    that it stops as on Ctrl-C: its clean-up runs (a partial output folder is removed) and it exits 128 +
+    the signal's number. Before, it died at once, leaving a half-written `fv sim --out` folder behind."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.exit_code = 128 + signum
+
+
+def stop_like_ctrl_c(signum: int, _frame: FrameType | None) -> None:
+    """The handler of SIGTERM and SIGHUP for commands (nodes, launches and the forwarder install their
+    own): the worker processes of the command's pools are terminated (a terminal's Ctrl-C reaches them,
+    a `kill` of this process did not: a benchmark's worker ran on for 80 s), then `Stopped` is raised."""
+    for child in multiprocessing.active_children():
+        child.terminate()
+    raise Stopped(signum)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the command; its exit code (`nodes.exit_codes`): a NotReadyError gives TEMPFAIL, an error
-    of input or configuration (ValueError, KeyError, OSError, RuntimeError) CONFIG, each said in one line."""
+    of input or configuration (ValueError, KeyError, OSError, RuntimeError) CONFIG, each said in one line;
+    Ctrl-C INTERRUPTED, SIGTERM and SIGHUP 128 + their number, after the command's clean-up."""
     args = parse_args(argv)
     steady_malloc()  # every fv process: nodes, training, benchmarks
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="[%(name)s] %(levelname)s: %(message)s", stream=sys.stderr)
+    in_main_thread = threading.current_thread() is threading.main_thread()  # (tests call main() in threads too)
+    previous = {sig: signal.signal(sig, stop_like_ctrl_c) for sig in (signal.SIGTERM, signal.SIGHUP)
+                if in_main_thread}
     try:
         return int(args.func(args) or OK)
+    except Stopped as stop:
+        return stop.exit_code
     except KeyboardInterrupt:
         return INTERRUPTED
     except BrokenPipeError:  # `fv bag info x | head`: the reader has gone, nothing to say to it
@@ -69,6 +98,9 @@ def main(argv: list[str] | None = None) -> int:
         logging.getLogger("fv").debug("the error's traceback", exc_info=True)
         print(f"fv {args.command}: error: {msg}", file=sys.stderr)
         return CONFIG
+    finally:
+        for sig, handler in previous.items():  # a caller's own (main() called in a test's process)
+            signal.signal(sig, handler)
 
 
 if __name__ == "__main__":

@@ -6,7 +6,8 @@ launch whose required node failed. CONFIG: a configuration error (a bad argument
 file, model or video), found before or at the start, that will come again until the configuration
 changes. TEMPFAIL (sysexits.h's EX_TEMPFAIL): what the process needs is not there yet and may come
 without a change of configuration (a camera not plugged in, or busy); start it again later.
-INTERRUPTED: Ctrl-C outside a node's own handler (128 + SIGINT).
+INTERRUPTED: Ctrl-C outside a node's own handler (128 + SIGINT); SIGTERM and SIGHUP give 128 + their
+number in the same way (`nodes.cli.Stopped`).
 """
 from __future__ import annotations
 

@@ -1,0 +1,60 @@
+"""SIGTERM (systemd, `kill`, `timeout`) stops an `fv` command as Ctrl-C does: its clean-up runs and its
+pool's workers stop with it."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+LONG_SCENE = """object: {shape: sphere, radius_mm: 10, mu: 0.8}
+fps: 30
+effects: [normal]
+steps:
+  - {action: press, duration_s: 0.5, normal_N: 2.0}
+  - {action: hold, duration_s: 60}
+"""
+
+
+def _fv(*args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "nodes.cli", *args], cwd=REPO, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for(condition, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.1)
+
+
+def test_sigterm_leaves_no_half_written_sequence(tmp_path: Path) -> None:
+    """`fv sim --out` killed with SIGTERM left its partial folder of PNGs without their truth."""
+    (tmp_path / "long.yaml").write_text(LONG_SCENE)
+    proc = _fv("sim", "--scene", str(tmp_path / "long.yaml"), "--out", str(tmp_path / "seq"), "--frames", "1000")
+    _wait_for(lambda: any(tmp_path.glob("seq.partial-*/frame_00003.png")))
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(30) == 128 + signal.SIGTERM, proc.stderr.read()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["long.yaml"]
+
+
+def test_sigterm_stops_the_pool_workers(tmp_path: Path) -> None:
+    """`fv dataset sim --workers 2` killed with SIGTERM: its workers ran on for seconds."""
+    proc = _fv("dataset", "sim", "--out", str(tmp_path / "d.npz"), "--sequences", "400", "--workers", "2",
+               "--no-progress")
+    children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children")
+    workers: list[str] = []
+
+    def started() -> bool:
+        workers[:] = children.read_text().split()
+        return len(workers) >= 2
+
+    _wait_for(started)
+    time.sleep(1.0)  # the workers simulate
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(30) == 128 + signal.SIGTERM, proc.stderr.read()
+    _wait_for(lambda: not any(os.path.exists(f"/proc/{pid}") for pid in workers), timeout_s=3.0)
+    assert not (tmp_path / "d.npz").exists()
