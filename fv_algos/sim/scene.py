@@ -1,6 +1,7 @@
 """Scripted contact scenes and random slip / no-slip scenarios.
 
-A scene is an object, a frame rate, the effects it uses and a list of timed steps:
+A scene is an object, a frame rate, the effects it uses and a list of timed steps, played as frames at
+t = k / fps for every t before the end of its last step (`Scene.n_frames`: 0.5 s at 5 fps is 3 frames):
 
     {"object": {"shape": "sphere", "radius_mm": 10, "mu": 0.8}, "fps": 60,
      "effects": ["normal", "shear", "slip"],
@@ -31,6 +32,7 @@ tangential contact is not modelled: loading is treated as monotonic).
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -65,6 +67,7 @@ SCENARIO_KINDS = SLIP_KINDS + NON_SLIP_KINDS
 # starts within 3 mm of the centre, stays on the 24 mm skin (slid off it, the whole load would press on the
 # sliver of the object left over the skin)
 MAX_SLIDE_MM = 8.0
+FRAME_COUNT_TOLERANCE = 1e-9  # relative: a frame count duration * fps this close above a whole number is that number
 
 
 @dataclass(frozen=True)
@@ -121,8 +124,11 @@ class Scene:
 
     @property
     def n_frames(self) -> int:
-        """Frames at `fps` covering the script (frame k at t = k / fps)."""
-        return max(int(round(self.duration_s * self.fps)), 1)
+        """Frames at `fps` covering the script: frame k at t = k / fps for every t < duration_s, i.e.
+        ceil(duration_s * fps) (0.5 s at 5 fps: t = 0, 0.2, 0.4). A product within `FRAME_COUNT_TOLERANCE`
+        of its size above a whole number is taken as that number: sums of durations carry float error
+        (the 1.7 s of launch/scenes/twist_key.yaml at 30 fps is 51.00000000000001 frames: 51)."""
+        return max(math.ceil(self.duration_s * self.fps * (1.0 - FRAME_COUNT_TOLERANCE)), 1)
 
 
 @dataclass(frozen=True)

@@ -255,3 +255,17 @@ def test_noisy_labels() -> None:
     assert abs(int(np.argmax(shifted)) - 6) <= 3 and shifted[-1]
     with pytest.raises(ValueError, match="flip_probability"):
         noisy_labels(labels, rng, flip_probability=2.0)
+
+
+@pytest.mark.parametrize("fps, duration_s, frames", [
+    (5, 0.5, 3), (5, 0.7, 4), (5, 0.9, 5),  # round() made them 2, 4 and 4 (halves to even)
+    (5, 1.0, 5), (30, 2.9, 87), (30, 1.7, 51),  # 1.7 * 30 = 51.00000000000001: still 51
+    (10, 0.1 + 0.2, 3), (15, 5.1, 77), (1, 1e-6, 1),
+])
+def test_a_scene_has_a_frame_at_each_multiple_of_the_frame_period_before_its_end(fps: float, duration_s: float,
+                                                                                  frames: int) -> None:
+    scene = scene_from_dict({"object": {"shape": "sphere"}, "fps": fps, "initial": {"normal_N": 1.0},
+                             "steps": [{"action": "hold", "duration_s": duration_s}]})
+    assert scene.n_frames == frames
+    stamps = [c.stamp_s for c in scene_commands(scene)]
+    assert stamps[-1] < duration_s <= stamps[-1] + 1.0 / fps + 1e-12
