@@ -67,6 +67,8 @@ SCENARIO_KINDS = SLIP_KINDS + NON_SLIP_KINDS
 # starts within 3 mm of the centre, stays on the 24 mm skin (slid off it, the whole load would press on the
 # sliver of the object left over the skin)
 MAX_SLIDE_MM = 8.0
+MAX_SCENE_FRAMES = 100_000  # 55 min at 30 fps: more is no scripted scene (a longer run loops one, or plays random
+# scenarios), and a count of frames must be a sane integer (1e308 s made one of infinity)
 FRAME_COUNT_TOLERANCE = 1e-9  # relative: a frame count duration * fps this close above a whole number is that number
 
 
@@ -191,6 +193,24 @@ def _step_from_dict(desc: Any, index: int) -> Step:
     return Step(action=action, duration_s=duration, **values)
 
 
+def _count(frames: float) -> str:
+    """A number of frames for a message, in 3 digits (or "over 1e308" for a product past the float range)."""
+    return f"{frames:.3g}" if math.isfinite(frames) else "over 1e308"
+
+
+def _check_frame_count(steps: tuple[Step, ...], fps: float) -> None:
+    """ValueError naming the step, or else the steps' sum, when the scene would have more than
+    MAX_SCENE_FRAMES frames at `fps` Hz."""
+    limit = f"a scene has at most {MAX_SCENE_FRAMES:,} frames ({MAX_SCENE_FRAMES / fps:.4g} s at {fps:g} fps)"
+    for i, step in enumerate(steps):
+        if step.duration_s * fps > MAX_SCENE_FRAMES:
+            raise ValueError(f"steps[{i}].duration_s {step.duration_s:g} s at {fps:g} fps is "
+                             f"{_count(step.duration_s * fps)} frames; {limit}")
+    total_s = sum(step.duration_s for step in steps)
+    if total_s * fps > MAX_SCENE_FRAMES:
+        raise ValueError(f"the steps last {total_s:g} s in all, {_count(total_s * fps)} frames at {fps:g} fps; {limit}")
+
+
 def scene_from_dict(desc: dict[str, Any]) -> Scene:
     """Parse and validate a scene description (see module docstring).
 
@@ -213,6 +233,7 @@ def scene_from_dict(desc: dict[str, Any]) -> Scene:
     if not isinstance(desc["steps"], list) or not desc["steps"]:
         raise ValueError("steps must be a non-empty list")
     steps = tuple(_step_from_dict(s, i) for i, s in enumerate(desc["steps"]))
+    _check_frame_count(steps, fps)
     needed = frozenset().union(*(s.required_effects() for s in steps))
     initial_desc = desc.get("initial", {})
     if not isinstance(initial_desc, dict):

@@ -65,6 +65,12 @@ class MechanicsFrame:
     state: ContactState
 
 
+def _mm(value: float) -> str:
+    """A position in mm for a message: 2 decimals, or 3 digits and an exponent past 1e4 (a slide at 1e300
+    mm/s put the object 300 digits away)."""
+    return f"{value:.2f}" if abs(value) < 1e4 else f"{value:.3g}"
+
+
 class SceneRunner:
     """Steps a scene's mechanics; gross slip moves the object only with the "slip" effect."""
 
@@ -93,8 +99,8 @@ class SceneRunner:
             if cmd.motion == "spin":
                 direction = np.array([np.sign(cmd.angular_velocity_rad_s), 0.0])
             if np.abs(centre).max() > self._half_size_mm + 1e-9:  # its load would all press on the skin's rim
-                raise ValueError(f"frame {k} (t = {cmd.stamp_s:.3f} s): the object's centre ({centre[0]:.2f}, "
-                                 f"{centre[1]:.2f}) mm has left the skin, which spans +-{self._half_size_mm:g} mm")
+                raise ValueError(f"frame {k} (t = {cmd.stamp_s:.3f} s): the object's centre ({_mm(centre[0])}, "
+                                 f"{_mm(centre[1])}) mm has left the skin, which spans +-{self._half_size_mm:g} mm")
             state = self.model.solve(
                 scene.obj, centre, angle, cmd.loads.normal_N, np.array(cmd.loads.force_N), cmd.loads.torque_Nmm,
                 cmd.motion if cmd.motion == "roll" or "slip" in self._effects else "none", direction, self._effects,

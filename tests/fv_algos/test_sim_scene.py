@@ -269,3 +269,33 @@ def test_a_scene_has_a_frame_at_each_multiple_of_the_frame_period_before_its_end
     assert scene.n_frames == frames
     stamps = [c.stamp_s for c in scene_commands(scene)]
     assert stamps[-1] < duration_s <= stamps[-1] + 1.0 / fps + 1e-12
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"steps": [{"action": "press", "duration_s": 1e308, "normal_N": 1}]},  # OverflowError: cannot convert float infinity
+     r"^steps\[0\].duration_s 1e\+308 s at 20 fps is over 1e308 frames; a scene has at most 100,000 frames \(5000 s at 20 fps\)$"),
+    ({"steps": [{"action": "press", "duration_s": 0.5, "normal_N": 1}, {"action": "hold", "duration_s": 6000}]},
+     r"^steps\[1\].duration_s 6000 s at 20 fps is 1.2e\+05 frames; a scene has at most 100,000"),
+    ({"steps": [{"action": "hold", "duration_s": 4000}, {"action": "hold", "duration_s": 4000}]},
+     r"^the steps last 8000 s in all, 1.6e\+05 frames at 20 fps; a scene has at most 100,000"),
+    ({"fps": 1e12}, r"^steps\[0\].duration_s 0.5 s at 1e\+12 fps is 5e\+11 frames; .* \(1e-07 s at 1e\+12 fps\)$"),
+])
+def test_a_scene_of_more_frames_than_a_count_can_be_is_refused_naming_the_step(change: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        scene_from_dict({**EXAMPLE, **change})
+
+
+def test_a_huge_duration_is_an_error_of_fv_sim_not_a_traceback(tmp_path, capsys) -> None:
+    from nodes.cli import main
+    (tmp_path / "long.yaml").write_text("object: {shape: sphere}\nfps: 30\n"
+                                        "steps: [{action: press, duration_s: 1e308, normal_N: 1}]\n")
+    assert main(["sim", "--scene", str(tmp_path / "long.yaml"), "--preview", str(tmp_path / "p.png")]) == 2
+    assert "long.yaml: steps[0].duration_s 1e+308 s at 30 fps is over 1e308 frames" in capsys.readouterr().err
+
+
+def test_a_position_far_off_the_skin_is_named_in_few_digits() -> None:
+    """A slide at 1e300 mm/s printed the object's centre in 300 digits."""
+    fast = {**EXAMPLE, "steps": [{"action": "press", "duration_s": 0.1, "normal_N": 1},
+                                 {"action": "slide", "duration_s": 0.1, "velocity_mm_s": [1e300, 0]}]}
+    with pytest.raises(ValueError, match=r"^frame 3 \(t = 0.150 s\): the object's centre \(5e\+298, 0.00\) mm has left"):
+        _run(fast)
