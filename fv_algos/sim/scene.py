@@ -43,6 +43,7 @@ import yaml
 
 from fv_algos.sim.objects import SHAPES, Indenter, finite_number, make_object, shape_name
 from fv_algos.sim.render import EFFECTS as RENDER_EFFECTS
+from fv_algos.text_file import read_utf8
 from fv_algos.yaml_loader import YamlLoader
 
 MECHANICS_EFFECTS = frozenset({"normal", "shear", "torsion", "slip"})
@@ -276,12 +277,17 @@ def scene_from_dict(desc: dict[str, Any]) -> Scene:
 
 
 def load_scene(path: str | Path) -> Scene:
-    """Read a scene description from a .yaml/.yml or .json file."""
+    """Read a scene description from a .yaml/.yml or .json file (UTF-8).
+
+    Raises:
+        ValueError: naming the file (and the line, for text that is not UTF-8 or not YAML / JSON) and
+            what is wrong; OSError when it cannot be read.
+    """
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in (".yaml", ".yml", ".json"):
         raise ValueError(f"scene file must end in .yaml, .yml or .json, got {path.name!r}")
-    text = path.read_text()
+    text = read_utf8(path)
     try:
         desc = json.loads(text) if suffix == ".json" else yaml.load(text, Loader=YamlLoader)
     except json.JSONDecodeError as exc:

@@ -299,3 +299,17 @@ def test_a_position_far_off_the_skin_is_named_in_few_digits() -> None:
                                  {"action": "slide", "duration_s": 0.1, "velocity_mm_s": [1e300, 0]}]}
     with pytest.raises(ValueError, match=r"^frame 3 \(t = 0.150 s\): the object's centre \(5e\+298, 0.00\) mm has left"):
         _run(fast)
+
+
+@pytest.mark.parametrize("name", ["latin1.yaml", "latin1.json"])
+def test_a_scene_file_that_is_not_utf8_is_named_with_its_line(tmp_path, name: str) -> None:
+    """It said only "'utf-8' codec can't decode byte 0xe9 in position 38: invalid continuation byte"."""
+    text = "# sc\u00e8ne\n" if name.endswith(".yaml") else ""
+    (tmp_path / name).write_bytes((text + json.dumps(EXAMPLE)).encode("latin-1") if text
+                                  else json.dumps({**EXAMPLE, "note": "\u00e9"}, ensure_ascii=False).encode("latin-1"))
+    with pytest.raises(ValueError, match=rf"^{tmp_path / name} line 1: not UTF-8 text \(invalid continuation byte, "
+                                         r"byte 0xe[89]\): save it as UTF-8$"):
+        load_scene(tmp_path / name)
+    (tmp_path / "bom.json").write_bytes(b"\xef\xbb\xbf" + json.dumps(EXAMPLE).encode())
+    assert load_scene(tmp_path / "bom.json") == scene_from_dict(EXAMPLE)  # as an editor on Windows may save it: it
+    # was "not JSON: Unexpected UTF-8 BOM"
