@@ -621,9 +621,11 @@ class ContactModel:
         self._warm_full = full
         contact = full.contact
         mu = obj.mu
-        m_max = torsion_limit_Nmm(self.grid, full.pressure_mpa, mu, centre)
         ratio_t = q_abs / (mu * normal_N)
-        ratio_r = abs(torque_Nmm) / m_max if m_max > 0 else (np.inf if torque_Nmm else 0.0)
+        ratio_r = 0.0
+        if torque_Nmm:  # the torsional limit (a sum over the grid) only for a torque ("torsion": else it is 0 here)
+            m_max = torsion_limit_Nmm(self.grid, full.pressure_mpa, mu, centre)
+            ratio_r = abs(torque_Nmm) / m_max if m_max > 0 else np.inf
         traction = zeros2
         slip = np.zeros((n, n), dtype=bool)
         converged = full.converged

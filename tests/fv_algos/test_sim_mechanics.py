@@ -273,3 +273,18 @@ def test_every_shape_presses_and_carries_the_load(model: ContactModel) -> None:
         assert s.contact.any(), name
         assert s.pressure_mpa.sum() * model.grid.cell_area_mm2 == pytest.approx(2.0, rel=1e-6), name
         assert s.displacement_mm[2].max() > 0, name  # pushed toward the camera
+
+
+@pytest.mark.parametrize("effects, torque, limits", [
+    (NORMAL, 0.0, 0), (frozenset({"normal", "shear"}), 0.0, 0), (ALL, 0.0, 0),
+    (NORMAL, 1.0, 0),  # a torque without "torsion" is not modelled
+    (ALL, 1.0, 2),  # the twist's gross-slip test, and the partial-slip solve's scale
+])
+def test_the_torsional_limit_is_computed_only_for_a_torque_the_scene_models(
+        model: ContactModel, monkeypatch: pytest.MonkeyPatch, effects: frozenset, torque: float, limits: int) -> None:
+    """It was computed on every frame (about a tenth of a normal-only solve)."""
+    import fv_algos.sim.contact as contact
+    calls = []
+    monkeypatch.setattr(contact, "torsion_limit_Nmm", lambda *args: calls.append(args) or torsion_limit_Nmm(*args))
+    state = _solve(model, force=(0.3, 0.0), torque=torque, effects=effects)
+    assert len(calls) == limits and state.slip_state != "gross"
