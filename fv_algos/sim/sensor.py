@@ -288,10 +288,8 @@ class SimSensor:
                 try:
                     result = self.renderer.render(deformed)
                 except MarkersReachCameraError as exc:
-                    raise ValueError(
-                        f"frame {mech.index} (t = {mech.command.stamp_s:.3f} s): the normal load of "
-                        f"{mech.state.normal_N:g} N pushes {len(exc.rows)} of the {len(deformed)} markers to the "
-                        f"camera, {self.params.camera_distance_mm:g} mm from the skin; lower the load") from None
+                    raise ValueError(f"frame {mech.index} (t = {mech.command.stamp_s:.3f} s): "
+                                     + self._pushed_to_camera(mech, runner.model, exc.rows)) from None
                 truth = FrameTruth(self._index, self.markers_ref_mm, u, result.markers_px, result.visible, mech, runner.model.grid, self.camera, self.params.camera_distance_mm, self._lens)
                 self.last_frame_s = time.perf_counter() - started
                 yield SimFrame(result.image, self._time_offset_s + mech.command.stamp_s, truth)
@@ -299,6 +297,27 @@ class SimSensor:
                 started = time.perf_counter()
             self._time_offset_s += scene.n_frames / scene.fps
 
+    def _pushed_to_camera(self, mech: MechanicsFrame, model: ContactModel, rows: np.ndarray) -> str:
+        """What pushes the markers `rows` (indices into markers_ref_mm) to the camera in the frame `mech`:
+        its normal load, or the shear and torque it asks for (a force, a slide; a torque, a spin), whose
+        tractions move the skin toward the camera too (the half-space's coupling term, (1 - 2 nu)), where
+        the pressure alone would push fewer of them. Loads as the contact carries them."""
+        state, command = mech.state, mech.command
+        reach = f"{len(rows)} of the {len(self.markers_ref_mm)} markers to the camera, {self.params.camera_distance_mm:g} mm from the skin"
+        load = f"the normal load of {state.normal_N:g} N"
+        uz = model.grid.sample(model.halfspace.normal_displacement_mm(state.pressure_mpa), self.markers_ref_mm[rows])
+        by_load = int(np.count_nonzero(uz >= self.params.camera_distance_mm))
+        causes = {}
+        if any(command.loads.force_N) or command.motion == "slide":
+            causes["shear"] = f"the shear of {float(np.hypot(*state.force_N)):g} N"
+        if command.loads.torque_Nmm or command.motion == "spin":
+            causes["torque"] = f"the torque of {abs(state.torque_Nmm):g} N*mm"
+        if by_load == len(rows) or not causes:
+            return f"{load} pushes {reach}; lower the load"
+        verb = "pushes" if len(causes) == 1 else "push"
+        return (f"{' and '.join(causes.values())} {verb} {reach}, through the coupling of shear and normal displacement "
+                f"({load} alone pushes {by_load or 'none'}); lower the {' and the '.join(causes)}"
+                + (" and the load" if by_load else ""))
 
 def preview_image(frame: SimFrame, arrow_scale: float = 5.0) -> np.ndarray:
     """The frame in colour with true marker centres (green) and displacement arrows (red).

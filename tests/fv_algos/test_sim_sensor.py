@@ -195,3 +195,18 @@ def test_a_failed_sequence_leaves_no_folder_and_the_command_says_what_it_wrote(t
     assert (tmp_path / "p.png").read_bytes() == (tmp_path / "seq" / f"preview_{n_frames - 1:05d}.png").read_bytes()
     assert main(["sim", "--scene", str(short), "--preview", str(tmp_path / "q.png"), "--frame", "500"]) == 2
     assert f"--frame 500: the scene has {n_frames} frames" in capsys.readouterr().err
+
+
+def test_markers_pushed_to_the_camera_by_a_shear_name_the_shear() -> None:
+    """A shear of 1e6 N on a sphere of mu 1e12 under 1 N said "the normal load of 1 N pushes 128 of the 256
+    markers to the camera ... lower the load": the shear's coupling to the normal displacement pushed them."""
+    sheared = {"object": {"shape": "sphere", "mu": 1e12}, "fps": 30, "initial": {"normal_N": 1.0},
+               "steps": [{"action": "shear", "duration_s": 0.2, "force_N": [1e6, 0.0]}]}
+    with pytest.raises(ValueError, match=r"^frame 1 \(t = 0.033 s\): the shear of 166667 N pushes 124 of the 256 markers "
+                                         r"to the camera, 15 mm from the skin, through the coupling of shear and normal "
+                                         r"displacement \(the normal load of 1 N alone pushes none\); lower the shear$"):
+        _frames(0, sheared)
+    both = {**sheared, "initial": {"normal_N": 190.0, "force_N": [1e4, 0.0]}, "steps": [{"action": "hold", "duration_s": 0.1}]}
+    with pytest.raises(ValueError, match=r"^frame 0 .*: the shear of 10000 N pushes 25 of the 256 markers .* \(the normal "
+                                         r"load of 190 N alone pushes 8\); lower the shear and the load$"):
+        _frames(0, both)
