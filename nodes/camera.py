@@ -7,7 +7,9 @@ leaves nothing of the source's frames is refused at start, the frame size named.
 frames (logged once); one of another aspect ratio is refused at start, both sizes named. A
 lost source is reported in NodeStatus and reopened with backoff; a source that cannot be
 opened at start fails with a clear error: a V4L2 camera not there yet with exit code TEMPFAIL (a
-launch starts it again until it is plugged in), any other source with CONFIG (`nodes.exit_codes`).
+launch starts it again until it is plugged in), any other source with CONFIG (`nodes.exit_codes`). So
+does, with CONFIG, one that can give no further frame as configured (a simulated scene that cannot
+play its next frame), said in NodeStatus first.
 
 `start_after` holds the first frame back until the named nodes have reported
 (`nodes.start_gate.StartGate`: a NodeStatus sent since the camera started, once their
@@ -25,7 +27,8 @@ import numpy as np
 from fv_algos.fisheye import FisheyeCamera
 from fv_algos.frame_crop import FrameCrop
 from msgs import CameraInfo, Image
-from nodes.camera_sources import FolderSource, Frame, FrameSource, SourceError, V4L2Source, VideoFileSource
+from nodes.camera_sources import (FolderSource, Frame, FrameSource, SourceConfigError, SourceError, V4L2Source,
+                                  VideoFileSource)
 from nodes.node import Node
 from nodes.start_gate import StartGate
 
@@ -71,7 +74,7 @@ class CameraParams:
             self.path = str(Path(self.path).expanduser())  # a shell leaves the ~ of video:=~/clip.avi as it is
             if not (Path(self.path).is_file() if self.source == "video" else Path(self.path).is_dir()):
                 raise ValueError(f"{self.source} {self.path}: no such {'file' if self.source == 'video' else 'folder'}")
-        if self.source == "sim":  # a missing or bad scene: refused before a launch starts, not respawned
+        if self.source == "sim":  # a missing or bad scene, or one it cannot play: refused before a launch starts
             from nodes.sim_source import read_scene
             self.scene = str(Path(self.scene).expanduser()) if self.scene else ""
             read_scene(self.scene, self.prerender)
@@ -185,6 +188,9 @@ class CameraNode(Node):
         held, self.held_frame = self.held_frame, None
         try:  # the held frame is stamped now, when it is played: it was read before the start gate opened
             frame = replace(held, stamp_ns=time.time_ns()) if held is not None else self.source.read()
+        except SourceConfigError as exc:  # every reopening would meet it again
+            self.fail(str(exc))
+            return
         except SourceError as exc:
             self._lost(str(exc))
             return

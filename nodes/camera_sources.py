@@ -2,7 +2,7 @@
 and the simulated sensor. Each is a small class with `open()`, `read()` and `close()`;
 `read()` returns the frame and its capture stamp, or None when no frame came, or raises
 `SourceError` naming the source and why; either way the node reports the source lost and
-reopens it with backoff.
+reopens it with backoff. `SourceConfigError` is for what no reopening mends: the node stops.
 
 "Unplugged" means the same for every source: a V4L2 device whose read fails (or times
 out after `V4L2_READ_TIMEOUT_S`), a video file or an image that is removed (checked on
@@ -39,6 +39,12 @@ class SourceError(RuntimeError):
 
 class SourceMissing(SourceError, NotReadyError):
     """A device source that is not there yet (unplugged, busy) and may come without a change of params."""
+
+
+class SourceConfigError(RuntimeError):
+    """A source that can give no further frame as configured, however often it is reopened (a simulated
+    scene whose next frame cannot be played): the camera node stops with this error (`Node.fail`). The
+    message names the source and why."""
 
 
 @dataclass

@@ -61,6 +61,10 @@ _PAGE = os.sysconf("SC_PAGE_SIZE")
 _SEVERITY = {"ok": 0, "warn": 1, "error": 2}
 
 
+class NodeFailed(RuntimeError):
+    """Raised by `Node.spin` when the node stopped through `Node.fail`; the message is the error."""
+
+
 @dataclass
 class NoParams:
     """A node without parameters."""
@@ -196,6 +200,7 @@ class Node:
         self._stuck_count = 0
         self._failing: dict[str, tuple[int, str]] = {}  # callback label -> (calls in a row that raised, the last error)
         self._no_forwarder_since_s: float | None = None  # monotonic start of a wait for a forwarder never seen
+        self._failure: str | None = None  # the error fail() stopped the node with
         self._ctl_addr = f"inproc://fv-node-{next(_CONTROL_IDS)}"
         self._ctl_out = self.ctx.socket(zmq.PAIR)
         self._ctl_out.bind(self._ctl_addr)
@@ -269,6 +274,16 @@ class Node:
         """Back to "ok" in NodeStatus: the node's own warning is over (runtime faults are apart)."""
         self.state, self.message = "ok", ""
 
+    def fail(self, message: str) -> None:
+        """Stop the node for an error it cannot go on from: a configuration error found while it runs (a
+        simulated scene whose next frame cannot be played), which a retry would meet again. NodeStatus says
+        it at once (state "error", "stopped: <message>"), then spin() raises NodeFailed(message), so that
+        `fv node` exits as for a configuration error found at its start, saying it."""
+        self.state, self.message = "error", f"stopped: {message}"
+        self._failure = message
+        self._publish_status()
+        self.stop()
+
     def stop(self) -> None:
         self._stop.set()
         with self._cond:
@@ -279,7 +294,8 @@ class Node:
         return self._stop.is_set()
 
     def spin(self, install_signals: bool = True) -> None:
-        """Run setup, then callbacks and timers until stop() or a STOP_SIGNALS signal."""
+        """Run setup, then callbacks and timers until stop() or a STOP_SIGNALS signal; NodeFailed after
+        fail()."""
         if install_signals and threading.current_thread() is threading.main_thread():
             for sig in STOP_SIGNALS:
                 signal.signal(sig, lambda *_: self.stop())
@@ -297,6 +313,8 @@ class Node:
             self._executor_loop()
         finally:
             self.close()
+        if self._failure is not None:
+            raise NodeFailed(self._failure)
 
     def close(self) -> None:
         self._stop.set()

@@ -5,8 +5,8 @@ import time
 from typing import Iterator
 
 from fv_algos.sim.scene import Scene, load_scene
-from fv_algos.sim.sensor import SimFrame, SimSensor
-from nodes.camera_sources import Frame, SourceError
+from fv_algos.sim.sensor import SimFrame, SimSensor, check_scene
+from nodes.camera_sources import Frame, SourceConfigError, SourceError
 
 
 def source_name(scene_path: str) -> str:
@@ -14,17 +14,23 @@ def source_name(scene_path: str) -> str:
     return f"sim {scene_path or 'random scenarios'}"
 
 
-def read_scene(scene_path: str, prerender: bool = False) -> Scene | None:
+def read_scene(scene_path: str, prerender: bool = False, check: bool = True) -> Scene | None:
     """The scene of the file ``scene_path`` ("": random scenarios, None); ValueError naming it when it
-    cannot be read or is no valid scene, or when ``prerender`` comes without one (random scenarios never
-    end). The camera's params call it too, so `fv launch --check` refuses what the source would."""
+    cannot be read or is no valid scene, when (with ``check``) it cannot be played (its mechanics are
+    played first, without rendering: `fv_algos.sim.sensor.check_scene`, 0.7 to 4 ms a frame), or when
+    ``prerender`` comes without one (random scenarios never end). The camera's params call it, so
+    `fv launch --check` and the launch itself refuse what the source would meet: a camera whose scene slid
+    its object off the skin at frame 34 replayed frames 0 to 33 for good."""
     name = source_name(scene_path)
     if prerender and not scene_path:
         raise ValueError(f"{name}: prerender needs a scene file (random scenarios never end)")
     try:
-        return load_scene(scene_path) if scene_path else None
+        scene = load_scene(scene_path) if scene_path else None
+        if scene is not None and check:
+            check_scene(scene)
     except (OSError, ValueError) as exc:
         raise ValueError(f"{name}: {exc}") from None
+    return scene
 
 
 class SimSource:
@@ -43,7 +49,7 @@ class SimSource:
         self.prerender = prerender
         self.name = source_name(scene_path)
         try:
-            scene = read_scene(scene_path, prerender)
+            scene = read_scene(scene_path, prerender, check=False)  # the camera's params have played it
         except ValueError as exc:
             raise SourceError(str(exc)) from None
         self.sensor = SimSensor(scene, seed=seed, loop_fps=fps)
@@ -52,11 +58,19 @@ class SimSource:
         self._rendered: list[SimFrame] | None = None
 
     def open(self) -> None:
+        """Start the scene (or the random scenarios) from its first frame; with `prerender`, render it
+        first. SourceConfigError as `read`."""
         if self.prerender and self._rendered is None:
-            self._rendered = list(self.sensor)
+            try:
+                self._rendered = list(self.sensor)
+            except ValueError as exc:
+                raise SourceConfigError(f"{self.name}: {exc}") from None
         self._frames = iter(self._rendered if self._rendered is not None else self.sensor)
 
     def read(self) -> Frame | None:
+        """The next frame (after the last, the first again). A frame the mechanics cannot play (e.g. the
+        object slid off the skin) raises SourceConfigError for a scene file, which would meet it again at
+        every pass, and SourceError in random scenarios, where reopening plays the next scenario."""
         if self._frames is None:
             return None
         try:
@@ -64,8 +78,9 @@ class SimSource:
             if frame is None:  # a scene ended: play it again
                 self.open()
                 frame = next(self._frames)
-        except ValueError as exc:  # a scene its mechanics cannot play on (e.g. the object slid off the skin)
-            raise SourceError(f"{self.name}: {exc}") from None
+        except ValueError as exc:
+            error = SourceError if self.sensor.scene is None else SourceConfigError
+            raise error(f"{self.name}: {exc}") from None
         return Frame(frame.image, time.time_ns())
 
     def close(self) -> None:

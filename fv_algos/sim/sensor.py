@@ -1,7 +1,8 @@
 """The simulated sensor: scene -> contact mechanics -> renderer -> frame + ground truth.
 
 `SceneRunner` steps a scene's mechanics (object pose, loads, contact state) frame by
-frame; `SimSensor` adds the fisheye renderer and per-frame ground truth; `write_sequence`
+frame; `check_scene` plays them without rendering, to refuse a scene that cannot be played before
+any frame is shown; `SimSensor` adds the fisheye renderer and per-frame ground truth; `write_sequence`
 stores frames (PNG) and truth (npz + json) for inspection; `preview_image` draws the true
 markers and displacement arrows over a frame.
 """
@@ -22,7 +23,7 @@ from fv_algos.atomic_file import write_image
 from fv_algos.fisheye import DEFAULT_CAMERA_DISTANCE_MM, FisheyeCamera
 from fv_algos.sim.contact import ContactModel, ContactParams, ContactState
 from fv_algos.sim.halfspace import SurfaceGrid
-from fv_algos.sim.render import MarkersReachCameraError, RenderParams, SkinRenderer
+from fv_algos.sim.render import RenderParams, SkinRenderer
 from fv_algos.sim.render import EFFECTS as RENDER_EFFECTS
 from fv_algos.sim.scene import (DEFAULT_RENDER_EFFECTS, SCENARIO_KINDS, Command, Scene, grasp_scene, random_scenario,
                                 scene_commands, scripted_motion)
@@ -274,22 +275,15 @@ class SimSensor:
         """Yields SimFrame; finite for a scene, endless in random mode.
 
         Raises:
-            ValueError: naming the frame, as `SceneRunner` does, when a frame cannot be played: besides
-                SceneRunner's, a load that pushes markers to the camera (the half-space skin has no
-                thickness that would stop it).
+            ValueError: naming the frame, when a frame cannot be played (`_marker_mechanics`;
+                `check_scene` finds it without rendering).
         """
         skin = self.params.skin
         for scene in self._scenes():
             runner = SceneRunner(scene, skin, self.params.contact)
             started = time.perf_counter()
-            for mech in runner:
-                u = runner.model.grid.sample(mech.state.displacement_mm, self.markers_ref_mm).T
-                deformed = np.column_stack([self.markers_ref_mm + u[:, :2], u[:, 2]])
-                try:
-                    result = self.renderer.render(deformed)
-                except MarkersReachCameraError as exc:
-                    raise ValueError(f"frame {mech.index} (t = {mech.command.stamp_s:.3f} s): "
-                                     + self._pushed_to_camera(mech, runner.model, exc.rows)) from None
+            for mech, u in _marker_mechanics(runner, self.markers_ref_mm, self.params.camera_distance_mm):
+                result = self.renderer.render(np.column_stack([self.markers_ref_mm + u[:, :2], u[:, 2]]))
                 truth = FrameTruth(self._index, self.markers_ref_mm, u, result.markers_px, result.visible, mech, runner.model.grid, self.camera, self.params.camera_distance_mm, self._lens)
                 self.last_frame_s = time.perf_counter() - started
                 yield SimFrame(result.image, self._time_offset_s + mech.command.stamp_s, truth)
@@ -297,27 +291,61 @@ class SimSensor:
                 started = time.perf_counter()
             self._time_offset_s += scene.n_frames / scene.fps
 
-    def _pushed_to_camera(self, mech: MechanicsFrame, model: ContactModel, rows: np.ndarray) -> str:
-        """What pushes the markers `rows` (indices into markers_ref_mm) to the camera in the frame `mech`:
-        its normal load, or the shear and torque it asks for (a force, a slide; a torque, a spin), whose
-        tractions move the skin toward the camera too (the half-space's coupling term, (1 - 2 nu)), where
-        the pressure alone would push fewer of them. Loads as the contact carries them."""
-        state, command = mech.state, mech.command
-        reach = f"{len(rows)} of the {len(self.markers_ref_mm)} markers to the camera, {self.params.camera_distance_mm:g} mm from the skin"
-        load = f"the normal load of {state.normal_N:g} N"
-        uz = model.grid.sample(model.halfspace.normal_displacement_mm(state.pressure_mpa), self.markers_ref_mm[rows])
-        by_load = int(np.count_nonzero(uz >= self.params.camera_distance_mm))
-        causes = {}
-        if any(command.loads.force_N) or command.motion == "slide":
-            causes["shear"] = f"the shear of {float(np.hypot(*state.force_N)):g} N"
-        if command.loads.torque_Nmm or command.motion == "spin":
-            causes["torque"] = f"the torque of {abs(state.torque_Nmm):g} N*mm"
-        if by_load == len(rows) or not causes:
-            return f"{load} pushes {reach}; lower the load"
-        verb = "pushes" if len(causes) == 1 else "push"
-        return (f"{' and '.join(causes.values())} {verb} {reach}, through the coupling of shear and normal displacement "
-                f"({load} alone pushes {by_load or 'none'}); lower the {' and the '.join(causes)}"
-                + (" and the load" if by_load else ""))
+
+def _marker_mechanics(runner: SceneRunner, markers_ref_mm: np.ndarray,
+                     camera_distance_mm: float) -> Iterator[tuple[MechanicsFrame, np.ndarray]]:
+    """The frames of `runner` with the (N, 3) displacement (ux, uy, uz), mm, of the markers at rest at
+    `markers_ref_mm` (N, 2) mm.
+
+    Raises:
+        ValueError: naming the frame, as `SceneRunner` does, when a frame cannot be played: besides
+            SceneRunner's, loads that push markers to the camera, `camera_distance_mm` from the skin (the
+            half-space skin has no thickness that would stop them), naming what pushes them.
+    """
+    for mech in runner:
+        u = runner.model.grid.sample(mech.state.displacement_mm, markers_ref_mm).T
+        reaching = np.flatnonzero(u[:, 2] >= camera_distance_mm)
+        if reaching.size:
+            raise ValueError(f"frame {mech.index} (t = {mech.command.stamp_s:.3f} s): "
+                             + _pushed_to_camera(mech, runner.model, markers_ref_mm, reaching, camera_distance_mm))
+        yield mech, u
+
+
+def check_scene(scene: Scene, params: SensorParams | None = None) -> None:
+    """Play the mechanics of `scene` on the sensor of `params` (default SensorParams()) without rendering
+    a frame: the ValueError that `SimSensor` would raise at the first frame it cannot play (an object
+    that leaves the skin, markers pushed to the camera, ...), before any frame is shown. It costs 0.7 to
+    4 ms a frame (a sphere's closed form to a key's numerical contact), a tenth to a half of a rendered
+    frame: 0.06 s for launch/scenes/press_shear_slide.yaml, 0.19 s for twist_key.yaml."""
+    params = params if params is not None else SensorParams()
+    runner = SceneRunner(scene, params.skin, params.contact)
+    for _ in _marker_mechanics(runner, marker_grid_mm(params.skin), params.camera_distance_mm):
+        pass
+
+
+def _pushed_to_camera(mech: MechanicsFrame, model: ContactModel, markers_ref_mm: np.ndarray, rows: np.ndarray,
+                      camera_distance_mm: float) -> str:
+    """What pushes the markers `rows` (indices into `markers_ref_mm`) to the camera in the frame `mech`:
+    its normal load, or the shear and torque it asks for (a force, a slide; a torque, a spin), whose
+    tractions move the skin toward the camera too (the half-space's coupling term, (1 - 2 nu)), where
+    the pressure alone would push fewer of them. Loads as the contact carries them."""
+    state, command = mech.state, mech.command
+    reach = f"{len(rows)} of the {len(markers_ref_mm)} markers to the camera, {camera_distance_mm:g} mm from the skin"
+    load = f"the normal load of {state.normal_N:g} N"
+    uz = model.grid.sample(model.halfspace.normal_displacement_mm(state.pressure_mpa), markers_ref_mm[rows])
+    by_load = int(np.count_nonzero(uz >= camera_distance_mm))
+    causes = {}
+    if any(command.loads.force_N) or command.motion == "slide":
+        causes["shear"] = f"the shear of {float(np.hypot(*state.force_N)):g} N"
+    if command.loads.torque_Nmm or command.motion == "spin":
+        causes["torque"] = f"the torque of {abs(state.torque_Nmm):g} N*mm"
+    if by_load == len(rows) or not causes:
+        return f"{load} pushes {reach}; lower the load"
+    verb = "pushes" if len(causes) == 1 else "push"
+    return (f"{' and '.join(causes.values())} {verb} {reach}, through the coupling of shear and normal displacement "
+            f"({load} alone pushes {by_load or 'none'}); lower the {' and the '.join(causes)}"
+            + (" and the load" if by_load else ""))
+
 
 def preview_image(frame: SimFrame, arrow_scale: float = 5.0) -> np.ndarray:
     """The frame in colour with true marker centres (green) and displacement arrows (red).

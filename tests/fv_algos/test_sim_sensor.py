@@ -157,20 +157,46 @@ def test_a_load_that_pushes_markers_to_the_camera_is_named_by_frame(tmp_path, ca
     assert f"fv sim: error: frame 0 (t = 0.000 s): the normal load of {normal_N:g} N pushes" in capsys.readouterr().err
 
 
-def test_a_scene_its_mechanics_cannot_play_is_a_named_camera_fault(tmp_path) -> None:
-    """A camera on such a scene logged a bare exception and replayed its first frames."""
+OFF_SKIN = {"object": {"shape": "sphere"}, "fps": 5, "initial": {"normal_N": 1.0},
+            "steps": [{"action": "slide", "duration_s": 4.0, "velocity_mm_s": [5, 0]}]}
+
+
+def test_check_scene_finds_what_playing_would_meet_without_rendering(monkeypatch: pytest.MonkeyPatch) -> None:
+    from fv_algos.sim.render import SkinRenderer
+    from fv_algos.sim.sensor import check_scene
+    heavy = {"object": {"shape": "sphere"}, "fps": 10, "initial": {"normal_N": 500.0},
+             "steps": [{"action": "hold", "duration_s": 0.1}]}
+    for desc in (OFF_SKIN, heavy):
+        with pytest.raises(ValueError) as played:
+            _frames(0, desc)
+        monkeypatch.setattr(SkinRenderer, "render", lambda *args: pytest.fail("check_scene rendered a frame"))
+        with pytest.raises(ValueError) as checked:
+            check_scene(scene_from_dict(desc))
+        monkeypatch.undo()
+        assert str(checked.value) == str(played.value)
+    check_scene(scene_from_dict(SCENE))
+
+
+def test_a_scene_its_mechanics_cannot_play_is_refused_by_the_camera_params_and_stops_its_source(tmp_path) -> None:
+    """A camera on such a scene reported it lost at frame 13, reopened it and replayed frames 0 to 12 for good."""
     import yaml
 
-    from nodes.camera_sources import SourceError
+    from nodes.camera import CameraParams
+    from nodes.camera_sources import SourceConfigError
     from nodes.sim_source import SimSource
     scene = tmp_path / "off.yaml"
-    scene.write_text(yaml.safe_dump({"object": {"shape": "sphere"}, "fps": 5, "initial": {"normal_N": 1.0},
-                                     "steps": [{"action": "slide", "duration_s": 4.0, "velocity_mm_s": [5, 0]}]}))
-    source = SimSource(str(scene), 0, 5.0)
+    scene.write_text(yaml.safe_dump(OFF_SKIN))
+    with pytest.raises(ValueError, match=r"^sim .*off.yaml: frame 13 \(t = 2.600 s\): the object's centre \(13.00, 0.00\) mm "
+                                         r"has left the skin"):
+        CameraParams(scene=str(scene))  # `fv launch --check`, and a launch before it starts anything
+    source = SimSource(str(scene), 0, 5.0)  # its params not checked: met while playing
     source.open()
-    with pytest.raises(SourceError, match=r"off.yaml: frame 13 .* has left the skin"):
-        for _ in range(20):
-            source.read()
+    for _ in range(13):
+        source.read()
+    with pytest.raises(SourceConfigError, match=r"off.yaml: frame 13 .* has left the skin"):
+        source.read()
+    with pytest.raises(SourceConfigError, match=r"off.yaml: frame 13 .* has left the skin"):
+        SimSource(str(scene), 0, 5.0, prerender=True).open()
 
 
 def test_a_failed_sequence_leaves_no_folder_and_the_command_says_what_it_wrote(tmp_path, capsys) -> None:
@@ -180,8 +206,7 @@ def test_a_failed_sequence_leaves_no_folder_and_the_command_says_what_it_wrote(t
 
     from nodes.cli import main
     off = tmp_path / "off.yaml"
-    off.write_text(yaml.safe_dump({"object": {"shape": "sphere"}, "fps": 5, "initial": {"normal_N": 1.0},
-                                   "steps": [{"action": "slide", "duration_s": 4.0, "velocity_mm_s": [5, 0]}]}))
+    off.write_text(yaml.safe_dump(OFF_SKIN))
     assert main(["sim", "--scene", str(off), "--out", str(tmp_path / "seq"), "--frames", "20"]) == 2
     assert "has left the skin" in capsys.readouterr().err and sorted(p.name for p in tmp_path.iterdir()) == ["off.yaml"]
     short = tmp_path / "short.yaml"

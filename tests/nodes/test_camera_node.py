@@ -2,6 +2,7 @@
 video instead of dying, and fails clearly on a source it cannot open."""
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 import time
@@ -329,3 +330,41 @@ def test_start_after_gives_up_after_the_timeout_with_a_warning(bus, spawn, tmp_p
         assert reader.recv(15.0) is not None
     st = wait_status("camera", lambda st: "absent_node" in st.message, 10.0)
     assert "started without a status" in st.message
+
+
+def test_a_scene_that_fails_while_playing_stops_the_camera_saying_why(bus, monkeypatch: pytest.MonkeyPatch,
+                                                                     tmp_path: Path) -> None:
+    """A scene whose object left the skin at frame 4: the camera warned once, "reopening in 0.5 s", and replayed
+    frames 0 to 3 for good, its status 'ok' again at each reopen. Its params play the scene's mechanics first
+    and refuse it; a frame the play still meets stops the camera, its status saying so first."""
+    import yaml
+
+    import nodes.sim_source
+    from msgs import NodeStatus
+    from nodes.camera import CameraNode
+    from nodes.node import NodeFailed
+    scene = tmp_path / "off.yaml"
+    scene.write_text(yaml.safe_dump({"object": {"shape": "sphere"}, "fps": 30, "initial": {"normal_N": 1.0},
+                                     "steps": [{"action": "slide", "duration_s": 1.0, "velocity_mm_s": [100, 0]}]}))
+    monkeypatch.setattr(nodes.sim_source, "check_scene", lambda scene: None)  # met while playing, not at the start
+    error = r"sim .*off.yaml: frame 4 \(t = 0.133 s\): the object's centre \(13.33, 0.00\) mm has left the skin"
+    with TopicReader(["/camera/image", "/status"]) as reader:
+        node = CameraNode("camera", {"scene": str(scene), "fps": 60.0})
+        with pytest.raises(NodeFailed, match=f"^{error}"):
+            node.spin(install_signals=False)
+        received = []
+        while (item := reader.recv(1.0)) is not None:
+            received.append(item.msg)
+    statuses = [m for m in received if isinstance(m, NodeStatus) and m.node == "camera"]
+    assert statuses[-1].state == "error" and re.match(f"stopped: {error}", statuses[-1].message), statuses[-1]
+    assert sum(not isinstance(m, NodeStatus) for m in received) <= 4  # frames 0 to 3, once
+
+
+def test_a_scene_that_cannot_be_played_ends_fv_node_camera_at_its_start(bus, tmp_path: Path) -> None:
+    import yaml
+    scene = tmp_path / "off.yaml"
+    scene.write_text(yaml.safe_dump({"object": {"shape": "sphere"}, "fps": 30, "initial": {"normal_N": 1e6},
+                                     "steps": [{"action": "hold", "duration_s": 1.0}]}))
+    result = run_fv("node", "camera", "-p", f"scene={scene}", timeout_s=30)
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert "off.yaml: frame 0 (t = 0.000 s): the normal load of 1e+06 N pushes 256 of the 256 markers" in result.stderr

@@ -4,6 +4,7 @@ launch), required nodes, and a clean stop on Ctrl-C."""
 from __future__ import annotations
 
 import io
+import re
 import os
 import re
 import signal
@@ -235,6 +236,21 @@ def test_a_misspelt_video_or_model_is_refused_before_anything_starts(name: str, 
     slip detector that could never start, importing torch again every 3 s (the model)."""
     with pytest.raises(LaunchError, match=error):
         load_launch(REPO / "launch" / name, args)
+
+
+def test_a_scene_that_cannot_be_played_is_refused_before_anything_starts(tmp_path: Path) -> None:
+    """A scene that slides its object off the skin at frame 34: `fv launch --check` passed it; the launch's camera
+    replayed frames 0 to 33 for good (with prerender:=true it was respawned for good, exit code 2)."""
+    scene = _write(tmp_path, "off.yaml", "object: {shape: sphere, radius_mm: 10, mu: 0.8}\nfps: 30\n"
+                   "effects: [normal, shear, slip, noise, lighting, lens]\nsteps:\n"
+                   "  - {action: press, duration_s: 0.5, normal_N: 2.0}\n"
+                   "  - {action: slide, duration_s: 1.0, velocity_mm_s: [20.0, 0.0]}\n  - {action: release, duration_s: 0.4}\n")
+    error = "off.yaml: frame 34 (t = 1.133 s): the object's centre (12.67, 0.00) mm has left the skin"
+    for args in ({"scene": str(scene)}, {"scene": str(scene), "prerender": True}):
+        with pytest.raises(LaunchError, match=re.escape(error)):
+            load_launch(REPO / "launch" / "pipeline.yaml", args)
+    result = run_fv("launch", str(REPO / "launch" / "pipeline.yaml"), "--check", f"scene:={scene}", timeout_s=30)
+    assert result.returncode == 2 and error in result.stderr, result.stderr
 
 
 @pytest.mark.parametrize("name, args", [("video.yaml", {"video": "clip.avi"}),
