@@ -4,8 +4,10 @@ from __future__ import annotations
 import time
 from typing import Iterator
 
+import numpy as np
+
 from fv_algos.sim.scene import Scene, load_scene
-from fv_algos.sim.sensor import SimFrame, SimSensor, check_scene
+from fv_algos.sim.sensor import SimSensor, check_scene
 from nodes.camera_sources import Frame, SourceConfigError, SourceError
 
 
@@ -37,10 +39,11 @@ class SimSource:
     """Frames of the simulated sensor: a scene file played in a loop, or endless random
     scenarios (`scene_path` ""). `camera` is the simulator's exact fisheye model.
 
-    With `prerender`, open() renders the whole scene once and read() replays those frames
-    from memory, so the camera costs what a real camera's driver costs (a few MB per second
-    of scene at 640x480): how `fv bench pipeline` measures the pipeline rather than the
-    renderer. It needs a scene file (random scenarios never end)."""
+    With `prerender`, open() renders the whole scene once and read() replays its images from
+    memory (only those: not the frames' ground truth, which the camera does not publish), so the
+    camera costs what a real camera's driver costs: how `fv bench pipeline` measures the pipeline
+    rather than the renderer. That holds one 307 kB image a frame at 640x480: open() kept 9.5 MB per
+    second of scene at 30 fps (launch/scenes, traced). It needs a scene file (random scenarios never end)."""
 
     def __init__(self, scene_path: str, seed: int, fps: float, prerender: bool = False) -> None:
         self.scene_path = scene_path
@@ -54,34 +57,34 @@ class SimSource:
             raise SourceError(str(exc)) from None
         self.sensor = SimSensor(scene, seed=seed, loop_fps=fps)
         self.camera = self.sensor.camera
-        self._frames: Iterator[SimFrame] | None = None
-        self._rendered: list[SimFrame] | None = None
+        self._images: Iterator[np.ndarray] | None = None
+        self._rendered: list[np.ndarray] | None = None  # with prerender: the scene's (H, W) uint8 images
 
     def open(self) -> None:
         """Start the scene (or the random scenarios) from its first frame; with `prerender`, render it
         first. SourceConfigError as `read`."""
         if self.prerender and self._rendered is None:
             try:
-                self._rendered = list(self.sensor)
+                self._rendered = [frame.image for frame in self.sensor]
             except ValueError as exc:
                 raise SourceConfigError(f"{self.name}: {exc}") from None
-        self._frames = iter(self._rendered if self._rendered is not None else self.sensor)
+        self._images = iter(self._rendered) if self._rendered is not None else (frame.image for frame in self.sensor)
 
     def read(self) -> Frame | None:
         """The next frame (after the last, the first again). A frame the mechanics cannot play (e.g. the
         object slid off the skin) raises SourceConfigError for a scene file, which would meet it again at
         every pass, and SourceError in random scenarios, where reopening plays the next scenario."""
-        if self._frames is None:
+        if self._images is None:
             return None
         try:
-            frame = next(self._frames, None)
-            if frame is None:  # a scene ended: play it again
+            image = next(self._images, None)
+            if image is None:  # a scene ended: play it again
                 self.open()
-                frame = next(self._frames)
+                image = next(self._images)
         except ValueError as exc:
             error = SourceError if self.sensor.scene is None else SourceConfigError
             raise error(f"{self.name}: {exc}") from None
-        return Frame(frame.image, time.time_ns())
+        return Frame(image, time.time_ns())
 
     def close(self) -> None:
-        self._frames = None
+        self._images = None
