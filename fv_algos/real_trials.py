@@ -48,6 +48,7 @@ from fv_algos.atomic_file import write_atomically
 from fv_algos.frame_crop import FrameCrop
 from fv_algos.perception import Perception, PerceptionParams
 from fv_algos.slip.windows import FLOAT16_MAX
+from fv_algos.text_file import read_utf8
 from fv_algos.tracking import TrackState, neighbour_consistency
 
 T = TypeVar("T")
@@ -97,14 +98,7 @@ def read_trials(root: str | Path) -> list[Trial]:
     table = root / LABELS_FILE
     if not table.is_file():
         raise FileNotFoundError(f"trial table not found: {table} (needs columns {', '.join(REQUIRED_COLUMNS)})")
-    raw = table.read_bytes()
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        line = raw[:exc.start].count(b"\n") + 1
-        raise ValueError(f"{table} line {line}: not UTF-8 text ({exc.reason}, byte {raw[exc.start]:#04x}): save it as "
-                         "UTF-8 (a spreadsheet's \"CSV UTF-8\")") from None
-    reader = csv.reader(io.StringIO(text, newline=""))
+    reader = csv.reader(io.StringIO(read_utf8(table, " (a spreadsheet's \"CSV UTF-8\")"), newline=""))
     lines = [(reader.line_num, cells) for cells in reader]
     header = [name.strip().lower() for name in lines[0][1]] if lines else []  # as a spreadsheet may write it: " Label"
     missing = [c for c in REQUIRED_COLUMNS if c not in header]

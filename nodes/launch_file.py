@@ -40,6 +40,7 @@ from typing import Any
 
 import yaml
 
+from fv_algos.text_file import read_utf8
 from fv_algos.yaml_loader import YamlLoader
 from nodes.bus import absolute_namespace
 from nodes.params import ParamError, build_params, parse_text
@@ -169,9 +170,11 @@ class _File:
 def load_yaml(path: Path) -> Any:
     """The file's YAML with line numbers; LaunchError (file and line) for bad YAML."""
     try:
-        text = path.read_text()
+        text = read_utf8(path)
     except OSError as exc:
         raise LaunchError(f"{path}: cannot read launch file: {exc.strerror}") from None
+    except ValueError as exc:  # not UTF-8 (a launch file saved as Latin-1): named with its line
+        raise LaunchError(str(exc)) from None
     try:
         return yaml.load(text, Loader=_Loader)
     except yaml.MarkedYAMLError as exc:

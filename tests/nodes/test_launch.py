@@ -72,6 +72,14 @@ def test_bad_launch_file_names_file_line_and_key(tmp_path: Path, text: str, line
     assert f"{path}:{line}:" in message and key in message, message
 
 
+def test_a_launch_file_that_is_not_utf8_is_named_with_its_line(tmp_path: Path) -> None:
+    """It gave "'utf-8' codec can't decode byte 0xe9 in position 31", naming no file."""
+    path = tmp_path / "latin.yaml"
+    path.write_bytes("nodes:\n  - kind: talker\n    # caf\xe9\n".encode("latin-1"))
+    with pytest.raises(LaunchError, match=rf"{path} line 3: not UTF-8 text .*byte 0xe9"):
+        load_launch(path)
+
+
 def test_error_in_included_file_names_that_file(tmp_path: Path) -> None:
     inner = _write(tmp_path, "inner.yaml", "args: {rate: 1.0}\nnodes:\n  - kind: talker\n    params:\n"
                                            "      rate_hz: $(arg rate)\n")
