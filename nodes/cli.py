@@ -51,6 +51,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
+COMMAND_PID = os.getpid()  # the command's process; a worker forked from it has another
+
+
 class Stopped(KeyboardInterrupt):
     """SIGTERM or SIGHUP (`kill`, systemd, `timeout`, a closed terminal), raised where the command runs, so
     that it stops as on Ctrl-C: its clean-up runs (a partial output folder is removed) and it exits 128 +
@@ -63,11 +66,28 @@ class Stopped(KeyboardInterrupt):
 
 def stop_like_ctrl_c(signum: int, _frame: FrameType | None) -> None:
     """The handler of SIGTERM and SIGHUP for commands (nodes, launches and the forwarder install their
-    own): the worker processes of the command's pools are terminated (a terminal's Ctrl-C reaches them,
-    a `kill` of this process did not: a benchmark's worker ran on for 80 s), then `Stopped` is raised."""
+    own): the worker processes of the command's pools are terminated (a `kill` of this process did not reach
+    them: a benchmark's worker ran on for 80 s; SIGINT, as Ctrl-C gives them, only ended the task it was
+    on, and the pool waited for the worker), then `Stopped` is raised. The pools' threads then find their
+    workers gone, which they are not told of (`_quiet_pool_threads`).
+    A forked worker, which inherits this handler, is ended by the signal as before (no traceback)."""
+    if os.getpid() != COMMAND_PID:
+        signal.signal(signum, signal.SIG_DFL)
+        os.kill(os.getpid(), signum)
+        return
+    threading.excepthook = _quiet_pool_threads
     for child in multiprocessing.active_children():
         child.terminate()
     raise Stopped(signum)
+
+
+def _quiet_pool_threads(args: threading.ExceptHookArgs) -> None:
+    """After a stop: a process pool's thread that finds the workers ended by `stop_like_ctrl_c` raises (in
+    Python 3.11, InvalidStateError for the futures the stop cancelled); other errors are printed as ever."""
+    from concurrent.futures import InvalidStateError
+    from concurrent.futures.process import BrokenProcessPool
+    if not issubclass(args.exc_type, (InvalidStateError, BrokenProcessPool)):
+        threading.__excepthook__(args)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -142,12 +142,7 @@ class Forwarder:
             self._ask_publishers(xsubs, self.latched.expire(time.monotonic()))
             for sock, _ in poller.poll(100):
                 if sock in xsubs:
-                    frames = sock.recv_multipart(copy=False)
-                    if frames[0].bytes[:1] == LATCHED and not self.latched.received(frames):
-                        continue  # a publisher's answer to a refresh: subscribers have had it
-                    for out in xpubs:
-                        out.send_multipart(frames, copy=False, flags=zmq.NOBLOCK)
-                    self.forwarded += 1
+                    self._forward(sock, xpubs)
                 elif sock in xpubs:
                     event = sock.recv()
                     for up in xsubs:
@@ -157,10 +152,23 @@ class Forwarder:
                             sock.send_multipart(frames, copy=False, flags=zmq.NOBLOCK)
                 elif sock in self.monitors:
                     recv_monitor_message(sock)
+                    for up in xsubs:  # what the gone publisher sent before it left is no answer to the refresh
+                        while up.poll(0):
+                            self._forward(up, xpubs)
                     self._ask_publishers(xsubs, self.latched.publisher_left(time.monotonic()))
                 elif sock in ctls:
                     sock.recv()
                     sock.send(msgpack.packb(self.info()))
+
+    def _forward(self, xsub: zmq.Socket, xpubs: list[zmq.Socket]) -> None:
+        """Forward one message from the publishers' side `xsub` to every subscribers' side, keeping a latched
+        one (a publisher's answer to a refresh, which subscribers have had, is not forwarded again)."""
+        frames = xsub.recv_multipart(copy=False)
+        if frames[0].bytes[:1] == LATCHED and not self.latched.received(frames):
+            return
+        for out in xpubs:
+            out.send_multipart(frames, copy=False, flags=zmq.NOBLOCK)
+        self.forwarded += 1
 
     @staticmethod
     def _ask_publishers(xsubs: list[zmq.Socket], events: list[bytes]) -> None:
@@ -231,14 +239,14 @@ def ensure_forwarder(address: BusAddress | None = None, timeout_s: float = 5.0) 
 
 
 def serve(tcp_url: str | None = None, keys: Path | None = None) -> int:
-    """Run a forwarder in this process until SIGINT/SIGTERM; the `fv forwarder` command."""
+    """Run a forwarder in this process until SIGINT, SIGTERM or SIGHUP; the `fv forwarder` command."""
     try:
         fwd = Forwarder(tcp_url=tcp_url, keys=keys)
     except ForwarderRunning as exc:
         log.error("%s", exc)
         return FAILED
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, lambda *_: stop.set())
     log.info("forwarder on %s%s", fwd.address.url, f" and {tcp_url} (CURVE)" if tcp_url else "")
     try:

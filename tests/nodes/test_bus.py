@@ -125,6 +125,35 @@ def test_a_gone_publisher_s_latched_message_reaches_only_those_who_ask(bus: Bus)
         assert after.recv(0.5) is None, "a closed publisher's latched message is gone"
 
 
+def test_what_a_publisher_sent_before_it_left_is_gone_with_it(bus_env: Bus) -> None:
+    """The forwarder read one message per turn, and the closed connection's event started the refresh
+    while the rest of what that publisher had sent was still queued: read afterwards, it counted as
+    answers, live until another publisher left (12 to 16 of 20 on a busy forwarder, in 2 runs of 6)."""
+    from nodes.latched_cache import REFRESH_WAIT_S
+
+    def serve(seconds: float) -> None:
+        stop = threading.Event()
+        thread = threading.Thread(target=forwarder.run, args=(stop,), daemon=True)
+        thread.start()
+        time.sleep(seconds)
+        stop.set()
+        thread.join(2.0)
+
+    forwarder = Forwarder(bus_env.address)
+    try:
+        pub = PublisherSocket("burster", bus_env.address)
+        serve(0.3)  # the forwarder takes the connection
+        assert pub.wait_connected(2.0)
+        for k in range(20):
+            pub.publish(f"/t{k}", SlipState(), latched=True)
+        pub.close()
+        time.sleep(0.5)  # all of it queued, and the closed connection's event too, before the forwarder reads on
+        serve(REFRESH_WAIT_S + 0.5)
+        assert (len(forwarder.latched.live), len(forwarder.latched.gone)) == (0, 20)
+    finally:
+        forwarder.close()
+
+
 def test_a_latched_message_published_before_any_forwarder_is_delivered(bus_env: Bus) -> None:
     """Only a reconnect re-sent latched messages: one published before the first forwarder answered (a
     camera's CameraInfo, when the camera started first) was dropped and never delivered."""

@@ -41,20 +41,39 @@ def test_sigterm_leaves_no_half_written_sequence(tmp_path: Path) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == ["long.yaml"]
 
 
-def test_sigterm_stops_the_pool_workers(tmp_path: Path) -> None:
-    """`fv dataset sim --workers 2` killed with SIGTERM: its workers ran on for seconds."""
-    proc = _fv("dataset", "sim", "--out", str(tmp_path / "d.npz"), "--sequences", "400", "--workers", "2",
-               "--no-progress")
+def _stop_with_its_workers(proc: subprocess.Popen, workers: int) -> str:
+    """SIGTERM to `proc` once it has `workers` children at work; checks that they end with it, without a
+    traceback; returns its error output."""
     children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children")
-    workers: list[str] = []
+    pids: list[str] = []
 
     def started() -> bool:
-        workers[:] = children.read_text().split()
-        return len(workers) >= 2
+        pids[:] = children.read_text().split()
+        return len(pids) >= workers
 
     _wait_for(started)
-    time.sleep(1.0)  # the workers simulate
+    time.sleep(1.0)  # at work
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(30) == 128 + signal.SIGTERM, proc.stderr.read()
-    _wait_for(lambda: not any(os.path.exists(f"/proc/{pid}") for pid in workers), timeout_s=3.0)
+    _wait_for(lambda: not any(os.path.exists(f"/proc/{pid}/cmdline") and Path(f"/proc/{pid}/cmdline").read_bytes()
+                              for pid in pids), timeout_s=5.0)
+    err = proc.stderr.read()
+    assert "Traceback" not in err, err
+    return err
+
+
+def test_sigterm_stops_the_pool_workers(tmp_path: Path) -> None:
+    """`fv dataset sim --workers 2` (spawned workers) killed with SIGTERM: its workers ran on for seconds."""
+    proc = _fv("dataset", "sim", "--out", str(tmp_path / "d.npz"), "--sequences", "400", "--workers", "2",
+               "--no-progress")
+    _stop_with_its_workers(proc, 2)
     assert not (tmp_path / "d.npz").exists()
+
+
+def test_sigterm_stops_forked_workers_without_a_traceback(isd_data: Path, tmp_path: Path) -> None:
+    """`fv real fields --workers 2` (forked workers, which inherit the command's handler): terminated by it,
+    its pool's thread printed InvalidStateError for the tasks the stop cancelled."""
+    proc = _fv("real", "fields", "--trials", str(isd_data), "--cache", str(tmp_path / "cache"), "--workers", "2",
+               "--no-progress")
+    _stop_with_its_workers(proc, 2)
+    assert not list((tmp_path / "cache").glob("*.tmp*")), "a cache file half-written"

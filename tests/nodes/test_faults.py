@@ -292,6 +292,15 @@ class Source(Node):
         self.timer(0.05, lambda: self.ticks.publish(SlipState(stamp_ns=time.time_ns())))
 
 
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_forwarder_stops_cleanly_on_sigterm_and_sighup(bus_env: Bus, spawn, sig: int) -> None:
+    """SIGHUP (its terminal closed) ended the forwarder through the command line's handler, exit 129."""
+    forwarder = spawn("forwarder")
+    wait_for(lambda: ping(bus_env.address) is not None, 10.0, "forwarder start")
+    forwarder.send_signal(sig)
+    assert forwarder.wait(10) == 0
+
+
 def test_forwarder_killed_and_restarted(bus_env: Bus, spawn) -> None:
     forwarder = spawn("forwarder")
     wait_for(lambda: ping(bus_env.address) is not None, 10.0, "forwarder start")
