@@ -236,9 +236,10 @@ class PublisherSocket:
         latched messages after a reconnect or when the forwarder asks. Every publish does this; a
         publisher of latched messages that may stay idle calls it periodically (the node runtime does,
         from its status thread; `nodes.client.Publisher` from a thread of its own): unanswered, the
-        forwarder takes its latched messages for a gone publisher's."""
+        forwarder takes its latched messages for a gone publisher's. Nothing once closed."""
         with self._lock:
-            self._drain_subscriptions()
+            if not self._sock.closed:
+                self._drain_subscriptions()
 
     def wait_connected(self, timeout_s: float = 2.0) -> bool:
         """Block until the forwarder has subscribed (it always asks for latched topics)."""

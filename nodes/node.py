@@ -181,6 +181,7 @@ class Node:
         self.address = address or bus_address()
         self.ctx = new_context()
         self._pub_sock = PublisherSocket(name, self.address, self.ctx)
+        self._answering: list[PublisherSocket] = [self._pub_sock]  # updated by the status thread (`keep_answering`)
         self._publishers: list[Publisher] = []
         self._subs: dict[str, list[Subscription]] = {}
         self._arrivals = 0  # messages queued so far: each queued message carries its arrival number
@@ -219,6 +220,12 @@ class Node:
         pub = Publisher(self._pub_sock, self.resolve(topic), msg_type, latched)
         self._publishers.append(pub)
         return pub
+
+    def keep_answering(self, sock: PublisherSocket) -> None:
+        """Have the status thread answer the forwarder's refreshes on `sock`, a publisher socket of this node's
+        own besides its publishers' (a bag player's), also while it publishes nothing: a paused player's latched
+        messages were taken for a gone publisher's, and a node started during the pause got no CameraInfo."""
+        self._answering.append(sock)
 
     def subscribe(self, topic: str, msg_type: type[Message] | None, callback: Callable[[Message], None],
                   depth: int | None = 10, stale_after_s: float | None = None, gone: bool = False) -> Subscription:
@@ -550,7 +557,8 @@ class Node:
                              os.environ[LAUNCHER_PID_ENV])
             self.stop()
             return
-        self._pub_sock.update()
+        for sock in self._answering:
+            sock.update()
         now = time.monotonic()
         never_since = self._no_forwarder_since_s
         if never_since is not None and self._pub_sock.connected:

@@ -186,6 +186,7 @@ class BagPlay(Node):
         self._sent_stream = {topic: k for k, topic in enumerate(self.sync_on)} if len(self.sync_topics) > 1 else {}
         self._answer_stream = {topic: k for k, topic in enumerate(self.sync_topics)}
         self._pub = PublisherSocket(self.name, self.address, self.ctx)
+        self.keep_answering(self._pub)
         self._sync = TopicReader(self.sync_topics, self.address, self.ctx) if self.sync_topics else None
         self.start_gate = StartGate(self, p.start_after, p.start_timeout_s)
         if threading.current_thread() is threading.main_thread():

@@ -371,6 +371,31 @@ def test_start_paused_until_sigusr1(bus: BusAddress, spawn: Spawn, tmp_path: Pat
     assert played_s < 0.6 and paused_s >= 0.75
 
 
+def test_a_paused_player_keeps_its_latched_messages(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
+    """Paused, the player answered none of the forwarder's refreshes (made when another publisher leaves):
+    its CameraInfo was taken for a gone publisher's, and a node started during the pause got none."""
+    from nodes.forwarder import ping
+    from nodes.latched_cache import REFRESH_WAIT_S
+
+    write_bag(tmp_path / "b", sample_messages(20, np.random.default_rng(4)))
+    play = spawn("bag", "play", str(tmp_path / "b"), "--start-offset", "0.05", "--start-paused",
+                 "--no-wait-for-subscribers")
+    while "paused" not in play.stderr.readline():
+        assert play.poll() is None
+    deadline = time.monotonic() + 10.0
+    while "L/camera/info\0cam" not in ping(bus)["latched"]:  # sent before the first message it pauses at
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    other = PublisherSocket("other", bus)
+    assert other.wait_connected(2.0)
+    other.close()  # the forwarder asks every publisher left to send its latched messages again
+    time.sleep(REFRESH_WAIT_S + 0.5)
+    with TopicReader(["/camera/info"], bus) as late:
+        got = late.recv(2.0)
+    assert got is not None and got.msg.width == 32
+    stop(play)
+
+
 def test_recording_stops_at_the_stop_on_a_live_bus(bus: BusAddress, tmp_path: Path) -> None:
     """A bus that never goes quiet (a 100 Hz topic): the recording ends with the messages published
     before the stop. The drain used to wait for 0.1 s of silence and so recorded 2 s more."""
