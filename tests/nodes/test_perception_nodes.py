@@ -3,8 +3,10 @@ flow at camera rate, and a press shows up in the field where the truth says."""
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 
 from pathlib import Path
+from typing import TYPE_CHECKING, Iterator
 
 import numpy as np
 import pytest
@@ -13,6 +15,9 @@ from msgs import MarkerArray
 from nodes.bus import TopicReader
 from tests.conftest import dots_image
 from tests.nodes.conftest import REPO, run_fv
+
+if TYPE_CHECKING:
+    from nodes.tracker import TrackerNode
 
 
 def test_sim_press_reaches_field_and_contact(bus, spawn) -> None:
@@ -136,25 +141,34 @@ def _markers(n: int) -> MarkerArray:
                        frames_since_seen=np.zeros(n, np.int32), width=320, height=240)
 
 
+@contextmanager
+def _tracker(params: dict) -> Iterator[tuple["TrackerNode", list, list]]:
+    """A set-up TrackerNode of `params` (no bus traffic: what it publishes is kept) with the lists its
+    references and its marker arrays go to; closed at the end."""
+    from nodes.tracker import TrackerNode
+    node = TrackerNode("tracker", params)
+    references: list = []
+    markers: list = []
+    try:
+        node.setup()
+        node.reference_pub.publish = references.append
+        node.markers_pub.publish = markers.append
+        yield node, references, markers
+    finally:
+        node.close()
+
+
 def test_a_dark_first_frame_is_no_reference_and_the_next_is_taken() -> None:
     """A black frame at the start (a camera warming up) raised in the tracker's callback, logged with its
     traceback; it is now warned and counted, and the next frame with markers becomes the reference."""
     from msgs import Image
-    from nodes.tracker import TrackerNode
     rest = _skin_at_rest()
-    node = TrackerNode("tracker", {"reference_frame": 0, "resume": False})
-    references: list = []
-    try:
-        node.setup()
-        node.reference_pub.publish = references.append
-        node.markers_pub.publish = lambda _msg: None
+    with _tracker({"reference_frame": 0, "resume": False}) as (node, references, _):
         node.on_image(Image(stamp_ns=1, encoding="mono8", data=np.zeros_like(rest)))
         assert node.counters["reference_retries"] == 1 and node.state == "warn" and not references
         assert "no reference in this frame (reference frame shows 0 consistent marker blobs" in node.message
         node.on_image(Image(stamp_ns=2, encoding="mono8", data=rest))
         assert len(references) == 1 and node.counters["references"] == 1 and node.state == "ok"
-    finally:
-        node.close()
 
 
 @pytest.mark.parametrize("first_seq, first_index, resumed", [(0, -1, True), (40, -1, True), (120, 0, False),
@@ -170,14 +184,8 @@ def test_a_replay_is_tracked_against_the_recorded_reference_from_before_its_firs
     looped video's pass begins there too) holds the frame the live tracker took its reference from: the
     replay takes its own there."""
     from msgs import Image
-    from nodes.tracker import TrackerNode
     rest = _skin_at_rest()
-    node = TrackerNode("tracker", {"resume": False, "recorded_reference": "recorded/markers/reference"})
-    references: list = []
-    try:
-        node.setup()
-        node.reference_pub.publish = references.append
-        node.markers_pub.publish = lambda _msg: None
+    with _tracker({"resume": False, "recorded_reference": "recorded/markers/reference"}) as (node, references, _):
         live = node.perception.reset(rest)  # the live tracker's, stamped 24 s before the recording
         node.on_recorded_reference(MarkerArray(stamp_ns=1, ref_px=live.reference_px.astype(np.float32),
                                                cur_px=live.reference_px.astype(np.float32),
@@ -190,8 +198,6 @@ def test_a_replay_is_tracked_against_the_recorded_reference_from_before_its_firs
                                 frame_index=index))
         assert node.counters["resumed"] == int(resumed) and node.counters["references"] == int(not resumed)
         assert len(references) == 1 and references[0].stamp_ns == (24_000_000_000 if resumed else 24_000_000_001)
-    finally:
-        node.close()
 
 
 def test_a_stream_that_ends_before_the_reference_frame_is_said(caplog: pytest.LogCaptureFixture) -> None:
@@ -212,16 +218,9 @@ def test_a_frame_of_another_size_is_dropped_until_a_new_reference() -> None:
     dropped, warned and counted; after /tracker/reset a frame of the new size is the reference."""
     import cv2
     from msgs import Image
-    from nodes.tracker import TrackerNode
     rest = _skin_at_rest()
     big = cv2.resize(rest, (rest.shape[1] * 2, rest.shape[0] * 2))
-    node = TrackerNode("tracker", {"reference_frame": 0, "resume": False})
-    references: list = []
-    markers: list = []
-    try:
-        node.setup()
-        node.reference_pub.publish = references.append
-        node.markers_pub.publish = markers.append
+    with _tracker({"reference_frame": 0, "resume": False}) as (node, references, markers):
         node.on_image(Image(stamp_ns=1, encoding="mono8", data=rest))
         node.on_image(Image(stamp_ns=2, encoding="mono8", data=big))
         assert len(markers) == 1 and node.counters["other_size"] == 1 and node.state == "warn"
@@ -231,8 +230,6 @@ def test_a_frame_of_another_size_is_dropped_until_a_new_reference() -> None:
         node.on_image(Image(stamp_ns=3, encoding="mono8", data=big))
         assert len(references) == 2 and (references[-1].width, references[-1].height) == (2 * w, 2 * h)
         assert len(markers) == 2 and node.state == "ok" and markers[-1].valid.all()
-    finally:
-        node.close()
 
 
 @pytest.mark.parametrize("second_pass_from", [0, 1])
@@ -243,15 +240,8 @@ def test_each_pass_of_a_looped_video_is_tracked_from_its_own_reference_frame(sec
     frame reference_frame of the pass, also when the pass's frame 0 never reached the tracker (its queue
     keeps the latest frame): every pass is tracked as the first."""
     from msgs import Image
-    from nodes.tracker import TrackerNode
     video = [dots_image(6.0), dots_image(0.0), dots_image(1.5), dots_image(3.0)]  # frame 0 stale, as in real ones
-    node = TrackerNode("tracker", {"resume": False})
-    references: list = []
-    markers: list = []
-    try:
-        node.setup()
-        node.reference_pub.publish = references.append
-        node.markers_pub.publish = markers.append
+    with _tracker({"resume": False}) as (node, references, markers):
         frames = [(0, k) for k in range(len(video))] + [(1, k) for k in range(second_pass_from, len(video))]
         for stamp, (_, k) in enumerate(frames, start=1):
             node.on_image(Image(seq=stamp - 1, stamp_ns=stamp, encoding="mono8", data=video[k], frame_index=k))
@@ -261,8 +251,6 @@ def test_each_pass_of_a_looped_video_is_tracked_from_its_own_reference_frame(sec
         for first, second in zip(markers[:3], markers[3:]):
             np.testing.assert_array_equal(first.cur_px, second.cur_px)
             np.testing.assert_array_equal(first.ref_px, second.ref_px)
-    finally:
-        node.close()
 
 
 def test_the_interpolator_refuses_more_markers_than_max_markers() -> None:
