@@ -54,6 +54,8 @@ class CameraParams:
     encoding: str = "mono8"  # mono8 | bgr8
     seed: int = 0  # sim: random seed
     prerender: bool = False  # sim: render the scene once at start and replay it from memory
+    scene_check_frames: int = 600  # sim: frames of the scene's mechanics played at start to check it (0: none);
+    # a longer scene's later frames are checked as they play (a frame it cannot play stops the launch)
     frame_id: str = "fv_camera"
     reopen_backoff_s: float = 0.5  # first retry delay after a lost source; doubles up to 8 s
     start_after: list[str] = field(default_factory=list)  # node names to wait for before the first frame
@@ -77,7 +79,9 @@ class CameraParams:
         if self.source == "sim":  # a missing or bad scene, or one it cannot play: refused before a launch starts
             from nodes.sim_source import read_scene
             self.scene = str(Path(self.scene).expanduser()) if self.scene else ""
-            read_scene(self.scene, self.prerender)
+            if self.scene_check_frames < 0:
+                raise ValueError(f"scene_check_frames {self.scene_check_frames} must be >= 0")
+            read_scene(self.scene, self.prerender, self.scene_check_frames)
         if self.undistort and not self.calibration and self.source != "sim":
             raise ValueError("undistort needs a calibration file")
         if self.start_timeout_s < 0:

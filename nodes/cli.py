@@ -14,7 +14,8 @@ import threading
 from types import FrameType
 
 from fv_algos.allocator import steady_malloc
-from nodes.exit_codes import CONFIG, FAILED, INTERRUPTED, OK, TEMPFAIL, NotReadyError
+from nodes.exit_codes import (CONFIG, CONFIG_WHILE_RUNNING, FAILED, INTERRUPTED, OK, TEMPFAIL, NodeFailed,
+                              NotReadyError, stop_signals)
 
 COMMAND_MODULES = [
     "nodes.core_commands",
@@ -65,19 +66,21 @@ class Stopped(KeyboardInterrupt):
 
 
 def stop_like_ctrl_c(signum: int, _frame: FrameType | None) -> None:
-    """The handler of SIGTERM and SIGHUP for commands (nodes, launches and the forwarder install their
-    own): the worker processes of the command's pools are terminated (a `kill` of this process did not reach
-    them: a benchmark's worker ran on for 80 s; SIGINT, as Ctrl-C gives them, only ended the task it was
-    on, and the pool waited for the worker), then `Stopped` is raised. The pools' threads then find their
-    workers gone, which they are not told of (`_quiet_pool_threads`).
-    A forked worker, which inherits this handler, is ended by the signal as before (no traceback)."""
+    """The handler of SIGTERM and SIGHUP (not under nohup: `stop_signals`) for commands (nodes, launches and
+    the forwarder install their own): the worker processes of the command's process pools are terminated (a
+    `kill` of this process did not reach them: a benchmark's worker ran on for 80 s; SIGINT, as Ctrl-C gives
+    them, only ended the task it was on, and the pool waited for the worker), then `Stopped` is raised. The
+    pools' threads then find their workers gone, which they are not told of (`_quiet_pool_threads`). A
+    multiprocessing.Pool's workers are left to its exit. A forked worker, which inherits this handler, is
+    ended by the signal as before (no traceback)."""
     if os.getpid() != COMMAND_PID:
         signal.signal(signum, signal.SIG_DFL)
         os.kill(os.getpid(), signum)
         return
     threading.excepthook = _quiet_pool_threads
     for child in multiprocessing.active_children():
-        child.terminate()
+        if "PoolWorker" not in child.name:  # a multiprocessing.Pool's: its exit ends them (it replaced those ended here)
+            child.terminate()
     raise Stopped(signum)
 
 
@@ -99,8 +102,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="[%(name)s] %(levelname)s: %(message)s", stream=sys.stderr)
     in_main_thread = threading.current_thread() is threading.main_thread()  # (tests call main() in threads too)
-    previous = {sig: signal.signal(sig, stop_like_ctrl_c) for sig in (signal.SIGTERM, signal.SIGHUP)
-                if in_main_thread}
+    previous = {sig: signal.signal(sig, stop_like_ctrl_c) for sig in stop_signals()
+                if in_main_thread and sig != signal.SIGINT}
     try:
         return int(args.func(args) or OK)
     except Stopped as stop:
@@ -110,6 +113,9 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # `fv bag info x | head`: the reader has gone, nothing to say to it
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
         return FAILED
+    except NodeFailed as exc:  # a configuration error a running node found: a launch stops, not respawns it
+        print(f"fv {args.command}: error: {exc}", file=sys.stderr)
+        return CONFIG_WHILE_RUNNING
     except NotReadyError as exc:  # a camera not plugged in yet: `fv launch` starts the node again, quietly
         print(f"fv {args.command}: not ready: {exc}", file=sys.stderr)
         return TEMPFAIL

@@ -29,7 +29,7 @@ from zmq.utils.monitor import recv_monitor_message
 
 from nodes.bus import LATCHED, LINGER_MS, connect_client, new_context
 from nodes.endpoints import BUS_ENV, BusAddress, bus_address, secure_server
-from nodes.exit_codes import FAILED, OK
+from nodes.exit_codes import FAILED, OK, stop_signals
 from nodes.latched_cache import LatchedCache
 
 log = logging.getLogger("fv.forwarder")
@@ -239,14 +239,14 @@ def ensure_forwarder(address: BusAddress | None = None, timeout_s: float = 5.0) 
 
 
 def serve(tcp_url: str | None = None, keys: Path | None = None) -> int:
-    """Run a forwarder in this process until SIGINT, SIGTERM or SIGHUP; the `fv forwarder` command."""
+    """Run a forwarder in this process until one of `stop_signals()`; the `fv forwarder` command."""
     try:
         fwd = Forwarder(tcp_url=tcp_url, keys=keys)
     except ForwarderRunning as exc:
         log.error("%s", exc)
         return FAILED
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+    for sig in stop_signals():
         signal.signal(sig, lambda *_: stop.set())
     log.info("forwarder on %s%s", fwd.address.url, f" and {tcp_url} (CURVE)" if tcp_url else "")
     try:

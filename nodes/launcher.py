@@ -22,7 +22,8 @@ is not there yet: a camera not plugged in): every `respawn_delay` until it is up
 `max_retries`), said once, its repeated output not echoed. CONFIG before its first NodeStatus (a
 configuration error at its start): `START_TRIES` starts in a row at most, then the launch stops with
 CONFIG, as it does at once for a node without respawn, whatever `required` says: the launch as
-configured cannot run. Any other exit: as `respawn` and `max_retries` say.
+configured cannot run. CONFIG_WHILE_RUNNING (a configuration error a running node found): the launch
+stops at once, with CONFIG. Any other exit: as `respawn` and `max_retries` say.
 
 A node with `standby: true` also gets a spare process (`fv node KIND --standby`) that has
 done its imports and waits; when the node exits, the spare takes over at once (SIGUSR1)
@@ -43,9 +44,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
-from nodes.exit_codes import CONFIG, FAILED, OK, TEMPFAIL
+from nodes.exit_codes import CONFIG, CONFIG_WHILE_RUNNING, FAILED, OK, TEMPFAIL, stop_signals
 from nodes.launch_file import NodeSpec, load_launch, parse_arg_overrides
-from nodes.node import LAUNCH_ENV, LAUNCHER_PID_ENV, STANDBY_READY, STOP_SIGNALS
+from nodes.node import LAUNCH_ENV, LAUNCHER_PID_ENV, STANDBY_READY
 
 GRACE_S = 1.2
 NAMESAKE_WAIT_S = 0.5  # how long a launch on a running bus listens for the NodeStatus of namesakes
@@ -283,10 +284,10 @@ class Launch:
         return self.exit_code
 
     def run(self) -> int:
-        """start(), then wait for a STOP_SIGNALS signal (Ctrl-C, SIGTERM, SIGHUP) or the end of the
-        launch, then stop()."""
+        """start(), then wait for one of `stop_signals()` (Ctrl-C, SIGTERM, SIGHUP unless nohup ignores it)
+        or the end of the launch, then stop()."""
         if threading.current_thread() is threading.main_thread():
-            for sig in STOP_SIGNALS:
+            for sig in stop_signals():
                 signal.signal(sig, lambda signum, _frame: self._stop.set())
         try:
             self.start()
@@ -385,7 +386,7 @@ class Launch:
             elif child.waiting_since is not None:
                 fault = f"{name} waits ({now - child.waiting_since:.0f} s): {child.error}"
             elif child.cannot_start:
-                fault, state = f"{name} cannot start: {child.error}", "error"
+                fault, state = f"{name} {_cannot(child)}: {child.error}", "error"
             elif not running and child.restart_at is not None:
                 fault = f"{name} exited with code {child.exit_code}; respawning"
             elif not running and child.exit_code:
@@ -431,7 +432,7 @@ class Launch:
             self._wait(child, now)
             return
         child.waiting_since, child.quiet = None, set()
-        if failed_start and (not can_respawn or child.start_failures >= START_TRIES):
+        if code == CONFIG_WHILE_RUNNING or (failed_start and (not can_respawn or child.start_failures >= START_TRIES)):
             self._cannot_start(child, now)
             return
         if can_respawn:
@@ -465,13 +466,15 @@ class Launch:
 
     def _cannot_start(self, child: Child, now: float) -> None:
         """Stop the launch, with CONFIG, for a node whose start failed with a configuration error
-        START_TRIES times in a row (or that has no respawn left): the launch as configured cannot run,
-        whatever `required` says (README, "Launch files")."""
+        START_TRIES times in a row (or that has no respawn left), or that found one while running (exit
+        CONFIG_WHILE_RUNNING): the launch as configured cannot run, whatever `required` says (README,
+        "Launch files")."""
         child.cannot_start = True
-        child.error = child.error or f"exit code {CONFIG}"
-        tries = (f"{child.start_failures} tries in a row" if child.start_failures >= START_TRIES
+        child.error = child.error or f"exit code {child.exit_code}"
+        tries = ("found while running" if child.exit_code == CONFIG_WHILE_RUNNING
+                 else f"{child.start_failures} tries in a row" if child.start_failures >= START_TRIES
                  else "no retries left" if child.spec.respawn else "no respawn")
-        self.say(f"{child.spec.name} cannot start: {child.error} (a configuration error, {tries}); "
+        self.say(f"{child.spec.name} {_cannot(child)}: {child.error} (a configuration error, {tries}); "
                  "stopping the launch")
         self.exit_code = CONFIG
         self._publish_status(now)  # the reason, latched on /status for whoever watches it
@@ -516,6 +519,11 @@ class Launch:
                 self._forwarder.kill()
                 self._forwarder.wait()
             self._forwarder = None
+
+
+def _cannot(child: Child) -> str:
+    """What a node that ends the launch could not do: start, or go on (it found the error while running)."""
+    return "cannot go on" if child.exit_code == CONFIG_WHILE_RUNNING else "cannot start"
 
 
 def _error_of(lines: list[str]) -> str:

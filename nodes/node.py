@@ -48,21 +48,16 @@ from msgs import Message, MessageError, NodeStatus
 from nodes.bus import (ALL_TOPICS, GONE, LINGER_MS, SUB_HWM, PublisherSocket, SeqTracker, connect_client,
                        new_context, absolute_namespace, parse_envelope, resolve_topic, subscription_prefixes)
 from nodes.endpoints import BusAddress, bus_address
+from nodes.exit_codes import NodeFailed, stop_signals
 from nodes.params import build_params
 
 STATUS_TOPIC = "/status"
 STANDBY_READY = "fv-standby-ready"  # the line a standby process prints once it waits to take over
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)  # each stops a node or a launch cleanly (SIGHUP: its
-# terminal closed; a recorder left its bag unfinished)
 LAUNCH_ENV = "FV_LAUNCH_NS"  # set by `fv launch` for its nodes: when the launch started, ns since the epoch
 LAUNCHER_PID_ENV = "FV_LAUNCHER_PID"  # set by `fv launch` for its nodes: the launcher's pid, their parent
 KEEP_ALL_CAP = 10_000
 _PAGE = os.sysconf("SC_PAGE_SIZE")
 _SEVERITY = {"ok": 0, "warn": 1, "error": 2}
-
-
-class NodeFailed(RuntimeError):
-    """Raised by `Node.spin` when the node stopped through `Node.fail`; the message is the error."""
 
 
 @dataclass
@@ -285,7 +280,7 @@ class Node:
         """Stop the node for an error it cannot go on from: a configuration error found while it runs (a
         simulated scene whose next frame cannot be played), which a retry would meet again. NodeStatus says
         it at once (state "error", "stopped: <message>"), then spin() raises NodeFailed(message), so that
-        `fv node` exits as for a configuration error found at its start, saying it."""
+        `fv node` exits CONFIG_WHILE_RUNNING, saying it, and a launch stops rather than start it again."""
         self.state, self.message = "error", f"stopped: {message}"
         self._failure = message
         self._publish_status()
@@ -301,10 +296,10 @@ class Node:
         return self._stop.is_set()
 
     def spin(self, install_signals: bool = True) -> None:
-        """Run setup, then callbacks and timers until stop() or a STOP_SIGNALS signal; NodeFailed after
+        """Run setup, then callbacks and timers until stop() or one of `stop_signals()`; NodeFailed after
         fail()."""
         if install_signals and threading.current_thread() is threading.main_thread():
-            for sig in STOP_SIGNALS:
+            for sig in stop_signals():
                 signal.signal(sig, lambda *_: self.stop())
         self._receiver = threading.Thread(target=self._receive_loop, name=f"{self.name}-rx", daemon=True)
         self._receiver.start()

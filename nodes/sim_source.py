@@ -16,20 +16,22 @@ def source_name(scene_path: str) -> str:
     return f"sim {scene_path or 'random scenarios'}"
 
 
-def read_scene(scene_path: str, prerender: bool = False, check: bool = True) -> Scene | None:
+def read_scene(scene_path: str, prerender: bool = False, check_frames: int = 0) -> Scene | None:
     """The scene of the file ``scene_path`` ("": random scenarios, None); ValueError naming it when it
-    cannot be read or is no valid scene, when (with ``check``) it cannot be played (its mechanics are
-    played first, without rendering: `fv_algos.sim.sensor.check_scene`, 0.7 to 4 ms a frame), or when
-    ``prerender`` comes without one (random scenarios never end). The camera's params call it, so
-    `fv launch --check` and the launch itself refuse what the source would meet: a camera whose scene slid
-    its object off the skin at frame 34 replayed frames 0 to 33 for good."""
+    cannot be read or is no valid scene, when one of its first ``check_frames`` frames cannot be played
+    (their mechanics are played first, without rendering: `fv_algos.sim.sensor.check_scene`, 0.7 to 5.5
+    ms a frame), or when ``prerender`` comes without one (random scenarios never end). The camera's params
+    call it, so `fv launch --check` and the launch itself refuse what the source would meet: a camera
+    whose scene slid its object off the skin at frame 34 replayed frames 0 to 33 for good. The check is
+    bounded (the camera's `scene_check_frames`): a whole 18,000-frame scene took 14 s, at every start of
+    the camera; a later frame that cannot be played stops the camera as it comes."""
     name = source_name(scene_path)
     if prerender and not scene_path:
         raise ValueError(f"{name}: prerender needs a scene file (random scenarios never end)")
     try:
         scene = load_scene(scene_path) if scene_path else None
-        if scene is not None and check:
-            check_scene(scene)
+        if scene is not None and check_frames:
+            check_scene(scene, frames=check_frames)
     except (OSError, ValueError) as exc:
         raise ValueError(f"{name}: {exc}") from None
     return scene
@@ -52,7 +54,7 @@ class SimSource:
         self.prerender = prerender
         self.name = source_name(scene_path)
         try:
-            scene = read_scene(scene_path, prerender, check=False)  # the camera's params have played it
+            scene = read_scene(scene_path, prerender)  # the camera's params have checked it
         except ValueError as exc:
             raise SourceError(str(exc)) from None
         self.sensor = SimSensor(scene, seed=seed, loop_fps=fps)

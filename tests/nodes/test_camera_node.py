@@ -332,24 +332,24 @@ def test_start_after_gives_up_after_the_timeout_with_a_warning(bus, spawn, tmp_p
     assert "started without a status" in st.message
 
 
-def test_a_scene_that_fails_while_playing_stops_the_camera_saying_why(bus, monkeypatch: pytest.MonkeyPatch,
-                                                                     tmp_path: Path) -> None:
+def test_a_scene_that_fails_while_playing_stops_the_camera_saying_why(bus, tmp_path: Path) -> None:
     """A scene whose object left the skin at frame 4: the camera warned once, "reopening in 0.5 s", and replayed
-    frames 0 to 3 for good, its status 'ok' again at each reopen. Its params play the scene's mechanics first
-    and refuse it; a frame the play still meets stops the camera, its status saying so first."""
+    frames 0 to 3 for good, its status 'ok' again at each reopen. Its params play the scene's first
+    `scene_check_frames` frames' mechanics and refuse it; a later frame the play meets stops the camera, its
+    status saying so first."""
     import yaml
 
-    import nodes.sim_source
     from msgs import NodeStatus
     from nodes.camera import CameraNode
-    from nodes.node import NodeFailed
+    from nodes.exit_codes import NodeFailed
     scene = tmp_path / "off.yaml"
     scene.write_text(yaml.safe_dump({"object": {"shape": "sphere"}, "fps": 30, "initial": {"normal_N": 1.0},
                                      "steps": [{"action": "slide", "duration_s": 1.0, "velocity_mm_s": [100, 0]}]}))
-    monkeypatch.setattr(nodes.sim_source, "check_scene", lambda scene: None)  # met while playing, not at the start
     error = r"sim .*off.yaml: frame 4 \(t = 0.133 s\): the object's centre \(13.33, 0.00\) mm has left the skin"
     with TopicReader(["/camera/image", "/status"]) as reader:
-        node = CameraNode("camera", {"scene": str(scene), "fps": 60.0})
+        with pytest.raises(ValueError, match=error.replace("sim .*off", "off")):
+            CameraNode("camera", {"scene": str(scene)})
+        node = CameraNode("camera", {"scene": str(scene), "fps": 60.0, "scene_check_frames": 2})
         with pytest.raises(NodeFailed, match=f"^{error}"):
             node.spin(install_signals=False)
         received = []

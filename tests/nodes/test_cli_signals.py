@@ -19,9 +19,11 @@ steps:
 """
 
 
-def _fv(*args: str) -> subprocess.Popen:
+def _fv(*args: str, nohup: bool = False) -> subprocess.Popen:
+    """`fv *args` in a process; with `nohup`, SIGHUP ignored as `nohup` leaves it."""
+    ignore_hangup = (lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN)) if nohup else None
     return subprocess.Popen([sys.executable, "-m", "nodes.cli", *args], cwd=REPO, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True, preexec_fn=ignore_hangup)
 
 
 def _wait_for(condition, timeout_s: float = 60.0) -> None:
@@ -39,6 +41,20 @@ def test_sigterm_leaves_no_half_written_sequence(tmp_path: Path) -> None:
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(30) == 128 + signal.SIGTERM, proc.stderr.read()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["long.yaml"]
+
+
+def test_a_command_under_nohup_runs_on_after_sighup(tmp_path: Path) -> None:
+    """SIGHUP stopped every command, also one that `nohup` had told to ignore it: a long run over SSH ended at
+    logout."""
+    (tmp_path / "long.yaml").write_text(LONG_SCENE)
+    proc = _fv("sim", "--scene", str(tmp_path / "long.yaml"), "--out", str(tmp_path / "seq"), "--frames", "1000",
+               nohup=True)
+    _wait_for(lambda: any(tmp_path.glob("seq.partial-*/frame_00003.png")))
+    proc.send_signal(signal.SIGHUP)
+    time.sleep(1.0)
+    assert proc.poll() is None, proc.stderr.read()
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(30) == 128 + signal.SIGTERM
 
 
 def _stop_with_its_workers(proc: subprocess.Popen, workers: int) -> str:

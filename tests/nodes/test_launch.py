@@ -6,7 +6,6 @@ from __future__ import annotations
 import io
 import re
 import os
-import re
 import signal
 import subprocess
 import sys
@@ -388,6 +387,22 @@ def test_a_node_that_cannot_start_ends_the_launch(bus_env: Bus, spawn, tmp_path:
     assert f"[launch] camera cannot start: {error} (a configuration error, {tries}); stopping the launch" in out
     assert statuses and statuses[-1].state == "error" and statuses[-1].message == f"camera cannot start: {error}"
     assert ping(bus_env.address) is None
+
+
+def test_a_configuration_error_found_while_running_ends_the_launch(bus_env: Bus, spawn, tmp_path: Path) -> None:
+    """A simulated scene past the frames checked at start (`scene_check_frames`) whose object leaves the skin:
+    the camera stopped with exit 2 after its first NodeStatus, and the launch respawned it for good, each
+    time playing the scene up to that frame. It now exits CONFIG_WHILE_RUNNING and the launch stops at once."""
+    scene = _write(tmp_path, "off.yaml", "object: {shape: sphere}\nfps: 30\ninitial: {normal_N: 1.0}\n"
+                                         "steps: [{action: slide, duration_s: 1.0, velocity_mm_s: [100, 0]}]\n")
+    path = _write(tmp_path, "l.yaml", f"nodes:\n  - kind: camera\n    params: {{scene: {scene}, fps: 30, "
+                                      "scene_check_frames: 2}\n    respawn: true\n    respawn_delay: 0.1\n")
+    proc = spawn("launch", str(path), stdout=subprocess.PIPE, text=True)
+    assert proc.wait(60.0) == CONFIG
+    out = proc.stdout.read()
+    assert out.count("[launch] started camera (camera)") == 1, out
+    assert "[launch] camera cannot go on: " in out and "has left the skin, which spans +-12 mm (a configuration error, found while " \
+           "running); stopping the launch" in out, out
 
 
 def _gelsight_mini_plugged_in() -> bool:
