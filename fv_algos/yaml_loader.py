@@ -11,8 +11,9 @@ _MERGE_TAG = "tag:yaml.org,2002:merge"
 
 
 class YamlLoader(yaml.SafeLoader):
-    """SafeLoader that also reads YAML 1.2's floats without a dot (1e9, -2E-3) as numbers: YAML 1.1,
-    PyYAML's, reads them as text, so `fps:=1e9` was refused as "not of type float".
+    """SafeLoader that also reads YAML 1.2's floats whose exponent has no sign or whose mantissa has no
+    dot (1e9, -2E-3, 1.0e12, 1.5e3) as numbers: YAML 1.1, PyYAML's, reads them as text, so `fps:=1e9` was
+    refused as "not of type float", and a scene's `mu: 1.0e12` as "not a finite number".
 
     A mapping that repeats a key is refused (YAML requires unique keys; PyYAML kept the last, so
     `{normal_N: 2.0, normal_N: 50.0}` pressed 50 N): a `yaml.constructor.ConstructorError` whose
@@ -45,5 +46,6 @@ class YamlLoader(yaml.SafeLoader):
             first_line[key] = key_node.start_mark.line + 1
 
 
-YamlLoader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9]+[eE][-+]?[0-9]+$"),
-                                 list("-+0123456789"))
+YamlLoader.add_implicit_resolver("tag:yaml.org,2002:float",
+                                 re.compile(r"^[-+]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)[eE][-+]?[0-9]+$"),
+                                 list("-+.0123456789"))

@@ -178,6 +178,13 @@ def test_a_merge_may_still_override_a_key() -> None:
     assert yaml.load(text, Loader=YamlLoader)["object"] == {"shape": "sphere", "radius_mm": 8}
 
 
+@pytest.mark.parametrize("text, value", [("1e9", 1e9), ("-2E-3", -2e-3), ("1.0e12", 1e12), ("1.5e3", 1500.0),
+                                         (".5e1", 5.0), ("1.0e+12", 1e12), ("3.0", 3.0), ("1e", "1e"), ("e5", "e5")])
+def test_numbers_are_read_as_yaml_1_2_writes_them(text: str, value: object) -> None:
+    """PyYAML (YAML 1.1) reads 1.0e12 and 1.5e3 as text: a scene's `mu: 1.0e12` was "not a finite number"."""
+    assert yaml.load(f"x: {text}", Loader=YamlLoader)["x"] == value
+
+
 @pytest.mark.parametrize("kind", SLIP_KINDS + NON_SLIP_KINDS)
 def test_random_scenarios_have_the_labels_they_claim(kind: str) -> None:
     rng = np.random.default_rng(11)
