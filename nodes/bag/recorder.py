@@ -99,7 +99,15 @@ def calibration_yaml(info: CameraInfo, topic: str) -> bytes:
 
 
 class BagRecord(Node):
-    """Records the selected topics into a bag folder until stopped (SIGINT/SIGTERM)."""
+    """Records the selected topics into a bag folder until stopped (SIGINT/SIGTERM): the messages published
+    before the stop (`stop_ns`, the wall time stop() was first called)."""
+
+    stop_ns: int | None = None
+
+    def stop(self) -> None:
+        if self.stop_ns is None:
+            self.stop_ns = time.time_ns()
+        super().stop()
 
     Params = BagRecordParams
 
@@ -177,13 +185,14 @@ class BagRecord(Node):
             next_flush = time.monotonic() + period
             while not self.stopped:
                 raw = self._reader.recv_raw(max(0.0, next_flush - time.monotonic()))
-                if raw is not None:
-                    self._record(*raw, time.time_ns())
+                if raw is not None and not self._record(*raw, time.time_ns(), published_by_ns=self.stop_ns):
+                    break  # the stop came while it waited: a message published after it is not recorded
                 if time.monotonic() >= next_flush:
                     self.writer.flush()
                     self._update_counters()
                     next_flush = time.monotonic() + period
-            stopped_ns, drain_until = time.time_ns(), time.monotonic() + DRAIN_MAX_S
+            # the stop's time, not the time this thread saw it: on a loaded machine one more message came between
+            stopped_ns, drain_until = self.stop_ns or time.time_ns(), time.monotonic() + DRAIN_MAX_S
             while time.monotonic() < drain_until and (raw := self._reader.recv_raw(DRAIN_IDLE_S)) is not None:
                 if not self._record(*raw, time.time_ns(), published_by_ns=stopped_ns):
                     break
