@@ -241,6 +241,12 @@ class PublisherSocket:
             if not self._sock.closed:
                 self._drain_subscriptions()
 
+    def answer_until(self, done: threading.Event) -> None:
+        """`update()` every ANSWER_PERIOD_S until `done` is set: an idle latched publisher's own loop (a
+        thread of `nodes.client.Publisher`, `fv topic pub --latched` after its last message)."""
+        while not done.wait(ANSWER_PERIOD_S):
+            self.update()
+
     def wait_connected(self, timeout_s: float = 2.0) -> bool:
         """Block until the forwarder has subscribed (it always asks for latched topics)."""
         deadline = time.monotonic() + timeout_s

@@ -42,7 +42,7 @@ from typing import Callable, Iterator, TypeVar
 
 from msgs import CameraInfo, ContactSummary, DisplacementField, Image, MarkerArray, Message, NodeStatus, SlipState
 from msgs.wire import check_message
-from nodes.bus import ANSWER_PERIOD_S, PublisherSocket, TopicReader, validate_topic
+from nodes.bus import PublisherSocket, TopicReader, validate_topic
 from nodes.endpoints import BusAddress
 
 log = logging.getLogger("fv.client")
@@ -246,12 +246,9 @@ class Publisher(_Closing):
         self._closed = threading.Event()
         self._keeper: threading.Thread | None = None
         if latched:
-            self._keeper = threading.Thread(target=self._keep_latched, name=f"fv-latched{topic}", daemon=True)
+            self._keeper = threading.Thread(target=self._sock.answer_until, args=(self._closed,),
+                                            name=f"fv-latched{topic}", daemon=True)
             self._keeper.start()
-
-    def _keep_latched(self) -> None:
-        while not self._closed.wait(ANSWER_PERIOD_S):
-            self._sock.update()
 
     def publish(self, msg: Message) -> None:
         """Send `msg` (stamped with seq, pub_ns and node); ValueError "Type.field: reason" for a message

@@ -71,8 +71,8 @@ class Child:
     process said (its error), lines: the last `LINES_KEPT` lines of the current process's output.
     last_status_s: monotonic time of the current process's last NodeStatus (None before its first).
     fault: the kind of problem last said for it ("stopped", "silent" or ""), so each is said once.
-    start_failures: exits with CONFIG before a NodeStatus, in a row. cannot_start: it had
-    START_TRIES of them (or no respawn left). waiting_since: monotonic time of the first of its
+    start_failures: exits with CONFIG before a NodeStatus, in a row. cannot_run: it ends the
+    launch: START_TRIES of them (or no respawn left), or an exit CONFIG_WHILE_RUNNING. waiting_since: monotonic time of the first of its
     exits with TEMPFAIL in a row (None when the last exit was another), quiet: the lines those
     tries printed (`_numbers_masked`), not echoed again. spare: the standby process (standby
     nodes), spare_ready: it said STANDBY_READY, spare_lines: its output lines, spare_at: when to
@@ -90,7 +90,7 @@ class Child:
     last_status_s: float | None = None
     fault: str = ""
     start_failures: int = 0
-    cannot_start: bool = False
+    cannot_run: bool = False
     waiting_since: float | None = None
     quiet: set[str] = field(default_factory=set)
     spare: subprocess.Popen | None = None
@@ -385,7 +385,7 @@ class Launch:
                 kind, fault, state = "silent", f"{name} sent no /status for {silent_s:.0f} s (hung?)", "error"
             elif child.waiting_since is not None:
                 fault = f"{name} waits ({now - child.waiting_since:.0f} s): {child.error}"
-            elif child.cannot_start:
+            elif child.cannot_run:
                 fault, state = f"{name} {_cannot(child)}: {child.error}", "error"
             elif not running and child.restart_at is not None:
                 fault = f"{name} exited with code {child.exit_code}; respawning"
@@ -433,7 +433,7 @@ class Launch:
             return
         child.waiting_since, child.quiet = None, set()
         if code == CONFIG_WHILE_RUNNING or (failed_start and (not can_respawn or child.start_failures >= START_TRIES)):
-            self._cannot_start(child, now)
+            self._cannot_run(child, now)
             return
         if can_respawn:
             child.retries += 1
@@ -464,12 +464,12 @@ class Launch:
             self.say(f"{spec.name} is not ready (exit {TEMPFAIL}): starting it again every {spec.respawn_delay_s:g} s "
                      "until it is up, without repeating its output")
 
-    def _cannot_start(self, child: Child, now: float) -> None:
+    def _cannot_run(self, child: Child, now: float) -> None:
         """Stop the launch, with CONFIG, for a node whose start failed with a configuration error
         START_TRIES times in a row (or that has no respawn left), or that found one while running (exit
         CONFIG_WHILE_RUNNING): the launch as configured cannot run, whatever `required` says (README,
         "Launch files")."""
-        child.cannot_start = True
+        child.cannot_run = True
         child.error = child.error or f"exit code {child.exit_code}"
         tries = ("found while running" if child.exit_code == CONFIG_WHILE_RUNNING
                  else f"{child.start_failures} tries in a row" if child.start_failures >= START_TRIES

@@ -13,6 +13,7 @@ import json
 import math
 import os
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -328,7 +329,7 @@ def build_message(type_name: str, text: str) -> Any:
 
 
 def _pub(args: argparse.Namespace) -> int:
-    from nodes.bus import ANSWER_PERIOD_S, PublisherSocket
+    from nodes.bus import PublisherSocket
 
     msg = build_message(args.type, args.values)
     topic = args.topic  # checked by its argument type
@@ -353,9 +354,7 @@ def _pub(args: argparse.Namespace) -> int:
                 time.sleep(max(0.0, next_t - time.monotonic()))
         if args.latched:  # a latched message goes with its publisher (nodes.latched_cache): stay
             print(f"latched: {topic} kept for later subscribers until Ctrl-C", flush=True)
-            while True:
-                sock.update()  # answers the forwarder's refreshes
-                time.sleep(ANSWER_PERIOD_S)
+            sock.answer_until(threading.Event())  # answers the forwarder's refreshes until Ctrl-C
     finally:
         sock.close()
     return 0
