@@ -6,8 +6,12 @@ import argparse
 import json
 import shutil
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from nodes.arg_types import output_file, output_folder, output_with_suffix, positive_float, positive_int, random_seed
+
+if TYPE_CHECKING:
+    from fv_algos.sim.scene import Scene
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -37,9 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _sim(args: argparse.Namespace) -> int:
-    from fv_algos.atomic_file import write_image
     from fv_algos.sim.scene import load_scene
-    from fv_algos.sim.sensor import SimSensor, preview_image, write_sequence
     if args.out is None and args.preview is None:
         raise ValueError("give --out DIR and/or --preview FILE.png")
     if args.frames < 1:
@@ -54,6 +56,19 @@ def _sim(args: argparse.Namespace) -> int:
     index = args.frame if args.frame >= 0 else frames - 1
     if scene is not None and index >= scene.n_frames:
         raise ValueError(f"--frame {index}: the scene has {scene.n_frames} frames (0 to {scene.n_frames - 1})")
+    try:
+        return _simulate(args, scene, frames, index)
+    except ValueError as exc:
+        if scene is None:
+            raise
+        raise ValueError(f"{args.scene}: {exc}") from None  # a frame the scene's mechanics cannot play
+
+
+def _simulate(args: argparse.Namespace, scene: Scene | None, frames: int, index: int) -> int:
+    """`fv sim`'s writing, once its arguments and scene are checked: ``frames`` frames to --out, frame
+    ``index`` to --preview. ValueError for a frame the mechanics cannot play, naming it."""
+    from fv_algos.atomic_file import write_image
+    from fv_algos.sim.sensor import SimSensor, preview_image, write_sequence
     if args.out is not None:
         written = write_sequence(SimSensor(scene, seed=args.seed), args.out, frames)
         whole = f" (the whole scene; --frames asked for {args.frames})" if written < args.frames else ""

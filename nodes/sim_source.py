@@ -30,9 +30,12 @@ def read_scene(scene_path: str, prerender: bool = False, check_frames: int = 0) 
         raise ValueError(f"{name}: prerender needs a scene file (random scenarios never end)")
     try:
         scene = load_scene(scene_path) if scene_path else None
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"sim {exc}") from None  # load_scene's message starts with the path
+    try:
         if scene is not None and check_frames:
             check_scene(scene, frames=check_frames)
-    except (OSError, ValueError) as exc:
+    except ValueError as exc:
         raise ValueError(f"{name}: {exc}") from None
     return scene
 

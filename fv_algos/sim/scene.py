@@ -281,14 +281,18 @@ def load_scene(path: str | Path) -> Scene:
     """Read a scene description from a .yaml/.yml or .json file (UTF-8).
 
     Raises:
-        ValueError: naming the file (and the line, for text that is not UTF-8 or not YAML / JSON) and
-            what is wrong; OSError when it cannot be read.
+        ValueError: "<path>: what is wrong" (or "<path> line <n>: ..." for text that is not UTF-8),
+            the line too for text that is not YAML / JSON; OSError "<path>: cannot be read (<reason>)".
+            Every message starts with the path, so callers add what they are without naming it again.
     """
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in (".yaml", ".yml", ".json"):
-        raise ValueError(f"scene file must end in .yaml, .yml or .json, got {path.name!r}")
-    text = read_utf8(path)
+        raise ValueError(f"{path}: a scene file must end in .yaml, .yml or .json")
+    try:
+        text = read_utf8(path)
+    except OSError as exc:
+        raise OSError(f"{path}: cannot be read ({exc.strerror or exc})") from None
     try:
         desc = json.loads(text) if suffix == ".json" else yaml.load(text, Loader=YamlLoader)
     except json.JSONDecodeError as exc:

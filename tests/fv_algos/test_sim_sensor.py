@@ -154,7 +154,8 @@ def test_a_load_that_pushes_markers_to_the_camera_is_named_by_frame(tmp_path, ca
         _frames(0, heavy)
     (tmp_path / "heavy.yaml").write_text(yaml.safe_dump(heavy))
     assert main(["sim", "--scene", str(tmp_path / "heavy.yaml"), "--preview", str(tmp_path / "x.png"), "--frames", "1"]) == 2
-    assert f"fv sim: error: frame 0 (t = 0.000 s): the normal load of {normal_N:g} N pushes" in capsys.readouterr().err
+    heavy_path = tmp_path / "heavy.yaml"  # the scene named: a script's many `fv sim` runs said only "frame 0 ..."
+    assert f"fv sim: error: {heavy_path}: frame 0 (t = 0.000 s): the normal load of {normal_N:g} N pushes" in capsys.readouterr().err
 
 
 OFF_SKIN = {"object": {"shape": "sphere"}, "fps": 5, "initial": {"normal_N": 1.0},

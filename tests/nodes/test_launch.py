@@ -30,13 +30,14 @@ GOOD_NODE = "  - kind: talker\n    name: t\n"
 
 @pytest.fixture
 def video_files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """clip.avi, a.avi and b.avi in the working folder (a video camera's params need the file), and bag
-    files run1 and session (a bag player's params need an MCAP file)."""
+    """clip.avi, a.avi and b.avi in the working folder (a video camera's params need the file), bag
+    files run1 and session (a bag player's params need an MCAP file) and bad.yaml, a scene with no steps."""
     monkeypatch.chdir(tmp_path)
     for name in ("clip.avi", "a.avi", "b.avi"):
         (tmp_path / name).write_bytes(b"")
     for name in ("run1", "session"):
         (tmp_path / name).write_bytes(MCAP_MAGIC)
+    (tmp_path / "bad.yaml").write_text("object: {shape: sphere}\nfps: 30\n")  # a scene file that is no scene
 
 
 def _write(folder: Path, name: str, text: str) -> Path:
@@ -234,7 +235,9 @@ def test_both_fingers_start_together_and_their_slips_are_the_fusion_inputs(name:
     ("video.yaml", {"video": "clip.avi", "model": "gelsite_online"}, "model 'gelsite_online' is neither a shipped"),
     ("video.yaml", {"video": "clip.avi", "model": "a.avi"}, "a.avi is not a model file"),  # respawned for good
     ("pipeline.yaml", {"threads": 0}, "threads 0 must be >= 1"),
-    ("pipeline.yaml", {"scene": "nope.yaml"}, "sim nope.yaml: .*No such file"),  # the camera respawned for good
+    ("pipeline.yaml", {"scene": "nope.yaml"}, "sim nope.yaml: cannot be read \\(No such file"),  # it respawned for good
+    ("pipeline.yaml", {"scene": "s.txt"}, "sim s.txt: a scene file must end in .yaml"),  # the file named once: it said
+    ("pipeline.yaml", {"scene": "bad.yaml"}, "sim bad.yaml: scene needs key .steps."),  # "sim bad.yaml: bad.yaml: ..."
     ("pipeline.yaml", {"prerender": True}, "prerender needs a scene file"),
 ])
 @pytest.mark.usefixtures("video_files")
