@@ -54,6 +54,8 @@ class CameraParams:
     encoding: str = "mono8"  # mono8 | bgr8
     seed: int = 0  # sim: random seed
     prerender: bool = False  # sim: render the scene once at start and replay it from memory
+    prerender_max_mb: float = 500.0  # sim with prerender: most memory (MB) the scene's images may take (307 kB a
+    # frame at 640x480: 500 MB is 1,627 frames, 54 s at 30 fps); a longer scene is refused at start
     scene_check_frames: int = 600  # sim: frames of the scene's mechanics played at start to check it (0: none);
     # a longer scene's later frames are checked as they play (a frame it cannot play stops the launch)
     frame_id: str = "fv_camera"
@@ -81,7 +83,9 @@ class CameraParams:
             self.scene = str(Path(self.scene).expanduser()) if self.scene else ""
             if self.scene_check_frames < 0:
                 raise ValueError(f"scene_check_frames {self.scene_check_frames} must be >= 0")
-            read_scene(self.scene, self.prerender, self.scene_check_frames)
+            if self.prerender_max_mb <= 0:
+                raise ValueError(f"prerender_max_mb {self.prerender_max_mb} must be > 0")
+            read_scene(self.scene, self.prerender, self.scene_check_frames, self.prerender_max_mb)
         if self.undistort and not self.calibration and self.source != "sim":
             raise ValueError("undistort needs a calibration file")
         if self.start_timeout_s < 0:

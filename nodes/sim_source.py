@@ -6,6 +6,7 @@ from typing import Iterator
 
 import numpy as np
 
+from fv_algos.fisheye import FisheyeCamera
 from fv_algos.sim.scene import Scene, load_scene
 from fv_algos.sim.sensor import SimSensor, check_scene
 from nodes.camera_sources import Frame, SourceConfigError, SourceError
@@ -16,15 +17,40 @@ def source_name(scene_path: str) -> str:
     return f"sim {scene_path or 'random scenarios'}"
 
 
-def read_scene(scene_path: str, prerender: bool = False, check_frames: int = 0) -> Scene | None:
+def prerender_bytes(scene: Scene) -> int:
+    """Memory the images of ``scene`` take once prerendered, bytes: one (H, W) uint8 image a frame, at the
+    simulator's camera size (640x480: 307 kB a frame, 9.2 MB per second of scene at 30 fps)."""
+    camera = FisheyeCamera.default()
+    return scene.n_frames * camera.width * camera.height
+
+
+def _check_prerender(name: str, scene: Scene, max_mb: float) -> None:
+    """ValueError naming the scene ``name``, its frames and size when its prerendered images would take more
+    than ``max_mb`` MB (1 MB = 1e6 bytes)."""
+    need = prerender_bytes(scene)
+    if need <= max_mb * 1e6:
+        return
+    camera = FisheyeCamera.default()
+    frame = camera.width * camera.height
+    raise ValueError(f"{name}: prerender would hold its {scene.n_frames:,} frames ({scene.duration_s:g} s at "
+                     f"{scene.fps:g} fps) as {camera.width}x{camera.height} images of {frame / 1e3:.0f} kB: "
+                     f"{need / 1e6:,.0f} MB, over prerender_max_mb {max_mb:g} (room for {int(max_mb * 1e6 // frame):,} "
+                     f"frames, {max_mb * 1e6 / frame / scene.fps:.3g} s of this scene); play it without prerender, "
+                     "shorten it or raise prerender_max_mb")
+
+
+def read_scene(scene_path: str, prerender: bool = False, check_frames: int = 0,
+               prerender_max_mb: float | None = None) -> Scene | None:
     """The scene of the file ``scene_path`` ("": random scenarios, None); ValueError naming it when it
-    cannot be read or is no valid scene, when one of its first ``check_frames`` frames cannot be played
-    (their mechanics are played first, without rendering: `fv_algos.sim.sensor.check_scene`, 0.7 to 5.5
-    ms a frame), or when ``prerender`` comes without one (random scenarios never end). The camera's params
-    call it, so `fv launch --check` and the launch itself refuse what the source would meet: a camera
-    whose scene slid its object off the skin at frame 34 replayed frames 0 to 33 for good. The check is
-    bounded (the camera's `scene_check_frames`): a whole 18,000-frame scene took 14 s, at every start of
-    the camera; a later frame that cannot be played stops the camera as it comes."""
+    cannot be read or is no valid scene, when ``prerender`` comes without one (random scenarios never end)
+    or its images would take more than ``prerender_max_mb`` MB (`prerender_bytes`; None: no bound), or when
+    one of its first ``check_frames`` frames cannot be played (their mechanics are played first, without
+    rendering: `fv_algos.sim.sensor.check_scene`, 0.7 to 5.5 ms a frame). The camera's params call it, so
+    `fv launch --check` and the launch itself refuse what the source would meet: a camera whose scene slid
+    its object off the skin at frame 34 replayed frames 0 to 33 for good; one whose prerendered scene would
+    not fit in memory rendered for minutes, then took the machine's memory. The check is bounded (the
+    camera's `scene_check_frames`): a whole 18,000-frame scene took 14 s, at every start of the camera; a
+    later frame that cannot be played stops the camera as it comes."""
     name = source_name(scene_path)
     if prerender and not scene_path:
         raise ValueError(f"{name}: prerender needs a scene file (random scenarios never end)")
@@ -32,8 +58,12 @@ def read_scene(scene_path: str, prerender: bool = False, check_frames: int = 0) 
         scene = load_scene(scene_path) if scene_path else None
     except (OSError, ValueError) as exc:
         raise ValueError(f"sim {exc}") from None  # load_scene's message starts with the path
+    if scene is None:
+        return None
+    if prerender and prerender_max_mb is not None:
+        _check_prerender(name, scene, prerender_max_mb)
     try:
-        if scene is not None and check_frames:
+        if check_frames:
             check_scene(scene, frames=check_frames)
     except ValueError as exc:
         raise ValueError(f"{name}: {exc}") from None
@@ -47,8 +77,9 @@ class SimSource:
     With `prerender`, open() renders the whole scene once and read() replays its images from
     memory (only those: not the frames' ground truth, which the camera does not publish), so the
     camera costs what a real camera's driver costs: how `fv bench pipeline` measures the pipeline
-    rather than the renderer. That holds one 307 kB image a frame at 640x480: open() kept 9.5 MB per
-    second of scene at 30 fps (launch/scenes, traced). It needs a scene file (random scenarios never end)."""
+    rather than the renderer. That holds one 307 kB image a frame at 640x480 (`prerender_bytes`): open()
+    kept 9.5 MB per second of scene at 30 fps (launch/scenes, traced), and renders them all before the first
+    frame; the camera's params bound it (`prerender_max_mb`). It needs a scene file (random scenarios never end)."""
 
     def __init__(self, scene_path: str, seed: int, fps: float, prerender: bool = False) -> None:
         self.scene_path = scene_path

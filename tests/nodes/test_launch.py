@@ -263,6 +263,19 @@ def test_a_scene_that_cannot_be_played_is_refused_before_anything_starts(tmp_pat
     assert result.returncode == 2 and error in result.stderr, result.stderr
 
 
+def test_a_prerendered_scene_too_big_for_memory_is_refused_before_anything_starts(tmp_path: Path) -> None:
+    """`prerender:=true` with a 600 s scene passed `--check`; the camera then rendered for 6 minutes and held
+    5.5 GB before its first frame. The launch arg prerender_max_mb (the camera's param) bounds it."""
+    scene = _write(tmp_path, "long.yaml", "object: {shape: sphere}\nfps: 30\neffects: [normal]\n"
+                   "steps: [{action: press, duration_s: 0.5, normal_N: 1.0}, {action: hold, duration_s: 600}]\n")
+    for name in ("pipeline.yaml", "view.yaml"):
+        with pytest.raises(LaunchError, match=r"prerender would hold its 18,015 frames .*: 5,534 MB, over prerender_max_mb 500"):
+            load_launch(REPO / "launch" / name, {"scene": str(scene), "prerender": True})
+        camera = next(s for s in load_launch(REPO / "launch" / name, {"scene": str(scene), "prerender": True,
+                                                                      "prerender_max_mb": 6000}) if s.kind == "camera")
+        assert camera.params["prerender_max_mb"] == 6000
+
+
 @pytest.mark.parametrize("name, args", [("video.yaml", {"video": "clip.avi"}),
                                         ("video_pair.yaml", {"left": "a.avi", "right": "b.avi"}),
                                         ("gelsight_mini_pair.yaml", {"left": "2BKR", "right": "28G8"})])
