@@ -56,8 +56,9 @@ class CameraParams:
     prerender: bool = False  # sim: render the scene once at start and replay it from memory
     prerender_max_mb: float = 500.0  # sim with prerender: most memory (MB) the scene's images may take (307 kB a
     # frame at 640x480: 500 MB is 1,627 frames, 54 s at 30 fps); a longer scene is refused at start
-    scene_check_frames: int = 600  # sim: frames of the scene's mechanics played at start to check it (0: none);
-    # a longer scene's later frames are checked as they play (a frame it cannot play stops the launch)
+    scene_check_frames: int = 600  # sim: frames of the scene's mechanics played to check it before it starts, once
+    # per launch (`nodes.launch_checks`; 0: none); a longer scene's later frames are checked as they play (a frame
+    # it cannot play stops the launch)
     frame_id: str = "fv_camera"
     reopen_backoff_s: float = 0.5  # first retry delay after a lost source; doubles up to 8 s
     start_after: list[str] = field(default_factory=list)  # node names to wait for before the first frame

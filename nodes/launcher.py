@@ -44,6 +44,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
+from nodes import launch_checks
 from nodes.exit_codes import CONFIG, CONFIG_WHILE_RUNNING, FAILED, OK, TEMPFAIL, stop_signals
 from nodes.launch_file import NodeSpec, load_launch, parse_arg_overrides
 from nodes.node import LAUNCH_ENV, LAUNCHER_PID_ENV, STANDBY_READY
@@ -166,7 +167,7 @@ class Launch:
     # -- processes -------------------------------------------------------------------
     def _popen(self, spec: NodeSpec, *extra: str) -> subprocess.Popen:
         env = {**os.environ, "PYTHONUNBUFFERED": "1", LAUNCH_ENV: str(self._started_ns),
-               LAUNCHER_PID_ENV: str(os.getpid()), **spec.env}
+               LAUNCHER_PID_ENV: str(os.getpid()), **launch_checks.env(), **spec.env}  # checks made as it loaded
         return subprocess.Popen([sys.executable, "-m", "nodes.cli", *spec.argv(), *extra], env=env,
                                 stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                 text=True, bufsize=1, start_new_session=True)

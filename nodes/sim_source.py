@@ -1,6 +1,8 @@
 """The simulated sensor as a camera-node frame source."""
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import time
 from typing import Iterator
 
@@ -9,6 +11,7 @@ import numpy as np
 from fv_algos.fisheye import FisheyeCamera
 from fv_algos.sim.scene import Scene, load_scene
 from fv_algos.sim.sensor import SimSensor, check_scene
+from nodes import launch_checks
 from nodes.camera_sources import Frame, SourceConfigError, SourceError
 
 
@@ -49,8 +52,9 @@ def read_scene(scene_path: str, prerender: bool = False, check_frames: int = 0,
     `fv launch --check` and the launch itself refuse what the source would meet: a camera whose scene slid
     its object off the skin at frame 34 replayed frames 0 to 33 for good; one whose prerendered scene would
     not fit in memory rendered for minutes, then took the machine's memory. The check is bounded (the
-    camera's `scene_check_frames`): a whole 18,000-frame scene took 14 s, at every start of the camera; a
-    later frame that cannot be played stops the camera as it comes."""
+    camera's `scene_check_frames`: a whole 18,000-frame scene took 14 s) and made once per launch
+    (`nodes.launch_checks`: the launcher makes it, its camera, respawned too, skips a scene of the same
+    content); a later frame that cannot be played stops the camera as it comes."""
     name = source_name(scene_path)
     if prerender and not scene_path:
         raise ValueError(f"{name}: prerender needs a scene file (random scenarios never end)")
@@ -62,12 +66,20 @@ def read_scene(scene_path: str, prerender: bool = False, check_frames: int = 0,
         return None
     if prerender and prerender_max_mb is not None:
         _check_prerender(name, scene, prerender_max_mb)
-    try:
-        if check_frames:
+    if check_frames and not launch_checks.passed(key := _check_key(scene, check_frames)):
+        try:
             check_scene(scene, frames=check_frames)
-    except ValueError as exc:
-        raise ValueError(f"{name}: {exc}") from None
+        except ValueError as exc:
+            raise ValueError(f"{name}: {exc}") from None
+        launch_checks.note_passed(key)
     return scene
+
+
+def _check_key(scene: Scene, frames: int) -> str:
+    """The `launch_checks` key of playing the first ``frames`` frames of ``scene``: a digest of its content
+    (its effects sorted: a set's order differs between processes) and of ``frames``."""
+    content = repr(dataclasses.replace(scene, effects=tuple(sorted(scene.effects))))
+    return f"sim-scene:{frames}:{hashlib.sha256(content.encode()).hexdigest()}"
 
 
 class SimSource:

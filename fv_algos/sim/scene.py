@@ -69,8 +69,8 @@ SCENARIO_KINDS = SLIP_KINDS + NON_SLIP_KINDS
 # sliver of the object left over the skin)
 MAX_SLIDE_MM = 8.0
 MAX_SCENE_FRAMES = 100_000  # 55 min at 30 fps: more is no scripted scene (a longer run loops one, or plays random
-# scenarios), a count of frames must be a sane integer (1e308 s made one of infinity), and a camera plays a scene's
-# mechanics whole before it starts (`fv_algos.sim.sensor.check_scene`: 0.7 to 4 ms a frame, 1 to 7 min at this count)
+# scenarios), and a count of frames must be a sane integer (1e308 s made one of infinity); playing its mechanics whole
+# (`fv_algos.sim.sensor.check_scene`, 0.7 to 4 ms a frame) takes 1 to 7 min at this count
 FRAME_COUNT_TOLERANCE = 1e-9  # relative: a frame count duration * fps this close above a whole number is that number
 
 

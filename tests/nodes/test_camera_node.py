@@ -370,6 +370,38 @@ def test_a_scene_that_cannot_be_played_ends_fv_node_camera_at_its_start(bus, tmp
     assert "off.yaml: frame 0 (t = 0.000 s): the normal load of 1e+06 N pushes 256 of the 256 markers" in result.stderr
 
 
+def test_a_camera_skips_the_scene_check_its_launch_made_and_makes_it_for_another_scene(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The check ran in the launcher and again in each start of the camera: 0.5 s (a sphere) to 2.4 s (a twisting
+    key) for 600 frames. A camera given the checks its launch made (`nodes.launch_checks`) skips a scene of the
+    same content; a scene edited since, or one checked for fewer frames, is checked."""
+    import yaml
+
+    from nodes import launch_checks, sim_source
+    from nodes.camera import CameraParams
+    checked = []
+    check_scene = sim_source.check_scene
+    monkeypatch.setattr(sim_source, "check_scene", lambda scene, frames: checked.append(frames) or check_scene(scene, frames=frames))
+    monkeypatch.setattr(launch_checks, "_noted", set())  # the launcher's process
+    monkeypatch.delenv(launch_checks.CHECKED_ENV, raising=False)
+    scene = tmp_path / "s.yaml"
+    desc = {"object": {"shape": "sphere"}, "fps": 30, "initial": {"normal_N": 1.0},
+            "steps": [{"action": "slide", "duration_s": 1.0, "velocity_mm_s": [10, 0]}]}
+    scene.write_text(yaml.safe_dump(desc))
+    CameraParams(scene=str(scene), scene_check_frames=20)
+    assert checked == [20]
+    given = launch_checks.env()
+    monkeypatch.setattr(launch_checks, "_noted", set())  # the camera's process, the launcher's checks given
+    monkeypatch.setenv(launch_checks.CHECKED_ENV, given[launch_checks.CHECKED_ENV])
+    CameraParams(scene=str(scene), scene_check_frames=20)
+    assert checked == [20]
+    CameraParams(scene=str(scene), scene_check_frames=30)
+    assert checked == [20, 30]
+    scene.write_text(yaml.safe_dump({**desc, "steps": [{"action": "slide", "duration_s": 1.0, "velocity_mm_s": [100, 0]}]}))
+    with pytest.raises(ValueError, match=r"frame 4 \(t = 0.133 s\): the object's centre .* has left the skin"):
+        CameraParams(scene=str(scene), scene_check_frames=20)
+
+
 def test_a_prerendered_scene_holds_only_the_images_it_publishes() -> None:
     """It held every frame's ground truth too (pressure, traction and displacement fields): 550 kB a frame, 16.5
     MB per second of scene at 30 fps, where its image is 307 kB."""

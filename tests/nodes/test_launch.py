@@ -421,6 +421,47 @@ def test_a_configuration_error_found_while_running_ends_the_launch(bus_env: Bus,
            "running); stopping the launch" in out, out
 
 
+_PRESS = "object: {shape: sphere}\nfps: 30\neffects: [normal]\nsteps: [{action: press, duration_s: 1.0, normal_N: 1.0}]\n"
+_OFF_SKIN = ("object: {shape: sphere}\nfps: 30\ninitial: {normal_N: 1.0}\n"
+             "steps: [{action: slide, duration_s: 1.0, velocity_mm_s: [100, 0]}]\n")
+
+
+def test_a_launch_gives_its_nodes_the_scene_checks_it_made(bus_env: Bus, tmp_path: Path,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """The camera's scene check (600 frames' mechanics; 2.1 s for a twisting key) ran in the launcher as it read the
+    launch file, then again in the camera at its start (2.4 s) and at every respawn (1.6 s). The launcher now
+    gives its nodes the checks that passed (`nodes.launch_checks`, FV_CHECKED), which a camera whose scene has
+    the same content skips."""
+    from fv_algos.sim.scene import load_scene
+    from nodes.sim_source import _check_key
+    scene = _write(tmp_path, "press.yaml", _PRESS)
+    _talker_wrapped(tmp_path, monkeypatch, 'echo "checked: $FV_CHECKED"; exec "$PY" "$@"')
+    launch, out = _launch(tmp_path, f"nodes:\n  - {{kind: camera, params: {{scene: {scene}}}}}\n  - kind: talker\n")
+    launch.start()
+    try:
+        assert _said(out, "[talker] checked: ", 15.0), out.getvalue()
+    finally:
+        launch.stop()
+    given = re.search(r"\[talker\] checked: (.*)", out.getvalue()).group(1).split()
+    assert _check_key(load_scene(scene), 600) in given, out.getvalue()
+
+
+def test_a_camera_whose_scene_changed_since_its_launch_checked_it_checks_it_again(bus_env: Bus, tmp_path: Path) -> None:
+    """A scene file edited between the launcher's check and the camera's start (or a respawn) is another scene:
+    the camera checks it and refuses it."""
+    scene = _write(tmp_path, "s.yaml", _PRESS)
+    launch, out = _launch(tmp_path, f"nodes:\n  - {{kind: camera, params: {{scene: {scene}}}}}\n")
+    scene.write_text(_OFF_SKIN)
+    launch.start()
+    try:
+        assert launch.wait(60.0), out.getvalue()
+    finally:
+        code = launch.stop()
+    assert code == CONFIG, out.getvalue()
+    assert "camera cannot start: node 'camera': sim " in out.getvalue() and "frame 4 (t = 0.133 s): the object's centre (13.33, " \
+        "0.00) mm has left the skin" in out.getvalue(), out.getvalue()
+
+
 def _gelsight_mini_plugged_in() -> bool:
     try:
         find_v4l2_device("GelSight Mini")
