@@ -406,7 +406,9 @@ class Node:
                     s = min(waiting, key=lambda s: s.queue[0][0])
                     _, topic, frames = s.queue.popleft()
                     return s, topic, frames
-                self._cond.wait(None if due is None else due.next_s - now)
+                # a timer due past threading.TIMEOUT_MAX (292 years: a camera at fps 1e-12) is waited for in steps:
+                # a longer wait raised OverflowError and ended the node
+                self._cond.wait(None if due is None else min(due.next_s - now, threading.TIMEOUT_MAX))
         return None
 
     def _executor_loop(self) -> None:

@@ -370,6 +370,32 @@ def test_a_scene_that_cannot_be_played_ends_fv_node_camera_at_its_start(bus, tmp
     assert "off.yaml: frame 0 (t = 0.000 s): the normal load of 1e+06 N pushes 256 of the 256 markers" in result.stderr
 
 
+@pytest.mark.parametrize("fps", [1e-12, 1e-300])
+def test_a_camera_slower_than_a_frame_a_century_runs_until_stopped(bus, fps: float) -> None:
+    """At fps 1e-12 (a period past threading.TIMEOUT_MAX, 292 years) the node's executor raised OverflowError
+    ('timestamp out of range for platform time_t') as it began to wait, and the camera died with a traceback."""
+    import threading
+
+    from nodes.camera import CameraNode
+    node = CameraNode("camera", {"fps": fps})
+    errors: list[BaseException] = []
+
+    def spin() -> None:
+        try:
+            node.spin(install_signals=False)
+        except BaseException as exc:
+            errors.append(exc)
+
+    thread = threading.Thread(target=spin, daemon=True)
+    thread.start()
+    try:
+        wait_status("camera", timeout_s=10.0)
+    finally:
+        node.stop()
+        thread.join(5.0)
+    assert not thread.is_alive() and errors == []
+
+
 def test_a_camera_skips_the_scene_check_its_launch_made_and_makes_it_for_another_scene(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The check ran in the launcher and again in each start of the camera: 0.5 s (a sphere) to 2.4 s (a twisting
