@@ -68,6 +68,11 @@ SCENARIO_KINDS = SLIP_KINDS + NON_SLIP_KINDS
 # starts within 3 mm of the centre, stays on the 24 mm skin (slid off it, the whole load would press on the
 # sliver of the object left over the skin)
 MAX_SLIDE_MM = 8.0
+# farthest the loads of a random slide's shear ramp (1 to 3 frames past the friction limit) carry the object, mm:
+# they slip it at the scene's slide_speed_mm_s, 5 mm/s as drawn at 15 fps and more (the data set's and the main job's
+# rates), slower below, where the ramp lasts up to 3 / fps s: at 0.5 fps (the camera's random scenarios at fps:=0.5)
+# it and the release that follows slid 28 of 40 random slides off the skin
+MAX_RAMP_SLIP_MM = 1.0
 MAX_SCENE_FRAMES = 100_000  # 55 min at 30 fps: more is no scripted scene (a longer run loops one, or plays random
 # scenarios), and a count of frames must be a sane integer (1e308 s made one of infinity); playing its mechanics whole
 # (`fv_algos.sim.sensor.check_scene`, 0.7 to 4 ms a frame) takes 1 to 7 min at this count
@@ -389,8 +394,9 @@ def random_scenario(
 
     Kinds and what they guarantee over all n_frames (so any 10-frame window of a slip
     sequence contains slip):
-        translational  gross sliding from frame <= 3 on (shear past mu P, then a slide of at
-                       3 to 8 mm/s and at most MAX_SLIDE_MM);
+        translational  gross sliding from frame <= 3 on (shear past mu P, which slides the object
+                       at most MAX_RAMP_SLIP_MM, then a slide of at 3 to 8 mm/s and at most
+                       MAX_SLIDE_MM);
         rotational     gross spinning from frame <= 2 on (non-axisymmetric objects, so
                        the spin moves the patch);
         incipient      shear ramped from 0.8 to 0.97 mu P on curved objects (slip-zone
@@ -431,10 +437,12 @@ def random_scenario(
         return [float(v) for v in direction * ratio * limit]
 
     initial: dict[str, Any] = {"normal_N": normal}
+    rates: dict[str, float] = {}
     if kind == "translational":
         initial["force_N"] = vec(float(rng.uniform(0.2, 0.5)))
         ramp = float(rng.integers(1, 4)) / fps
         speed = min(float(rng.uniform(3.0, 8.0)), MAX_SLIDE_MM / (duration - ramp))
+        rates["slide_speed_mm_s"] = min(Scene.slide_speed_mm_s, MAX_RAMP_SLIP_MM / ramp)
         steps = [
             {"action": "shear", "duration_s": ramp, "force_N": vec(1.2)},
             {"action": "slide", "duration_s": duration - ramp, "velocity_mm_s": [float(v) for v in direction * speed]},
@@ -474,7 +482,7 @@ def random_scenario(
     else:
         steps = [{"action": "shear", "duration_s": duration, "force_N": vec(float(rng.uniform(0.3, 0.45)))}]
         effects = {"normal", "shear"}
-    desc = {"object": {"shape": shape_name(obj), **{k: getattr(obj, k) for k in obj.RANGES}}, "fps": fps, "effects": sorted(effects | set(render_effects)), "steps": steps, "start_mm": list(start), "start_angle_deg": angle, "initial": initial}
+    desc = {"object": {"shape": shape_name(obj), **{k: getattr(obj, k) for k in obj.RANGES}}, "fps": fps, "effects": sorted(effects | set(render_effects)), "steps": steps, "start_mm": list(start), "start_angle_deg": angle, "initial": initial, **rates}
     return scene_from_dict(desc)
 
 
