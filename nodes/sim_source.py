@@ -50,8 +50,8 @@ def read_scene(scene_path: str, prerender: bool = False, check_frames: int = 0,
     one of its first ``check_frames`` frames cannot be played (their mechanics are played first, without
     rendering: `fv_algos.sim.sensor.check_scene`, 0.7 to 5.5 ms a frame). The camera's params call it, so
     `fv launch --check` and the launch itself refuse what the source would meet: a camera whose scene slid
-    its object off the skin at frame 34 replayed frames 0 to 33 for good; one whose prerendered scene would
-    not fit in memory rendered for minutes, then took the machine's memory. The check is bounded (the
+    its object off the skin at frame 34 replayed frames 0 to 33 for good; one prerendering a 600 s scene
+    rendered for 6 minutes and held 5.5 GB before its first frame. The check is bounded (the
     camera's `scene_check_frames`: a whole 18,000-frame scene took 14 s) and made once per launch
     (`nodes.launch_checks`: the launcher makes it, its camera, respawned too, skips a scene of the same
     content); a later frame that cannot be played stops the camera as it comes."""
