@@ -72,7 +72,7 @@ def _simulate(args: argparse.Namespace, scene: Scene | None, frames: int, index:
     if args.out is not None:
         written = write_sequence(SimSensor(scene, seed=args.seed), args.out, frames)
         whole = f" (the whole scene; --frames asked for {args.frames})" if written < args.frames else ""
-        print(f"wrote {written} frames with ground truth to {args.out}{whole}")
+        print(f"wrote {written} frame{'' if written == 1 else 's'} with ground truth to {args.out}{whole}")
     if args.preview is not None:
         args.preview.parent.mkdir(parents=True, exist_ok=True)
         if args.out is not None and index < frames:  # written already: no second simulation

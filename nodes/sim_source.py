@@ -12,7 +12,7 @@ from fv_algos.fisheye import FisheyeCamera
 from fv_algos.sim.scene import Scene, load_scene
 from fv_algos.sim.sensor import SimSensor, check_scene
 from nodes import launch_checks
-from nodes.camera_sources import Frame, SourceConfigError, SourceError
+from nodes.camera_sources import Frame, SourceConfigError, SourceError, log
 
 
 def source_name(scene_path: str) -> str:
@@ -112,10 +112,15 @@ class SimSource:
         """Start the scene (or the random scenarios) from its first frame; with `prerender`, render it
         first. SourceConfigError as `read`."""
         if self.prerender and self._rendered is None:
+            scene = self.sensor.scene
+            log.info("%s: rendering its %d frames (%.0f MB) before the first is published (prerender)", self.name,
+                     scene.n_frames, prerender_bytes(scene) / 1e6)  # 10 to 20 s within the default bound
+            started = time.monotonic()
             try:
                 self._rendered = [frame.image for frame in self.sensor]
             except ValueError as exc:
                 raise SourceConfigError(f"{self.name}: {exc}") from None
+            log.info("%s: rendered in %.1f s", self.name, time.monotonic() - started)
         self._images = iter(self._rendered) if self._rendered is not None else (frame.image for frame in self.sensor)
 
     def read(self) -> Frame | None:

@@ -428,14 +428,16 @@ def test_a_camera_skips_the_scene_check_its_launch_made_and_makes_it_for_another
         CameraParams(scene=str(scene), scene_check_frames=20)
 
 
-def test_a_prerendered_scene_holds_only_the_images_it_publishes() -> None:
+def test_a_prerendered_scene_holds_only_the_images_it_publishes(caplog: pytest.LogCaptureFixture) -> None:
     """It held every frame's ground truth too (pressure, traction and displacement fields): 550 kB a frame, 16.5
-    MB per second of scene at 30 fps, where its image is 307 kB."""
+    MB per second of scene at 30 fps, where its image is 307 kB. The rendering is logged: within the default
+    prerender_max_mb it is 10 to 20 s before the camera's first frame, which said nothing."""
     import tracemalloc
 
     from fv_algos.sim.sensor import check_scene
     from nodes.sim_source import SimSource, prerender_bytes
     source = SimSource(str(Path(__file__).parents[2] / "launch" / "scenes" / "twist_key.yaml"), 0, 30.0, prerender=True)
+    caplog.set_level("INFO", logger="fv.camera")
     check_scene(source.sensor.scene)  # scipy's FFT caches its plans (1.4 MB) at the mechanics' first solves: made
     # here, not counted, so that the test gives the same answer alone as after other tests
     tracemalloc.start()
@@ -449,6 +451,8 @@ def test_a_prerendered_scene_holds_only_the_images_it_publishes() -> None:
     assert all(image.shape == (480, 640) for image in images)
     assert held < 1.05 * sum(image.nbytes for image in images), held
     assert prerender_bytes(source.sensor.scene) == sum(image.nbytes for image in images)  # what prerender_max_mb bounds
+    assert f"twist_key.yaml: rendering its {len(images)} frames (16 MB) before the first is published" in caplog.text
+    assert "twist_key.yaml: rendered in " in caplog.text
 
 
 def test_a_scene_whose_prerendered_images_pass_prerender_max_mb_is_refused_naming_its_size(tmp_path: Path) -> None:
