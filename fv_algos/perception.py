@@ -26,6 +26,7 @@ from fv_algos.detection import (
     estimate_marker_params,
 )
 from fv_algos.field import DisplacementField, FieldInterpolator, FieldParams
+from fv_algos.reference_markers import checked_reference
 from fv_algos.tracking import Tracker, TrackerParams, TrackState
 
 PresetName = Literal["paper", "default", "fastest"]
@@ -66,6 +67,17 @@ class PerceptionParams:
                 tracking=TrackerParams(rounds=1),
             )
         raise ValueError(f"unknown preset {name!r}; use 'paper', 'default' or 'fastest'")
+
+
+def resumable_reference(reference_px: np.ndarray) -> np.ndarray:
+    """(N, 2) float64 copy of reference marker positions `reference_px` (px) that `Perception.resume` can
+    track against: ValueError naming what is wrong for fewer than 3 markers (no field) and for what
+    `fv_algos.reference_markers.checked_reference` refuses (another shape, non-finite coordinates, a
+    marker listed twice)."""
+    ref = np.asarray(reference_px, dtype=np.float64).reshape(-1, 2)
+    if ref.shape[0] < 3:
+        raise ValueError(f"reference_px holds {ref.shape[0]} markers, need >= 3")
+    return checked_reference(ref, "reference_px")
 
 
 class Perception:
@@ -125,7 +137,9 @@ class Perception:
         """Go on tracking against markers taken as the reference earlier (e.g. by a tracker
         process that has since restarted), with `image` possibly showing the skin deformed.
 
-        reference_px: (N, 2) undeformed marker positions in px, N >= 3. The markers of
+        reference_px: (N, 2) undeformed marker positions in px that `resumable_reference` takes
+        (ValueError naming what it refuses, and when the markers' look is unknown and `image` shows
+        none to estimate it from: `estimate_marker_params`). The markers of
         `image` are matched to them as one tracking step (motions up to the tracker's
         one-frame limit, about 1.5 marker pitches, are followed). The markers' reference area (the
         tracker's area check) is the median detection's, or the marker disc's
@@ -139,9 +153,7 @@ class Perception:
         the rule, 487, 303, 159 and 2,141 without (116 tracked from frame 1 without a break). GelSight
         Mini trials: 3 of 10,076 frames so crowded (every 10th frame of the 300 videos).
         """
-        ref = np.asarray(reference_px, dtype=np.float64).reshape(-1, 2)
-        if ref.shape[0] < 3 or not np.all(np.isfinite(ref)):
-            raise ValueError(f"reference_px: need >= 3 finite markers, got shape {ref.shape}")
+        ref = resumable_reference(reference_px)
         if self.params.marker is None:
             self.marker = estimate_marker_params(image)
         assert self.marker is not None

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fv_algos.perception import Perception, PerceptionParams
+from fv_algos.perception import Perception, PerceptionParams, resumable_reference
 from msgs import Image, MarkerArray
 from nodes.node import Node, launch_started_ns
 
@@ -98,7 +98,8 @@ class TrackerNode(Node):
             self.subscribe("markers/reference", MarkerArray, self.on_reference, depth=1, gone=True)
         if p.recorded_reference:
             self.subscribe(p.recorded_reference, MarkerArray, self.on_recorded_reference, depth=1)
-        self.counters.update(references=0, resumed=0, reference_retries=0, other_size=0, source_restarts=0)
+        self.counters.update(references=0, resumed=0, reference_retries=0, other_size=0, source_restarts=0,
+                             bad_references=0)
 
     def teardown(self) -> None:
         """Say so when frames came but none was tracked: a video of 1 frame, or `reference_frame` past
@@ -127,15 +128,31 @@ class TrackerNode(Node):
 
     def on_reference(self, msg: MarkerArray) -> None:
         """Keep the reference a previous process of this node published (latched), in this launch."""
-        if self.needs_reference and msg.node == self.name and self.launch_ns <= msg.pub_ns < self.started_ns:
+        if (self.needs_reference and msg.node == self.name and self.launch_ns <= msg.pub_ns < self.started_ns
+                and self.resumable(msg, "the previous process's")):
             self.inherited, self.inherited_from = msg, "the previous process's"
+
+    def resumable(self, msg: MarkerArray, whose: str) -> bool:
+        """Whether the reference `msg` (`whose`, for the warning) can be tracked against
+        (`fv_algos.perception.resumable_reference`); False, warned and counted in bad_references, for one that
+        cannot (a NaN marker, fewer than 3, one listed twice): kept, it made every frame fail, and the tracker
+        never took a reference of its own."""
+        try:
+            resumable_reference(msg.ref_px)
+        except ValueError as exc:
+            self.counters["bad_references"] += 1
+            self.warn(f"{whose} reference (from {msg.node!r}) is not used: {exc} (bad_references)",
+                      kind="bad reference")
+            return False
+        return True
 
     def on_recorded_reference(self, msg: MarkerArray) -> None:
         """Keep the reference a replayed recording holds when it is stamped no later than the first frame
         (frames and references may be taken in either order): the recording began after the live tracker
         took it, and is tracked against it as live. Stamped later, it belongs to a frame of the
         recording, which this tracker takes itself."""
-        if self.needs_reference and (self.first_stamp_ns is None or msg.stamp_ns <= self.first_stamp_ns):
+        if (self.needs_reference and (self.first_stamp_ns is None or msg.stamp_ns <= self.first_stamp_ns)
+                and self.resumable(msg, "the recording's")):
             self.inherited, self.inherited_from = msg, "the recording's"
 
     def on_image(self, msg: Image) -> None:
@@ -159,28 +176,28 @@ class TrackerNode(Node):
                 self.inherited = None
         if self.needs_reference:
             old = self.inherited
-            if (old is not None and (old.width, old.height) == (msg.width, msg.height)
-                    and old.stamp_ns <= self.first_stamp_ns):  # a reference stamped later is another stream's
-                state = self.perception.resume(msg.data, old.ref_px)
-                self.counters["resumed"] += 1
-                self.log.info("tracking against %s reference (%d markers)", self.inherited_from, len(old.ref_px))
-            elif time.monotonic() < self.resume_until:
+            resume = (old is not None and (old.width, old.height) == (msg.width, msg.height)
+                      and old.stamp_ns <= self.first_stamp_ns)  # a reference stamped later is another stream's
+            if not resume and time.monotonic() < self.resume_until:
                 return
-            elif not self.take_next and self.frame_number(msg) < self.params.reference_frame:
+            if not resume and not self.take_next and self.frame_number(msg) < self.params.reference_frame:
                 if self.frames_seen == 1:  # a video shorter than that is never tracked: say why
                     self.log.info("frames before frame %d (reference_frame) are not tracked",
                                   self.params.reference_frame)
                 return
+            try:
+                state = self.perception.resume(msg.data, old.ref_px) if resume else self.perception.reset(msg.data)
+            except ValueError as exc:  # a dark or empty frame (a camera starting): the next one is tried
+                self.counters["reference_retries"] += 1
+                self.warn(f"no reference in this frame ({exc}): taking the next (reference_retries)",
+                          kind="no reference")
+                return
+            if resume:
+                self.counters["resumed"] += 1
+                self.log.info("tracking against %s reference (%d markers)", self.inherited_from, len(old.ref_px))
             else:
-                try:
-                    state = self.perception.reset(msg.data)
-                except ValueError as exc:  # a dark or empty frame (a camera starting): the next one is tried
-                    self.counters["reference_retries"] += 1
-                    self.warn(f"no reference in this frame ({exc}): taking the next (reference_retries)",
-                              kind="no reference")
-                    return
                 self.counters["references"] += 1
-                self.clear_warning()
+            self.clear_warning()
             self.needs_reference = False
             self.take_next = False
             self.inherited = None

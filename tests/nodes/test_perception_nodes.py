@@ -288,3 +288,55 @@ def test_launch_check_refuses_bad_params_by_file_node_and_value(tmp_path: Path, 
     result = run_fv("launch", "--check", str(launch))
     assert result.returncode == 2, result.stdout
     assert f"{launch}:3: nodes[0] ({node}).params" in result.stderr and says in result.stderr, result.stderr
+
+
+def _reference_of(ref_px: np.ndarray, image: np.ndarray, pub_ns: int) -> MarkerArray:
+    """The tracker's reference message of markers `ref_px` (N, 2) px in `image`, published at `pub_ns`."""
+    ref = np.asarray(ref_px, np.float32)
+    return MarkerArray(stamp_ns=1, pub_ns=pub_ns, node="tracker", ref_px=ref, cur_px=ref, valid=np.ones(len(ref), bool),
+                       frames_since_seen=np.zeros(len(ref), np.int32), width=image.shape[1], height=image.shape[0])
+
+
+@pytest.mark.parametrize("bad, says", [("nan", "non-finite"), ("two", "2 markers"), ("none", "0 markers"),
+                                       ("twice", "coincide")])
+@pytest.mark.parametrize("topic", ["markers/reference", "recorded/markers/reference"])
+def test_a_reference_that_cannot_be_tracked_against_is_refused_and_a_new_one_taken(bad: str, says: str,
+                                                                                   topic: str) -> None:
+    """A previous process's (or a recording's) reference with a NaN marker, fewer than 3 markers or a marker
+    listed twice was kept: every frame then raised in the tracker's callback ('reference_px: need >= 3
+    finite markers'), and not one frame was tracked for the node's life. It is now refused as it comes,
+    named, warned and counted (bad_references), and the tracker takes its own reference."""
+    from fv_algos.perception import Perception
+    from msgs import Image
+    rest = _skin_at_rest()
+    with _tracker({"reference_frame": 0, "resume_wait_s": 0.0,
+                   "recorded_reference": "recorded/markers/reference"}) as (node, references, markers):
+        ref = Perception().reset(rest).reference_px
+        ref = {"nan": np.where(np.arange(len(ref))[:, None] == 3, np.nan, ref), "two": ref[:2], "none": ref[:0],
+               "twice": np.vstack([ref, ref[:1]])}[bad]
+        message = _reference_of(ref, rest, node.started_ns - 1)
+        node.on_reference(message) if topic == "markers/reference" else node.on_recorded_reference(message)
+        assert node.counters["bad_references"] == 1 and node.state == "warn"
+        assert says in node.message and "'tracker'" in node.message, node.message
+        for k in range(2):
+            node.on_image(Image(stamp_ns=2 + k, encoding="mono8", data=rest))
+        assert len(references) == 1 and node.counters["references"] == 1 and node.counters["resumed"] == 0
+        assert len(markers) == 2 and markers[-1].valid.all()
+
+
+def test_a_dark_frame_met_when_resuming_is_retried_as_a_new_reference_is() -> None:
+    """Resuming the previous process's reference on a dark frame (markers unknown, none to estimate them
+    from) raised in the tracker's callback, logged with its traceback; it is now warned and counted as a
+    reference retry (reference_retries), and the next frame resumes it."""
+    from fv_algos.perception import Perception
+    from msgs import Image
+    rest = _skin_at_rest()
+    with _tracker({"reference_frame": 0, "resume_wait_s": 0.0}) as (node, references, markers):
+        node.launch_ns = 0
+        node.on_reference(_reference_of(Perception().reset(rest).reference_px, rest, node.started_ns - 1))
+        node.on_image(Image(stamp_ns=2, encoding="mono8", data=np.zeros_like(rest)))
+        assert node.counters["reference_retries"] == 1 and node.state == "warn" and not references
+        assert "no reference in this frame (reference frame shows 0 consistent marker blobs" in node.message
+        node.on_image(Image(stamp_ns=3, encoding="mono8", data=rest))
+        assert node.counters["resumed"] == 1 and len(references) == 1 and node.state == "ok"
+        assert markers[-1].valid.all()
