@@ -64,12 +64,13 @@ class GraspJudge:
         ``field`` (h, w, 3) px of ``image`` (dx, dy, |d|; rounded to float16 as the cached fields the model was
         trained on, :func:`fv_algos.real_trials.float16_px`),
         ``valid_share`` the share of reference markers valid in this frame. ValueError for a field with a NaN or
-        infinite value (it would score like no motion)."""
+        infinite value (it would score like no motion) or of another grid than the model's
+        (:func:`fv_algos.trial_net.field_rows`), before the frame is taken."""
         values = np.asarray(field)
         if not np.all(np.isfinite(values)):
             raise ValueError(f"field holds {np.count_nonzero(~np.isfinite(values))} non-finite values (NaN or inf)")
-        series_row = self.motion.reset(image) if self.frames == 0 else self.motion.step(image)
         rows = field_rows(float16_px(values)[None], np.array([valid_share]), image.shape[1])
+        series_row = self.motion.reset(image) if self.frames == 0 else self.motion.step(image)
         return self.push(series_row, rows[0])
 
     def push(self, row: np.ndarray, field_row: np.ndarray) -> float:

@@ -62,6 +62,9 @@ REQUIRED_COLUMNS = ("trial", "object", "label")
 CACHE_VERSION = 3
 # the frame width (px) real-trial fields are read at by the models, whatever the camera's: the GelSight Mini's 320x240
 FIELD_WIDTH_PX = 320
+# the grid (rows, columns) of the fields `video_fields` gives (the default FieldParams'), which the models trained on
+# real trials read: their divergence and curl are per grid cell
+FIELD_GRID = field_module.FieldParams().grid_shape
 
 
 @dataclass(frozen=True)

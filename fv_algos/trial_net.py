@@ -28,7 +28,8 @@ from scipy.special import expit
 from torch import nn
 
 from fv_algos.contact_motion import ContactMotionParams, TrialSeries
-from fv_algos.real_trials import CAMERAS, Trial, TrialFields, VideoFields, at_reference_width, require_frames
+from fv_algos.real_trials import (CAMERAS, FIELD_GRID, Trial, TrialFields, VideoFields, at_reference_width,
+                                  require_frames)
 from fv_algos.slip.classifier import read_torch_file
 from fv_algos.slip.evaluate import classification_metrics
 from fv_algos.trial_eval import fold_summary, map_folds, object_folds
@@ -58,7 +59,12 @@ def field_rows(fields: np.ndarray, valid_share: np.ndarray, width_px: int) -> np
     wide and the share of reference markers valid in each frame ``valid_share`` (F,); frames are
     independent. Displacements are rescaled to px of the frame resized to ``FIELD_WIDTH_PX`` wide
     (:func:`fv_algos.real_trials.at_reference_width`), so one grasp filmed at another resolution gives
-    the same rows."""
+    the same rows. ValueError naming the grid for fields not on ``FIELD_GRID`` (H, W): the rows' divergence
+    and curl are per grid cell."""
+    grid_shape = tuple(np.shape(fields)[1:3])
+    if grid_shape != FIELD_GRID:
+        raise ValueError(f"field grid {'x'.join(map(str, grid_shape))} is not the {FIELD_GRID[0]}x{FIELD_GRID[1]} grid "
+                         "the trial models read (their divergence and curl are per grid cell)")
     grid = at_reference_width(fields, width_px)
     ddx_dy, ddx_dx = np.gradient(grid[..., 0], axis=(1, 2))
     ddy_dy, ddy_dx = np.gradient(grid[..., 1], axis=(1, 2))

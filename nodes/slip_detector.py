@@ -69,6 +69,13 @@ def model_path(name: str) -> Path:
     raise FileNotFoundError(f"model {name!r} is neither a shipped model ({names}) nor a checkpoint file")
 
 
+def require_grid(msg: DisplacementField, grid: tuple[int, int]) -> None:
+    """ValueError naming both grids when the field of `msg` is not on the model's `grid` (rows, columns)."""
+    if msg.field.shape[:2] != grid:
+        raise ValueError(f"field grid {msg.field.shape[:2]} does not match the model's {grid[0]}x{grid[1]}: "
+                         "set the interpolator's grid param")
+
+
 @dataclass
 class SlipDetectorParams:
     model: str = "sim_cnn_lstm"  # shipped model name (the module docstring lists them) or checkpoint path
@@ -168,11 +175,13 @@ class SlipDetectorNode(Node):
         import torch
 
         from fv_algos.grasp_judge import GraspJudge
+        from fv_algos.real_trials import FIELD_GRID
         p = self.params
         if p.device != "cpu":
             raise ValueError(f"a trial model runs on the cpu only, not device {p.device!r}")
         torch.set_num_threads(p.threads)
         self.judge = GraspJudge(model.net, model.params, model.fps, model.stretch)
+        self.field_grid = FIELD_GRID  # (rows, columns) of the fields the model reads
         self.judged: tuple[float, int] | None = None  # P(slip) of the grasp at its last frame judged, and that stamp
         self.images: collections.OrderedDict[int, Image] = collections.OrderedDict()  # by stamp, oldest first
         self.grasp_start_ns: int | None = None
@@ -214,9 +223,7 @@ class SlipDetectorNode(Node):
 
     def on_field(self, msg: DisplacementField) -> None:
         cfg = self.classifier.config
-        if msg.field.shape[:2] != (cfg.grid, cfg.grid):
-            raise ValueError(f"field grid {msg.field.shape[:2]} does not match the model's {cfg.grid}x{cfg.grid}: "
-                             "set the interpolator's grid param")
+        require_grid(msg, (cfg.grid, cfg.grid))
         if self.window and not 0 <= msg.stamp_ns - self.window[-1][0] <= self.params.window_gap_s * 1e9:
             # not the next field of the window's stream (a bag replayed again, a stale field): a window of it
             # would span that gap, with its stamps out of order
@@ -269,6 +276,7 @@ class SlipDetectorNode(Node):
         self.counters["grasps"] += 1
 
     def on_grasp_field(self, msg: DisplacementField) -> None:
+        require_grid(msg, self.field_grid)
         if self.grasp_start_ns is None or msg.stamp_ns < self.grasp_start_ns:
             self.counters["before_grasp"] += 1  # no reference yet, or a field of the grasp before the current one
             return

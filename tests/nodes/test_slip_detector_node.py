@@ -183,6 +183,25 @@ def test_trial_model_refuses_grey_images_by_name() -> None:
         node.close()
 
 
+@pytest.mark.parametrize("grid", [1, 10])
+def test_trial_model_refuses_a_field_grid_it_was_not_trained_for(grid: int) -> None:
+    """A trial model judged fields of any grid: an interpolator of grid 10 gave it a curl 3.2x the one it
+    was trained on, silently, and a 1x1 field raised numpy's message on gradients. As the window model
+    does, it names the grids and the interpolator's grid param."""
+    from msgs import Image
+    from nodes.slip_detector import SlipDetectorNode
+    node = SlipDetectorNode("slip_detector", {"model": "gelsight_online"})
+    try:
+        node.setup()
+        node.on_reference(_reference(5, 320))
+        node.on_image(Image(stamp_ns=5, encoding="bgr8", data=np.zeros((240, 320, 3), np.uint8)))
+        with pytest.raises(ValueError, match=rf"field grid \({grid}, {grid}\) does not match the model's 30x30: "
+                                             "set the interpolator's grid param"):
+            node.on_grasp_field(_field(5, 0.0, grid=grid))
+    finally:
+        node.close()
+
+
 def test_a_camera_faster_than_the_trial_model_is_judged_at_the_model_rate() -> None:
     """Fields at 50 fps for a 25 fps model: every other one is judged; the others repeat the grasp's
     P(slip) so far, with the stamp of the frame it was judged at."""
