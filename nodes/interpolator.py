@@ -47,12 +47,12 @@ class InterpolatorNode(Node):
         self.field_params = p.field_params()
         self.contact_params = ContactParams(p.contact_threshold_px)
         self.interpolator = None
-        self.reference_key = b""
+        self.reference_key: bytes | None = None  # ref_px of the reference `interpolator` was built for
         self.field_pub = self.publisher("field", DisplacementField)
         self.contact_pub = self.publisher("contact", ContactSummary) if p.contact else None
         self.subscribe("markers", MarkerArray, self.on_markers, depth=5,
                        stale_after_s=p.input_timeout_s or None)
-        self.counters.update(invalid_fields=0, too_many_markers=0)
+        self.counters.update(invalid_fields=0, too_many_markers=0, bad_references=0)
 
     def on_markers(self, msg: MarkerArray) -> None:
         if len(msg.ref_px) > self.params.max_markers:
@@ -60,11 +60,16 @@ class InterpolatorNode(Node):
             self.warn(f"a MarkerArray of {len(msg.ref_px)} markers from {msg.node!r} refused: more than max_markers "
                       f"{self.params.max_markers} (too_many_markers)", kind="too many markers")
             return
-        self.clear_warning()
         key = msg.ref_px.tobytes()
         if key != self.reference_key:
-            self.interpolator = FieldInterpolator(msg.ref_px, self.field_params)
+            try:
+                self.interpolator = FieldInterpolator(msg.ref_px, self.field_params)
+            except ValueError as exc:  # a NaN, no marker, one listed twice: from the bus, not from a tracker
+                self.counters["bad_references"] += 1
+                self.warn(f"a MarkerArray from {msg.node!r} refused: {exc} (bad_references)", kind="bad reference")
+                return
             self.reference_key = key
+        self.clear_warning()
         dense = self.interpolator.interpolate(msg.cur_px, msg.valid)
         if not dense.valid:
             self.counters["invalid_fields"] += 1

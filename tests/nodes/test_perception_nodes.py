@@ -340,3 +340,32 @@ def test_a_dark_frame_met_when_resuming_is_retried_as_a_new_reference_is() -> No
         node.on_image(Image(stamp_ns=3, encoding="mono8", data=rest))
         assert node.counters["resumed"] == 1 and len(references) == 1 and node.state == "ok"
         assert markers[-1].valid.all()
+
+
+@pytest.mark.parametrize("ref, says", [
+    (np.array([[np.nan, 0.0], [10.0, 0.0], [0.0, 10.0]]), "non-finite"),
+    (np.zeros((0, 2)), "no markers"),
+    (np.zeros((4, 2)), "coincide"),
+    (np.array([[0.0, 0.0], [1e30, 0.0], [0.0, 10.0]]), "beyond"),
+])
+def test_the_interpolator_refuses_a_reference_it_cannot_interpolate_from(ref: np.ndarray, says: str) -> None:
+    """A MarkerArray whose reference holds a NaN, no marker, a marker listed twice or one beyond 1e6 px (from
+    the bus: `fv topic pub`, a bad bag) raised in the interpolator's callback, logged with a traceback as an
+    error of the node. It is now refused, named and counted (bad_references), as too many markers are, and
+    the next good MarkerArray clears the warning."""
+    from nodes.interpolator import InterpolatorNode
+    node = InterpolatorNode("interpolator", {})
+    fields = []
+    try:
+        node.setup()
+        node.field_pub.publish = fields.append
+        node.contact_pub.publish = lambda msg: None
+        bad = ref.astype(np.float32)
+        node.on_markers(MarkerArray(stamp_ns=1, node="someone", ref_px=bad, cur_px=bad, valid=np.ones(len(bad), bool),
+                                    frames_since_seen=np.zeros(len(bad), np.int32), width=320, height=240))
+        assert not fields and node.counters["bad_references"] == 1 and node.state == "warn"
+        assert says in node.message and "'someone'" in node.message, node.message
+        node.on_markers(_markers(40))
+        assert len(fields) == 1 and fields[0].valid and node.state == "ok"
+    finally:
+        node.close()
