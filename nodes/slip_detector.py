@@ -163,7 +163,7 @@ class SlipDetectorNode(Node):
         cfg = self.classifier.config
         self.window: collections.deque = collections.deque(maxlen=cfg.window)
         self.frame_width_px: int | None = None  # of the tracker's reference frame
-        self.counters.update(no_width=0, window_restarts=0)
+        self.counters.update(no_width=0, window_restarts=0, duplicate_fields=0)
         if cfg.field_width_px:
             self.subscribe("markers/reference", MarkerArray, self.on_window_reference, depth=1)
         self.field_sub = self.subscribe("field", DisplacementField, self.on_field, depth=cfg.window,
@@ -224,12 +224,18 @@ class SlipDetectorNode(Node):
     def on_field(self, msg: DisplacementField) -> None:
         cfg = self.classifier.config
         require_grid(msg, (cfg.grid, cfg.grid))
-        if self.window and not 0 <= msg.stamp_ns - self.window[-1][0] <= self.params.window_gap_s * 1e9:
+        gap_ns = msg.stamp_ns - self.window[-1][0] if self.window else None
+        if gap_ns == 0:  # the same frame again (two publishers on one topic): it would count twice in the window
+            self.counters["duplicate_fields"] += 1
+            self.warn(f"a field from {msg.node!r} stamped as the last field dropped (duplicate_fields)",
+                      kind="duplicate field")
+            return
+        if gap_ns is not None and not 0 < gap_ns <= self.params.window_gap_s * 1e9:
             # not the next field of the window's stream (a bag replayed again, a stale field): a window of it
             # would span that gap, with its stamps out of order
             self.counters["window_restarts"] += 1
-            self.warn(f"field stamped {(msg.stamp_ns - self.window[-1][0]) / 1e9:+.3f} s from the last: a new "
-                      "window starts (window_restarts)", kind="window restart")
+            self.warn(f"field stamped {gap_ns / 1e9:+.9g} s from the last (window_gap_s {self.params.window_gap_s:g} "
+                      "s): a new window starts (window_restarts)", kind="window restart")
             self.window.clear()
         self.window.append((msg.stamp_ns, msg.field, msg.valid))
         if len(self.window) < self.window.maxlen:

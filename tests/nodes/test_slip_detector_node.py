@@ -158,13 +158,40 @@ def test_a_field_out_of_its_windows_stream_starts_a_new_window() -> None:
         start = 2 * hour
         for stamp in [start + k * frame for k in range(12)] + [start - hour]:
             node.on_field(_field(stamp, 0.5))
-        assert node.state == "warn" and node.message == ("field stamped -3600.726 s from the last: a new window "
-                                                         "starts (window_restarts)")
+        assert node.state == "warn" and node.message == ("field stamped -3600.726 s from the last (window_gap_s 1 s): "
+                                                         "a new window starts (window_restarts)")
         for stamp in [start + (12 + k) * frame for k in range(10)]:
             node.on_field(_field(stamp, 0.5))
         assert len(windows) == 3 + 1 and node.counters["window_restarts"] == 2  # back an hour, then forward again
         assert all(np.all(np.diff(w) > 0) and w[-1] - w[0] < 10 * frame for w in windows)
         assert node.state == "ok"  # cleared by the next window judged
+    finally:
+        node.close()
+
+
+def test_a_field_stamped_as_the_last_is_dropped_and_a_restart_names_its_gap_and_the_param() -> None:
+    """A field stamped the same as the last (the same frame twice: two interpolators on /field) entered the
+    window: ten fields of five frames, each twice, judged as ten. It is now dropped, warned and counted
+    (duplicate_fields). A field 1 us early was said to be stamped '-0.000 s' from the last, and a camera
+    slower than 1 Hz (every field a new window, no decision ever) was not told of window_gap_s."""
+    from nodes.slip_detector import SlipDetectorNode
+    node = SlipDetectorNode("slip_detector", {"model": "sim_fast"})
+    try:
+        node.setup()
+        node.on_window_reference(_reference(0, 640))
+        windows: list[np.ndarray] = []
+        node.publish_state = lambda msg, probability, stamps, valid: windows.append(stamps)
+        frame = 33_000_000
+        for k in range(10):
+            node.on_field(_field(10**9 + k * frame, 0.5))
+            node.on_field(_field(10**9 + k * frame, 0.5))
+        assert len(windows) == 1 and np.all(np.diff(windows[0]) > 0) and node.counters["duplicate_fields"] == 10
+        assert "stamped as the last field" in node.message and "(duplicate_fields)" in node.message
+        node.on_field(_field(10**9 + 9 * frame - 1000, 0.5))
+        assert node.message == ("field stamped -1e-06 s from the last (window_gap_s 1 s): a new window starts "
+                                "(window_restarts)")
+        node.on_field(_field(10**9 + 9 * frame - 1000 + 10**10, 0.5))
+        assert node.message.startswith("field stamped +10 s from the last (window_gap_s 1 s)")
     finally:
         node.close()
 
