@@ -185,13 +185,15 @@ class SlipDetectorNode(Node):
         self.judged: tuple[float, int] | None = None  # P(slip) of the grasp at its last frame judged, and that stamp
         self.images: collections.OrderedDict[int, Image] = collections.OrderedDict()  # by stamp, oldest first
         self.grasp_start_ns: int | None = None
+        self.last_field_ns: int | None = None  # stamp of the grasp's last field given to the judge
         self.reference_markers = 0
         self.slow_gaps_before = 0  # the judge's slow gaps before the current grasp
         self.subscribe("camera/image", Image, self.on_image, depth=IMAGE_BUFFER)
         self.subscribe("markers/reference", MarkerArray, self.on_reference, depth=1)
         self.subscribe("field", DisplacementField, self.on_grasp_field, depth=IMAGE_BUFFER,
                        stale_after_s=p.input_timeout_s or None)
-        self.counters.update(grasps=0, before_grasp=0, unmatched_fields=0, rate_skipped=0, slow_gaps=0)
+        self.counters.update(grasps=0, before_grasp=0, unmatched_fields=0, rate_skipped=0, slow_gaps=0,
+                             out_of_order_fields=0)
         self.log.info("model %s: trial model, judges each grasp from the tracker's reference on (trained with "
                       "the reference at frame %d of each video: give the tracker reference_frame %d), at %g fps "
                       "(a faster camera's frames are picked at that rate)",
@@ -278,6 +280,7 @@ class SlipDetectorNode(Node):
         self.slow_gaps_before = self.judge.slow_gaps
         self.judge.reset()
         self.judged = None
+        self.last_field_ns = None
         self.slip = False
         self.counters["grasps"] += 1
 
@@ -285,6 +288,11 @@ class SlipDetectorNode(Node):
         require_grid(msg, self.field_grid)
         if self.grasp_start_ns is None or msg.stamp_ns < self.grasp_start_ns:
             self.counters["before_grasp"] += 1  # no reference yet, or a field of the grasp before the current one
+            return
+        if self.last_field_ns is not None and msg.stamp_ns <= self.last_field_ns:  # judged after it, out of order
+            self.counters["out_of_order_fields"] += 1
+            self.warn(f"a field stamped {(msg.stamp_ns - self.last_field_ns) / 1e9:+.9g} s from the grasp's last left "
+                      "out (out_of_order_fields)", kind="out of order")
             return
         image = self.images.pop(msg.stamp_ns, None)
         while self.images and next(iter(self.images)) < msg.stamp_ns:
@@ -300,6 +308,7 @@ class SlipDetectorNode(Node):
         if image.encoding == "mono8":
             raise ValueError("the trial model needs colour camera images (bgr8 or rgb8), got mono8: "
                              "set the camera's encoding param")
+        self.last_field_ns = msg.stamp_ns
         takes = self.judge.takes(msg.stamp_ns)
         self.counters["slow_gaps"] = self.judge.slow_gaps
         if self.judge.slow_gaps > self.slow_gaps_before:  # said for the rest of the grasp, whose P(slip) it concerns

@@ -252,6 +252,35 @@ def test_a_camera_faster_than_the_trial_model_is_judged_at_the_model_rate() -> N
     assert all(published[k].probability == published[k - 1].probability for k in (1, 3, 5, 7))
 
 
+def test_a_field_not_after_the_grasps_last_is_left_out_by_a_trial_model() -> None:
+    """A field stamped at or before the grasp's last one (the same frame twice, a stream replayed within the
+    grasp) was judged as the grasp's next frame, and its interval <= 0 made the frame picker take the camera
+    for a faster one: of 12 frames at 25 fps with one sent twice and one 1 us before it, 13 were judged, one
+    out of order, and a later one was left unjudged (rate_skipped 1), silently. It is now left out, warned
+    and counted (out_of_order_fields), and the grasp goes on judging every frame."""
+    from msgs import Image
+    from nodes.slip_detector import SlipDetectorNode
+    node = SlipDetectorNode("slip_detector", {"model": "gelsight_online"})
+    published: list[SlipState] = []
+    try:
+        node.setup()
+        node.slip_pub.publish = published.append
+        node.on_reference(_reference(0, 320))
+        rng = np.random.default_rng(0)
+        stamps = [k * 40_000_000 for k in range(3)] + [80_000_000, 80_000_000 - 1000] + \
+            [k * 40_000_000 for k in range(3, 12)]
+        for stamp in stamps:
+            node.on_image(Image(stamp_ns=stamp, encoding="bgr8", data=rng.integers(0, 255, (240, 320, 3), np.uint8)))
+            node.on_grasp_field(_field(stamp, 0.1))
+        assert node.counters["out_of_order_fields"] == 2 and node.counters["rate_skipped"] == 0
+        assert node.judge.frames == 12 and len(published) == 12 and node.counters["unmatched_fields"] == 0
+        node.on_grasp_field(_field(0, 0.1))
+        assert node.state == "warn" and node.message == ("a field stamped -0.44 s from the grasp's last left out "
+                                                         "(out_of_order_fields)")
+    finally:
+        node.close()
+
+
 def test_a_slow_camera_is_warned_of_for_the_rest_of_its_grasp() -> None:
     """The slow-gaps warning was cleared by the next field (33 ms later), so the status, read every
     0.2 s, almost never showed it; it now stands until a grasp without slow gaps."""
