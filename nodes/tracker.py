@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fv_algos.perception import Perception, PerceptionParams, resumable_reference
+from fv_algos.visualize import as_bgr
 from msgs import Image, MarkerArray
 from nodes.node import Node, launch_started_ns
 
@@ -157,6 +158,7 @@ class TrackerNode(Node):
 
     def on_image(self, msg: Image) -> None:
         self.frames_seen += 1
+        image = as_bgr(msg.data, msg.encoding) if msg.encoding == "rgb8" else msg.data  # perception reads BGR
         if 0 <= msg.frame_index < self.last_index:  # the source started over (a looped video's next pass)
             if not self.counters["source_restarts"]:
                 self.log.info("the camera's source started over (frame %d after frame %d): a new grasp, its "
@@ -186,7 +188,7 @@ class TrackerNode(Node):
                                   self.params.reference_frame)
                 return
             try:
-                state = self.perception.resume(msg.data, old.ref_px) if resume else self.perception.reset(msg.data)
+                state = self.perception.resume(image, old.ref_px) if resume else self.perception.reset(image)
             except ValueError as exc:  # a dark or empty frame (a camera starting): the next one is tried
                 self.counters["reference_retries"] += 1
                 self.warn(f"no reference in this frame ({exc}): taking the next (reference_retries)",
@@ -203,7 +205,7 @@ class TrackerNode(Node):
             self.inherited = None
             self.reference_pub.publish(marker_array(state, msg))
         try:
-            detections = self.perception.detect(msg.data)
+            detections = self.perception.detect(image)
         except ValueError as exc:  # a camera reopened at another size: its markers are not the reference's
             self.counters["other_size"] += 1
             self.warn(f"frame dropped: {exc} (publish on /tracker/reset) (other_size)", kind="other size")

@@ -369,3 +369,28 @@ def test_the_interpolator_refuses_a_reference_it_cannot_interpolate_from(ref: np
         assert len(fields) == 1 and fields[0].valid and node.state == "ok"
     finally:
         node.close()
+
+
+def _colour_dots(shift_px: float) -> np.ndarray:
+    """(240, 320, 3) uint8 BGR: `dots_image` on a skin whose red rises and blue falls from left to right."""
+    grey = dots_image(shift_px).astype(np.float32) / 200.0
+    x = np.linspace(0.0, 1.0, grey.shape[1])[None, :]
+    bgr = np.dstack([220 * grey * (1 - 0.8 * x), 120 * grey, 220 * grey * (0.2 + 0.8 * x)])
+    return np.clip(bgr, 0, 255).astype(np.uint8)
+
+
+def test_rgb8_frames_are_tracked_as_the_same_frames_in_bgr8() -> None:
+    """The tracker read an rgb8 frame's channels as BGR: its luma weighed red as blue, and a skin shaded
+    from blue to red gave another reference (markers up to 168 px apart by index) than the same frames
+    in bgr8. The slip detector converted them; the tracker now does too."""
+    from msgs import Image
+    tracked = {}
+    for encoding in ("bgr8", "rgb8"):
+        with _tracker({"reference_frame": 0, "resume": False}) as (node, references, markers):
+            for k, shift in enumerate([0.0, 1.3]):
+                frame = _colour_dots(shift)
+                data = frame if encoding == "bgr8" else np.ascontiguousarray(frame[..., ::-1])
+                node.on_image(Image(stamp_ns=k + 1, encoding=encoding, data=data))
+            tracked[encoding] = (references[0].ref_px, markers[-1].cur_px, markers[-1].valid)
+    for bgr, rgb in zip(tracked["bgr8"], tracked["rgb8"]):
+        np.testing.assert_array_equal(bgr, rgb)
