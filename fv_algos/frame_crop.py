@@ -9,6 +9,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+MAX_SIZE_PX = 8192  # largest width or height frames are resized to: past 8K, a typo (one 100000x100000 frame: 30 GB)
+
 
 @dataclass(frozen=True)
 class FrameCrop:
@@ -24,8 +26,8 @@ class FrameCrop:
             raise ValueError(f"crop {list(self.borders)} must hold 4 shares: top, bottom, left, right")
         if not all(0.0 <= b < 0.5 for b in self.borders):
             raise ValueError(f"crop {list(self.borders)}: every share must be in [0, 0.5)")
-        if self.size is not None and (len(self.size) != 2 or min(self.size) < 1):
-            raise ValueError(f"size {list(self.size)} must be [width, height] in px, both >= 1")
+        if self.size is not None and (len(self.size) != 2 or min(self.size) < 1 or max(self.size) > MAX_SIZE_PX):
+            raise ValueError(f"size {list(self.size)} must be [width, height] in px, both >= 1 and <= {MAX_SIZE_PX}")
 
     @classmethod
     def from_lists(cls, crop: list[float], size: list[int]) -> FrameCrop | None:

@@ -51,6 +51,7 @@ def test_params_give_no_crop_one_share_for_all_borders_or_four() -> None:
     ([-0.1], [], "every share must be in"),
     ([], [320], "must be \\[width, height\\]"),
     ([], [0, 240], "both >= 1"),
+    ([], [100000, 100000], "<= 8192"),  # taken: every frame resized to 30 GB
 ])
 def test_bad_params_are_refused_by_name(crop: list, size: list, message: str) -> None:
     with pytest.raises(ValueError, match=message):
