@@ -52,7 +52,11 @@ class LatchedCache:
 
     def received(self, frames: list[Any]) -> bool:
         """Keep a latched message; False when it is a copy of the one kept (same header: seq and
-        publish time), which subscribers have had: a publisher's answer to a refresh."""
+        publish time), which subscribers have had: a publisher's answer to a refresh. One without a
+        header frame is not kept (True: forwarded, for subscribers to drop and count as malformed): a
+        second such message on one envelope raised IndexError and ended the forwarder."""
+        if len(frames) < 2:
+            return True
         env = _bytes(frames[0])
         if self._refresh is not None:
             self._refresh.answered.add(env)

@@ -535,3 +535,26 @@ def test_seq_tracker_gaps_stay_bounded_by_absurd_jumps() -> None:
     for n in (0, 5, 5 + SeqTracker.MAX_GAP + 1, 5 + 2 * SeqTracker.MAX_GAP + 3):
         assert seq.accept("/u", "n", n, False, n)
     assert seq.gaps == 4 + SeqTracker.MAX_GAP
+
+
+def test_the_forwarder_survives_latched_messages_without_a_header(bus: Bus) -> None:
+    """`[b"L/slip\\0n"]` twice from a raw socket ended the forwarder (IndexError in its latched cache);
+    now subscribers count them as malformed and later messages pass."""
+    raw = zmq.Context.instance().socket(zmq.PUB)
+    raw.linger = 0
+    raw.connect(bus.address.pub)
+    try:
+        with TopicReader(["/x"]) as reader:
+            for _ in range(40):  # until the reader's subscription has reached the forwarder
+                raw.send_multipart([envelope("/x", "n", False), *msgs.encode(SlipState(seq=1))])
+                if reader.recv(0.05) is not None:
+                    break
+            for _ in range(2):
+                raw.send_multipart([envelope("/x", "n", True)])
+            raw.send_multipart([envelope("/x", "n", False), *msgs.encode(SlipState(seq=7))])
+            while (item := reader.recv(timeout_s=2.0)) is not None and item.msg.seq != 7:
+                pass  # a probe that came late
+            assert item is not None and reader.malformed == 2
+        assert bus._thread is not None and bus._thread.is_alive(), "the forwarder died"
+    finally:
+        raw.close()

@@ -67,3 +67,12 @@ def test_gone_messages_are_kept_up_to_a_bound_the_newest() -> None:
     assert len(cache.gone) == GONE_KEPT and envelope("/status", f"tool_{GONE_KEPT + 4}", True) in cache.gone
     assert envelope("/status", "tool_4", True) not in cache.gone
     assert cache.publisher_left(1.0) == [], "nothing live: nothing to ask"
+
+
+def test_a_latched_message_without_a_header_is_forwarded_not_kept() -> None:
+    """Two latched messages of one envelope and no header frame (published by hand) ended the
+    forwarder with an IndexError: every node lost the bus until the launcher restarted it."""
+    cache = LatchedCache()
+    bare = [envelope("/slip", "by_hand", True)]
+    assert cache.received(list(bare)) and cache.received(list(bare))
+    assert cache.live == {} and list(cache.replay(b"L")) == []
