@@ -380,6 +380,14 @@ class _Handler(BaseHTTPRequestHandler):
         self.send_response(HTTPStatus.METHOD_NOT_ALLOWED)  # the page is read only
         self.send_header("Allow", "GET, HEAD")
         self.send_header("Content-Length", "0")
+        self._end_headers()
+
+    def _end_headers(self) -> None:
+        """End the answer's headers; close the connection after it when the request came with a body.
+        The viewer reads none, and a body left on a kept-alive connection was read as the next request:
+        a page of another site POSTed one holding `GET /state.json` with a loopback Host, and had 200."""
+        if self.headers.get("Content-Length", "0").strip() != "0" or "Transfer-Encoding" in self.headers:
+            self.send_header("Connection", "close")  # (sets close_connection)
         self.end_headers()
 
     do_POST = do_PUT = do_DELETE = do_PATCH = _refuse_method  # noqa: N815 (the http.server names)
@@ -389,7 +397,7 @@ class _Handler(BaseHTTPRequestHandler):
         self.send_header("Content-Type", content_type)
         self.send_header("Content-Length", str(len(body)))
         self.send_header("Cache-Control", "no-store")
-        self.end_headers()
+        self._end_headers()
         if not self._head_only:
             self.wfile.write(body)
 

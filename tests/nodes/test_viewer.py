@@ -196,6 +196,22 @@ def test_head_answers_as_get_without_a_body_and_writes_are_refused(viewer: Viewe
     conn.close()
 
 
+def test_a_request_body_is_never_read_as_the_next_request(viewer: ViewerNode) -> None:
+    """The viewer reads no body: a POST's, left on the kept-alive connection, was parsed as the next
+    request, so a page of another site (403 for its own GETs) smuggled in a GET with a loopback Host and
+    was answered 200. Now the connection closes after the answer to a request with a body."""
+    inner = b"GET /state.json HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n"
+    for method in (b"POST", b"GET"):
+        with socket.create_connection(("127.0.0.1", viewer.port), timeout=5) as sock:
+            sock.sendall(method + b" / HTTP/1.1\r\nHost: evil.example\r\nContent-Length: %d\r\n\r\n" % len(inner)
+                         + inner)
+            data = b""
+            while chunk := sock.recv(65536):  # the server closes the connection: recv returns b""
+                data += chunk
+        statuses = re.findall(rb"^HTTP/1.1 (\d+)", data, re.MULTILINE)
+        assert statuses == [b"405" if method == b"POST" else b"403"], (method, statuses)
+
+
 def test_a_page_of_another_site_cannot_read_the_local_viewer(viewer: ViewerNode) -> None:
     """DNS rebinding: a site whose name a browser resolves to 127.0.0.1 sends its own name as Host. The
     viewer, serving on loopback, answers only to loopback names (it answered any Host with 200)."""
