@@ -193,7 +193,10 @@ def _echo(args: argparse.Namespace) -> int:
 def _measure(args: argparse.Namespace, on_msg: Callable[[list, dict, int], None],
              report: Callable[[], dict[str, Any]], text: Callable[[dict[str, Any]], str]) -> int:
     """Feed each fresh message on `args.topic` (frames, header, receive time ns) to
-    `on_msg`; print `report()` every second, or once after `--duration` s."""
+    `on_msg`; print `report()` every second, or once after `--duration` s. Each second's report says how
+    many messages came in that second (`new_messages`; as text, "no new messages" when none: the
+    figures of a topic gone silent are its last messages', as in ROS's `rostopic hz`), as a JSON line
+    with `--json`."""
     from msgs import decode_header
     from nodes.bus import TopicReader
 
@@ -201,6 +204,7 @@ def _measure(args: argparse.Namespace, on_msg: Callable[[list, dict, int], None]
     start_ns = time.time_ns()
     end = None if args.duration is None else time.monotonic() + args.duration
     next_print = time.monotonic() + 1.0
+    new = 0
     with TopicReader([args.topic]) as reader:
         while end is None or time.monotonic() < end:
             wait = min(next_print, end or next_print) - time.monotonic()
@@ -210,9 +214,15 @@ def _measure(args: argparse.Namespace, on_msg: Callable[[list, dict, int], None]
                 header = decode_header(raw[3][0], args.topic)
                 if not (raw[2] and header["pub_ns"] < start_ns):  # a latched replay predates the measurement
                     on_msg(raw[3], header, recv_ns)  # (a bag played keeps its recorded pub_ns: not a replay)
+                    new += 1
             if end is None and time.monotonic() >= next_print:
                 next_print += 1.0
-                print(text(report()), flush=True)
+                second = dict(topic=args.topic, new_messages=new, **report())
+                if args.json:
+                    _print_json(second)
+                else:
+                    print(text(second) if new else "no new messages", flush=True)
+                new = 0
     result = dict(topic=args.topic, duration_s=args.duration, **report())
     if args.json:
         _print_json(result)

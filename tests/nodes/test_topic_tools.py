@@ -218,3 +218,46 @@ def test_a_malformed_latched_status_is_skipped_and_named(bus: Bus) -> None:
     finally:
         good.close()
         bad.close()
+
+
+def _silent(line: str) -> bool:
+    """A line of `fv topic hz` that says no message came in its second."""
+    return line == "no new messages\n" or '"new_messages": 0,' in line
+
+
+def _hz_lines_around_a_burst(pub: PublisherSocket, *args: str) -> list[str]:
+    """The lines `fv topic hz /burst *args` prints while 40 messages come in 2 s, to the first that says
+    "no new messages" (in `new_messages` with --json) after one that did not, or 12 lines."""
+    proc = _start("topic", "hz", "/burst", *args)
+    try:
+        deadline = time.monotonic() + 10.0
+        while not pub.has_subscribers("/burst"):
+            assert time.monotonic() < deadline and proc.poll() is None, "hz never subscribed"
+            time.sleep(0.05)
+        for _ in range(40):
+            pub.publish("/burst", SlipState())
+            time.sleep(0.05)
+        lines: list[str] = []
+        while len(lines) < 12 and not (len(lines) > 1 and _silent(lines[-1]) and not _silent(lines[-2])):
+            lines.append(proc.stdout.readline())
+        return lines
+    finally:
+        proc.kill()
+        proc.wait(5)
+
+
+def test_each_second_s_report_says_when_no_new_message_came(bus: Bus) -> None:
+    """`fv topic hz /slip` went on printing the last rate ("average rate: 15.070") every second after the
+    pipeline had stopped, and printed text with `--json`: now each second is a JSON line with its
+    `new_messages`, and as text a silent second says "no new messages"."""
+    pub = PublisherSocket("burst")
+    assert pub.wait_connected(2.0)
+    try:
+        seconds = [json.loads(line) for line in _hz_lines_around_a_burst(pub, "--json")]
+        text = _hz_lines_around_a_burst(pub)
+    finally:
+        pub.close()
+    counts = [s["new_messages"] for s in seconds]
+    assert sum(counts) == 40 and counts[-1] == 0, counts
+    assert seconds[-1]["rate_hz"] > 0 and seconds[-1]["topic"] == "/burst"
+    assert any(line.startswith("average rate") for line in text) and text[-1] == "no new messages\n", text
