@@ -4,7 +4,7 @@ Iterator form (blocking, in the caller's thread)::
 
     from nodes.client import subscribe
 
-    with subscribe("/slip", timeout_s=0.5) as states:
+    with subscribe("/slip", timeout_s=1.0) as states:
         for state in states:          # SlipState messages, in order
             if state.slip:
                 gripper.squeeze()
@@ -16,8 +16,9 @@ Callback form (a background thread calls the function)::
     with listen("/slip", lambda state: state.slip and gripper.squeeze()):
         robot.run_task()
 
-`timeout_s` makes silence an error (`TimeoutError`): a gripper that stops hearing the
-slip detector should know. A message of another type than expected (a NodeStatus published on
+`timeout_s` makes silence an error (`TimeoutError`, saying whether the bus still answers): a gripper
+that stops hearing the slip detector should know. A listener given `timeout_s` calls `on_timeout` with
+that error, from its thread, once per silence. A message of another type than expected (a NodeStatus published on
 `/slip` by mistake) or one that cannot be decoded is dropped, counted and logged (at most every
 `LOG_EVERY_S` per kind): it never reaches the loop nor stops a listener. The bus is the one
 `FV_BUS` names (default: this host's).
@@ -38,12 +39,13 @@ import logging
 import threading
 import time
 from abc import ABC, abstractmethod
-from typing import Callable, Iterator, TypeVar
+from typing import Any, Callable, Iterator, TypeVar
 
 from msgs import CameraInfo, ContactSummary, DisplacementField, Image, MarkerArray, Message, NodeStatus, SlipState
 from msgs.wire import check_message
 from nodes.bus import PublisherSocket, TopicReader, validate_topic
 from nodes.endpoints import BusAddress
+from nodes.forwarder import ping
 
 log = logging.getLogger("fv.client")
 POLL_S = 0.1
@@ -63,6 +65,18 @@ def expected_type(topic: str) -> type[Message]:
         if topic == "/" + name or topic.endswith("/" + name):
             return cls
     return Message
+
+
+def silence_error(topic: str, timeout_s: float, address: BusAddress) -> TimeoutError:
+    """The error for `timeout_s` s without a message on `topic`, saying whether the forwarder at `address`
+    still answers (a ping: at most 0.3 s): when it does not, the launch that served the bus is gone."""
+    if ping(address) is None:
+        why = f"no forwarder answers on {address.url}: the launch is gone or not started"
+    else:
+        why = f"the forwarder at {address.url} still answers"
+    return TimeoutError(f"no message on {topic} within {timeout_s} s ({why})")
+
+
 _C = TypeVar("_C", bound="_Closing")
 
 
@@ -140,8 +154,13 @@ class Subscription(_Closing):
         while True:
             msg = self.recv(self.timeout_s)
             if msg is None:
-                raise TimeoutError(f"no message on {self.topic} within {self.timeout_s} s")
+                raise silence_error(self.topic, self.timeout_s, self.address)
             yield msg
+
+    @property
+    def address(self) -> BusAddress:
+        """The bus read."""
+        return self._reader.address
 
     @property
     def malformed(self) -> int:
@@ -168,8 +187,8 @@ def wait_for_message(topic: str, msg_type: type[Message] | None = None, timeout_
     """The next message on `topic` (a latched one arrives at once); TimeoutError after `timeout_s`."""
     with Subscription(topic, msg_type, address=address) as sub:
         msg = sub.recv(timeout_s)
-    if msg is None:
-        raise TimeoutError(f"no message on {topic} within {timeout_s} s")
+        if msg is None:
+            raise silence_error(sub.topic, timeout_s, sub.address)
     return msg
 
 
@@ -178,12 +197,21 @@ class Listener(_Closing):
     `close()`. A callback that raises is logged and counted in `errors`; a message of another type
     or that cannot be decoded is dropped and counted in `wrong_type` or `malformed` (see
     `Subscription`); the thread goes on. What `subscribe` refuses (a topic without its leading '/', a TCP
-    bus without `FV_CURVE_DIR`) raises here, in the caller's thread, before any thread starts."""
+    bus without `FV_CURVE_DIR`) raises here, in the caller's thread, before any thread starts.
+
+    timeout_s: with it, silence that long calls `on_timeout(error)` (the `TimeoutError` `subscribe` raises,
+    saying whether the bus still answers) from the thread, once per silence, counted in `timeouts`;
+    without `on_timeout` the error is logged. An `on_timeout` that raises is logged and counted in `errors`.
+    """
 
     def __init__(self, topic: str, callback: Callable[[Message], object], msg_type: type[Message] | None = None,
-                 *, latest: bool = False, address: BusAddress | None = None) -> None:
+                 *, latest: bool = False, timeout_s: float | None = None,
+                 on_timeout: Callable[[TimeoutError], object] | None = None, address: BusAddress | None = None) -> None:
         self.topic = topic
         self.callback = callback
+        self.timeout_s = timeout_s
+        self.on_timeout = on_timeout
+        self.timeouts = 0
         self.errors = 0
         self.received = 0
         self.wrong_type = 0
@@ -196,28 +224,47 @@ class Listener(_Closing):
         self._thread.start()
 
     def _loop(self, sub: Subscription) -> None:
+        heard_s = time.monotonic()  # when the last message came, or the listener started
+        told = False  # this silence was reported
         with sub:
             while not self._stop.is_set():
                 msg = sub.recv(POLL_S)
                 self.wrong_type, self.malformed = sub.wrong_type, sub.malformed
                 if msg is None:
+                    if self.timeout_s is not None and not told and time.monotonic() - heard_s > self.timeout_s:
+                        told = True
+                        self.timeouts += 1
+                        self._call("on_timeout", self.on_timeout or _log_silence,
+                                   silence_error(self.topic, self.timeout_s, sub.address))
                     continue
+                heard_s, told = time.monotonic(), False
                 self.received += 1
-                try:
-                    self.callback(msg)
-                except Exception:  # robot code keeps listening; the error is logged and counted
-                    self.errors += 1
-                    log.exception("callback for %s raised", self.topic)
+                self._call("callback", self.callback, msg)
+
+    def _call(self, what: str, func: Callable[[Any], object], arg: object) -> None:
+        """`func(arg)` (the `what`); robot code keeps listening when it raises: the error is logged and counted."""
+        try:
+            func(arg)
+        except Exception:
+            self.errors += 1
+            log.exception("%s for %s raised", what, self.topic)
 
     def close(self, timeout_s: float = 1.0) -> None:
         self._stop.set()
         self._thread.join(timeout_s)
 
 
+def _log_silence(error: TimeoutError) -> None:
+    """A listener's silence, without an `on_timeout`: logged."""
+    log.warning("%s", error)
+
+
 def listen(topic: str, callback: Callable[[Message], object], msg_type: type[Message] | None = None, *,
-           latest: bool = False, address: BusAddress | None = None) -> Listener:
+           latest: bool = False, timeout_s: float | None = None,
+           on_timeout: Callable[[TimeoutError], object] | None = None, address: BusAddress | None = None) -> Listener:
     """Call `callback(msg)` for each message on `topic` in a background thread (see `Listener`)."""
-    return Listener(topic, callback, msg_type, latest=latest, address=address)
+    return Listener(topic, callback, msg_type, latest=latest, timeout_s=timeout_s, on_timeout=on_timeout,
+                    address=address)
 
 
 RESET_TOPIC = "/tracker/reset"  # any message on it starts a new grasp on every tracker

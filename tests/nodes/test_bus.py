@@ -380,7 +380,7 @@ def test_client_readme_snippet(bus: Bus) -> None:
         # --- README snippet, verbatim ---
         from nodes.client import subscribe
 
-        with subscribe("/slip", timeout_s=0.5) as states:
+        with subscribe("/slip", timeout_s=1.0) as states:
             for state in states:          # SlipState messages, in order
                 if state.slip:
                     gripper.squeeze()
@@ -558,3 +558,40 @@ def test_the_forwarder_survives_latched_messages_without_a_header(bus: Bus) -> N
         assert bus._thread is not None and bus._thread.is_alive(), "the forwarder died"
     finally:
         raw.close()
+
+
+def test_silence_says_whether_the_bus_still_answers_and_reaches_a_listener(bus: Bus) -> None:
+    """A robot's subscription that stopped hearing /slip raised "no message on /slip within 1.0 s" whether
+    the launch was gone or not; a listener had no timeout at all and waited for good, the gripper never
+    told that the pipeline had stopped."""
+    from nodes.client import listen, subscribe, wait_for_message
+
+    with subscribe("/slip", timeout_s=0.2) as states, pytest.raises(TimeoutError) as silent:
+        next(iter(states))
+    assert f"(the forwarder at {bus.address.url} still answers)" in str(silent.value)
+    pub = PublisherSocket("slip_detector", bus.address)
+    assert pub.wait_connected(2.0)
+    silences: list[TimeoutError] = []
+    got: list[SlipState] = []
+    with listen("/slip", got.append, timeout_s=0.3, on_timeout=silences.append) as listener:
+        for burst in (1, 2):
+            deadline = time.monotonic() + 5.0
+            while len(silences) < burst:  # the listener reports each silence once...
+                assert time.monotonic() < deadline, f"silence {burst} not reported"
+                time.sleep(0.05)
+            time.sleep(0.5)
+            assert len(silences) == burst and listener.timeouts == burst  # ...not on every poll
+            while len(got) < burst:  # messages end the silence
+                pub.publish("/slip", SlipState())
+                assert time.monotonic() < deadline + 5.0, "no message reached the listener"
+                time.sleep(0.05)
+        bus.stop_forwarder()
+        deadline = time.monotonic() + 5.0
+        while len(silences) < 3:
+            assert time.monotonic() < deadline, "the launch gone was not reported"
+            time.sleep(0.05)
+    pub.close()
+    assert "no message on /slip within 0.3 s" in str(silences[0])
+    assert f"no forwarder answers on {bus.address.url}: the launch is gone" in str(silences[2])
+    with pytest.raises(TimeoutError, match="no forwarder answers on ipc://"):
+        wait_for_message("/slip", timeout_s=0.2)
