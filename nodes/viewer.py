@@ -49,7 +49,7 @@ class ViewerParams:
     field_range_px: float = 0.0  # top of the field colour scale in px; 0 = auto (at least 1 px)
     view_height_px: int = 480  # pictures are drawn at least this tall (small frames are zoomed)
     jpeg_quality: int = 85  # 1..100
-    stale_s: float = 3.0  # a node silent on /status this long is shown as stale (dropped after 10x)
+    stale_s: float = 3.0  # a node silent on /status this long is shown as stale (dropped after 10x); so is /slip
 
     def __post_init__(self) -> None:
         if not 0 <= self.port <= 65535:
@@ -127,6 +127,7 @@ class ViewerNode(Node):
         self._field: DisplacementField | None = None
         self._contact: ContactSummary | None = None
         self._slip: SlipState | None = None
+        self._slip_seen_s = 0.0  # when the latest /slip message came (monotonic s)
         self._slip_t0_ns = 0
         self._history = SlipHistory(p.history_s)
         self._statuses: dict[str, tuple[float, NodeStatus]] = {}
@@ -189,6 +190,7 @@ class ViewerNode(Node):
     def on_slip(self, msg: SlipState) -> None:
         with self._lock:
             self._slip = msg
+            self._slip_seen_s = time.monotonic()
             self._slip_t0_ns = self._slip_t0_ns or msg.stamp_ns
             self._history.add((msg.stamp_ns - self._slip_t0_ns) / 1e9, msg.probability, msg.slip)
 
@@ -251,6 +253,7 @@ class ViewerNode(Node):
                 del self._statuses[name]
             images, markers, field = list(self._images), self._markers, self._field
             contact, slip, frame_seq, field_seq = self._contact, self._slip, self._frame_seq, self._field_seq
+            slip_age_s = now - self._slip_seen_s
             samples = self._history.samples()
             statuses = list(self._statuses.values())
         return {
@@ -259,7 +262,7 @@ class ViewerNode(Node):
             "frame": _frame_state(frame_seq, images[-1], markers) if images else None,
             "field": _field_state(field_seq, field) if field is not None else None,
             "contact": _contact_state(contact) if contact is not None else None,
-            "slip": _slip_state(slip, samples) if slip is not None else None,
+            "slip": _slip_state(slip, samples, slip_age_s, p.stale_s) if slip is not None else None,
             "nodes": [_node_state(st, now - seen, p.stale_s) for seen, st in statuses],
         }
 
@@ -288,8 +291,11 @@ def _contact_state(msg: ContactSummary) -> dict[str, Any]:
             "rotation_rad": _finite(msg.rotation_rad), "divergence": _finite(msg.divergence)}
 
 
-def _slip_state(msg: SlipState, samples: list[tuple[float, float, bool]]) -> dict[str, Any]:
+def _slip_state(msg: SlipState, samples: list[tuple[float, float, bool]], age_s: float, stale_s: float) -> dict[str, Any]:
+    """The latest decision, its plot's samples, and how old it is: `stale` when none came for `stale_s`
+    (the page said "SLIP p=1.00" in red for good after the slip detector had gone)."""
     return {"probability": float(msg.probability), "slip": bool(msg.slip), "valid": bool(msg.valid),
+            "age_s": round(age_s, 2), "stale": age_s > stale_s,
             "threshold": float(msg.threshold), "model": msg.model,
             "latency_ms": (msg.pub_ns - msg.stamp_ns) / 1e6 if msg.pub_ns and msg.stamp_ns else None,
             "t_s": [round(t, 4) for t, _, _ in samples], "p": [round(q, 4) for _, q, _ in samples],

@@ -158,6 +158,20 @@ def test_viewer_serves_the_page_state_and_pictures(viewer: ViewerNode, pipeline:
     assert viewer.counters["port"] == viewer.port
 
 
+def test_a_slip_decision_that_stops_coming_is_shown_stale(viewer: ViewerNode, pipeline: PublisherSocket) -> None:
+    """After the pipeline stopped, the page's badge said "SLIP p=0.90" in red for good: the state gave
+    the last decision with no age."""
+    publish_frame(pipeline, 0, 0.9)
+    state = wait_state(viewer, lambda s: s["slip"] is not None)
+    assert state["slip"]["stale"] is False and state["slip"]["slip"] is True and state["slip"]["age_s"] < 3.0
+    viewer.params.stale_s = 0.3
+    state = wait_state(viewer, lambda s: s["slip"]["stale"])
+    assert state["slip"]["age_s"] > 0.3 and state["slip"]["probability"] == pytest.approx(0.9)
+    publish_frame(pipeline, 1, 0.1)
+    state = wait_state(viewer, lambda s: s["slip"]["probability"] == pytest.approx(0.1))
+    assert state["slip"]["stale"] == (state["slip"]["age_s"] > 0.3)  # fresh again, but on a stalled machine
+
+
 def _abort(sock: socket.socket) -> None:
     """Close with a TCP reset, as a crashed browser tab would."""
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
