@@ -176,7 +176,11 @@ def _echo(args: argparse.Namespace) -> int:
     require_forwarder()
     with TopicReader([args.topic]) as reader:
         while count is None or shown < count:
+            malformed = reader.malformed
             item = reader.recv(args.timeout)
+            if (skipped := reader.malformed - malformed) > 0:  # what subscribers drop: said, not skipped silently
+                what = "a malformed message" if skipped == 1 else f"{skipped} malformed messages, the last"
+                print(f"fv topic echo: skipped {what}: {reader.last_malformed}", file=sys.stderr, flush=True)
             if item is None:
                 print(f"fv topic echo: no message on {args.topic} within {args.timeout} s", file=sys.stderr)
                 return 1

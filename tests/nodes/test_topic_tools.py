@@ -10,6 +10,7 @@ import time
 
 import pytest
 
+import msgs
 from msgs import NodeStatus, SlipState
 from nodes.bus import PublisherSocket, TopicReader
 from nodes.topic_tools import build_message
@@ -261,3 +262,27 @@ def test_each_second_s_report_says_when_no_new_message_came(bus: Bus) -> None:
     assert sum(counts) == 40 and counts[-1] == 0, counts
     assert seconds[-1]["rate_hz"] > 0 and seconds[-1]["topic"] == "/burst"
     assert any(line.startswith("average rate") for line in text) and text[-1] == "no new messages\n", text
+
+
+def test_echo_names_the_malformed_messages_it_skips(bus: Bus) -> None:
+    """`fv topic echo /x` printed nothing while a publisher sent /x messages every subscriber dropped as
+    malformed, then "no message on /x": the one tool to look at a topic hid what was wrong with it."""
+    pub = PublisherSocket("sender")
+    assert pub.wait_connected(2.0)
+    proc = _start("topic", "echo", "/x", "--timeout", "10", "--count", "1")
+    try:
+        deadline = time.monotonic() + 10.0
+        while not pub.has_subscribers("/x"):  # the echo's subscription has reached this publisher
+            assert time.monotonic() < deadline and proc.poll() is None, "the echo never subscribed"
+            time.sleep(0.05)
+        bad = msgs.encode(SlipState())
+        bad[0] = bad[0].replace(b"probability", b"probabilitx")
+        pub.publish_raw("/x", "bad_node", False, bad)
+        pub.publish("/x", SlipState(probability=0.25))
+        out, err = proc.communicate(timeout=15)
+    finally:
+        proc.kill()
+        pub.close()
+    assert "probability: 0.25" in out, (out, err)
+    assert "fv topic echo: skipped a malformed message: bad message on topic '/x', type 'SlipState', field " \
+           "'probability': missing (from node 'bad_node')" in err, err
