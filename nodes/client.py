@@ -273,7 +273,8 @@ RESET_TOPIC = "/tracker/reset"  # any message on it starts a new grasp on every 
 class Publisher(_Closing):
     """Publishes robot-code messages on `topic` (close() it, or use it as a context manager).
 
-    It waits up to `connect_timeout_s` for the bus to take its messages (TimeoutError naming the
+    `topic` is refused as `subscribe` refuses it (ValueError for "slip", without its '/'). It waits up to
+    `connect_timeout_s` for the bus to take its messages (TimeoutError naming the
     bus when none answers): a message sent before that would be lost without a word. `publish` checks
     each message as subscribers will (`check_message`): one they would drop as malformed raises here.
     A latched publisher's last message reaches later subscribers until it is closed: a thread answers
@@ -282,7 +283,7 @@ class Publisher(_Closing):
 
     def __init__(self, topic: str, *, name: str = "robot", latched: bool = False, connect_timeout_s: float = 2.0,
                  address: BusAddress | None = None) -> None:
-        self.topic = topic
+        self.topic = validate_topic(topic)  # "slip" was published where no subscriber can ask for it
         self.latched = latched
         self._sock = PublisherSocket(name, address)
         if not self._sock.wait_connected(connect_timeout_s):

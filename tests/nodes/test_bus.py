@@ -595,3 +595,12 @@ def test_silence_says_whether_the_bus_still_answers_and_reaches_a_listener(bus: 
     assert f"no forwarder answers on {bus.address.url}: the launch is gone" in str(silences[2])
     with pytest.raises(TimeoutError, match="no forwarder answers on ipc://"):
         wait_for_message("/slip", timeout_s=0.2)
+
+
+@pytest.mark.parametrize("topic", ["slip", "", "/slip ", "/slip/"])
+def test_client_advertise_refuses_a_topic_no_subscriber_can_ask_for(bus: Bus, topic: str) -> None:
+    """`advertise("slip")` published without a word on a topic `subscribe` and `fv topic echo` refuse."""
+    from nodes.client import advertise
+
+    with pytest.raises(ValueError, match=f"topic {topic!r}: must start with '/'"):
+        advertise(topic)
