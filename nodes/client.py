@@ -16,7 +16,7 @@ Callback form (a background thread calls the function)::
     with listen("/slip", lambda state: state.slip and gripper.squeeze()):
         robot.run_task()
 
-`timeout_s` makes silence an error (`TimeoutError`, saying whether the bus still answers): a gripper
+`timeout_s` makes silence an error (`SilenceError`, a `TimeoutError` saying whether the bus still answers): a gripper
 that stops hearing the slip detector should know. A listener given `timeout_s` calls `on_timeout` with
 that error, from its thread, once per silence. A message of another type than expected (a NodeStatus published on
 `/slip` by mistake) or one that cannot be decoded is dropped, counted and logged (at most every
@@ -67,14 +67,24 @@ def expected_type(topic: str) -> type[Message]:
     return Message
 
 
-def silence_error(topic: str, timeout_s: float, address: BusAddress) -> TimeoutError:
-    """The error for `timeout_s` s without a message on `topic`, saying whether the forwarder at `address`
-    still answers (a ping: at most 0.3 s): when it does not, the launch that served the bus is gone."""
-    if ping(address) is None:
-        why = f"no forwarder answers on {address.url}: the launch is gone or not started"
-    else:
-        why = f"the forwarder at {address.url} still answers"
-    return TimeoutError(f"no message on {topic} within {timeout_s} s ({why})")
+class SilenceError(TimeoutError):
+    """No message on `topic` for `timeout_s` s. Its text says whether the forwarder at `address` still
+    answers (when it does not, the launch that served the bus is gone), found when the text is first
+    asked for: the ping (up to 0.3 s, 2 s on TCP) never delays the raise a gripper acts on."""
+
+    def __init__(self, topic: str, timeout_s: float, address: BusAddress) -> None:
+        super().__init__(f"no message on {topic} within {timeout_s} s")
+        self.topic = topic
+        self.timeout_s = timeout_s
+        self.address = address
+        self._why: str | None = None
+
+    def __str__(self) -> str:
+        if self._why is None:
+            url = self.address.url
+            self._why = (f"no forwarder answers on {url}: the launch is gone or not started"
+                         if ping(self.address) is None else f"the forwarder at {url} still answers")
+        return f"{self.args[0]} ({self._why})"
 
 
 _C = TypeVar("_C", bound="_Closing")
@@ -154,7 +164,7 @@ class Subscription(_Closing):
         while True:
             msg = self.recv(self.timeout_s)
             if msg is None:
-                raise silence_error(self.topic, self.timeout_s, self.address)
+                raise SilenceError(self.topic, self.timeout_s, self.address)
             yield msg
 
     @property
@@ -188,7 +198,7 @@ def wait_for_message(topic: str, msg_type: type[Message] | None = None, timeout_
     with Subscription(topic, msg_type, address=address) as sub:
         msg = sub.recv(timeout_s)
         if msg is None:
-            raise silence_error(sub.topic, timeout_s, sub.address)
+            raise SilenceError(sub.topic, timeout_s, sub.address)
     return msg
 
 
@@ -199,7 +209,7 @@ class Listener(_Closing):
     `Subscription`); the thread goes on. What `subscribe` refuses (a topic without its leading '/', a TCP
     bus without `FV_CURVE_DIR`) raises here, in the caller's thread, before any thread starts.
 
-    timeout_s: with it, silence that long calls `on_timeout(error)` (the `TimeoutError` `subscribe` raises,
+    timeout_s: with it, silence that long calls `on_timeout(error)` (the `SilenceError` `subscribe` raises,
     saying whether the bus still answers) from the thread, once per silence, counted in `timeouts`;
     without `on_timeout` the error is logged. An `on_timeout` that raises is logged and counted in `errors`.
     """
@@ -235,7 +245,7 @@ class Listener(_Closing):
                         told = True
                         self.timeouts += 1
                         self._call("on_timeout", self.on_timeout or _log_silence,
-                                   silence_error(self.topic, self.timeout_s, sub.address))
+                                   SilenceError(self.topic, self.timeout_s, sub.address))
                     continue
                 heard_s, told = time.monotonic(), False
                 self.received += 1

@@ -597,6 +597,21 @@ def test_silence_says_whether_the_bus_still_answers_and_reaches_a_listener(bus: 
         wait_for_message("/slip", timeout_s=0.2)
 
 
+def test_silence_is_raised_before_the_bus_is_asked(bus_env: Bus, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Whether the bus answers is found when the error's text is asked for: a ping before the raise
+    (2 s on TCP) would hold back the TimeoutError a gripper stops on."""
+    import nodes.client
+    from nodes.client import subscribe
+
+    pings: list[object] = []
+    monkeypatch.setattr(nodes.client, "ping", lambda address: pings.append(address))
+    with subscribe("/slip", timeout_s=0.1) as states, pytest.raises(TimeoutError) as silent:
+        next(iter(states))
+    assert pings == []
+    assert "no forwarder answers" in str(silent.value) and "no forwarder answers" in str(silent.value)
+    assert pings == [bus_env.address], "asked once, when first formatted"
+
+
 @pytest.mark.parametrize("topic", ["slip", "", "/slip ", "/slip/"])
 def test_client_advertise_refuses_a_topic_no_subscriber_can_ask_for(bus: Bus, topic: str) -> None:
     """`advertise("slip")` published without a word on a topic `subscribe` and `fv topic echo` refuse."""
