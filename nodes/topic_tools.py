@@ -325,9 +325,13 @@ def build_message(type_name: str, text: str) -> Any:
         values = {}
     if not isinstance(values, dict):
         raise ValueError(f"{type_name} fields: {text!r} is not a YAML mapping such as '{{field: value}}'")
-    for name in set(HEADER_FIELDS) - {"stamp_ns", "frame_id"}:
-        if name in values:
+    by_publisher = set(HEADER_FIELDS) - {"stamp_ns", "frame_id"}
+    settable = sorted(f.name for f in dataclasses.fields(cls) if f.name not in by_publisher)
+    for name in values:
+        if name in by_publisher:
             raise ValueError(f"{type_name}.{name}: set by the publisher, not settable")
+        if name not in settable:  # its fields only: the publisher's (seq, pub_ns, node) were listed too
+            raise ValueError(f"{type_name}.{name}: no such field; {type_name} has {settable}")
     defaults = {f.name: f.default_factory() for f in dataclasses.fields(cls) if f.name in cls.ARRAYS}
     for name, default in defaults.items():
         if name in values:

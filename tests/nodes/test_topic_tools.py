@@ -131,7 +131,8 @@ def test_measures_of_too_few_messages_are_null_and_no_bus_is_an_error(bus_env: B
 
 
 @pytest.mark.parametrize("type_name, text, match", [
-    ("SlipState", "{probabilty: 0.9}", "probabilty"),
+    ("SlipState", "{probabilty: 0.9}", r"^SlipState\.probabilty: no such field; SlipState has \['frame_id', 'model', "
+                                       r"'probability', 'slip', 'stamp_ns', 'threshold', 'valid', 'window_stamps_ns'\]$"),
     ("SlipState", "{probability: 2.0}", "probability"),
     ("SlipState", "{slip: 1}", "slip"),
     ("SlipState", "{seq: 4}", "seq"),
