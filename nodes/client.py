@@ -260,8 +260,14 @@ class Listener(_Closing):
             log.exception("%s for %s raised", what, self.topic)
 
     def close(self, timeout_s: float = 1.0) -> None:
+        """Stop the thread, waiting up to `timeout_s` for a callback that runs; one still running then is
+        logged (it returned without a word, the callback going on beside the code after the `with`), and
+        no other follows it."""
         self._stop.set()
         self._thread.join(timeout_s)
+        if self._thread.is_alive():
+            log.warning("listener for %s closed while its callback still runs after %g s: no other call follows",
+                        self.topic, timeout_s)
 
 
 def _log_silence(error: TimeoutError) -> None:

@@ -619,3 +619,32 @@ def test_client_advertise_refuses_a_topic_no_subscriber_can_ask_for(bus: Bus, to
 
     with pytest.raises(ValueError, match=f"topic {topic!r}: must start with '/'"):
         advertise(topic)
+
+
+def test_closing_a_listener_whose_callback_still_runs_says_so(bus: Bus, caplog: pytest.LogCaptureFixture) -> None:
+    """close() waited 1 s for a callback that ran on (a gripper command at Ctrl-C) and returned without a
+    word, the callback going on beside the code after the `with`."""
+    from nodes.client import listen
+
+    entered, release = threading.Event(), threading.Event()
+
+    def slow(_msg: object) -> None:
+        entered.set()
+        release.wait(10.0)
+
+    pub = PublisherSocket("slip_detector", bus.address)
+    assert pub.wait_connected(2.0)
+    listener = listen("/slip", slow)
+    try:
+        deadline = time.monotonic() + 5.0
+        while not entered.is_set():
+            pub.publish("/slip", SlipState())
+            assert time.monotonic() < deadline, "the callback was never called"
+            time.sleep(0.05)
+        listener.close(timeout_s=0.1)
+        assert "listener for /slip closed while its callback still runs after 0.1 s" in caplog.text
+    finally:
+        release.set()
+        listener._thread.join(5.0)
+        pub.close()
+    assert listener.received == 1, "no call follows the close"
