@@ -157,7 +157,7 @@ class Forwarder:
                             self._forward(up, xpubs)
                     self._ask_publishers(xsubs, self.latched.publisher_left(time.monotonic()))
                 elif sock in ctls:
-                    sock.recv()
+                    sock.recv_multipart()  # every frame: a REP answers only a whole request (a 2-frame one ended it)
                     sock.send(msgpack.packb(self.info()))
 
     def _forward(self, xsub: zmq.Socket, xpubs: list[zmq.Socket]) -> None:

@@ -648,3 +648,18 @@ def test_closing_a_listener_whose_callback_still_runs_says_so(bus: Bus, caplog: 
         listener._thread.join(5.0)
         pub.close()
     assert listener.received == 1, "no call follows the close"
+
+
+def test_the_forwarder_answers_a_request_of_several_frames(bus: Bus) -> None:
+    """A two-frame request on the control socket ended the forwarder (ZMQError: Operation cannot be
+    accomplished in current state: its REP had read one frame of two before answering)."""
+    req = zmq.Context.instance().socket(zmq.REQ)
+    req.linger = 0
+    req.connect(bus.address.ctl)
+    try:
+        req.send_multipart([b"ping", b"more"])
+        assert req.poll(5000), "no answer"
+        assert msgpack.unpackb(req.recv())["url"] == bus.address.url
+    finally:
+        req.close()
+    assert ping(bus.address, 2.0) is not None and bus._thread is not None and bus._thread.is_alive()
