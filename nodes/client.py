@@ -16,7 +16,7 @@ Callback form (a background thread calls the function)::
     with listen("/slip", lambda state: state.slip and gripper.squeeze()):
         robot.run_task()
 
-`timeout_s` makes silence an error (`SilenceError`, a `TimeoutError` saying whether the bus still answers): a gripper
+`timeout_s` makes silence an error (`SilenceError`, a `TimeoutError` saying whether the bus answered then): a gripper
 that stops hearing the slip detector should know. A listener given `timeout_s` calls `on_timeout` with
 that error, from its thread, once per silence. A message of another type than expected (a NodeStatus published on
 `/slip` by mistake) or one that cannot be decoded is dropped, counted and logged (at most every
@@ -68,23 +68,45 @@ def expected_type(topic: str) -> type[Message]:
 
 
 class SilenceError(TimeoutError):
-    """No message on `topic` for `timeout_s` s. Its text says whether the forwarder at `address` still
-    answers (when it does not, the launch that served the bus is gone), found when the text is first
-    asked for: the ping (up to 0.3 s, 2 s on TCP) never delays the raise a gripper acts on."""
+    """No message on `topic` for `timeout_s` s. Its text says whether the forwarder at `address` answered
+    when the silence was raised (when it did not, the launch that served the bus is gone): a thread asks it
+    then (`ping`: up to 0.3 s, 2 s on TCP), so the raise a gripper acts on is never held back; reading
+    the text, or `bus_answers`, waits for that answer. `answers` gives it instead (a copy, an unpickled one)."""
 
-    def __init__(self, topic: str, timeout_s: float, address: BusAddress) -> None:
+    def __init__(self, topic: str, timeout_s: float, address: BusAddress, answers: bool | None = None) -> None:
         super().__init__(f"no message on {topic} within {timeout_s} s")
         self.topic = topic
         self.timeout_s = timeout_s
         self.address = address
-        self._why: str | None = None
+        self._answers = answers
+        self._asking: threading.Thread | None = None
+        if answers is None:
+            self._asking = threading.Thread(target=self._ask, name=f"fv-silence{topic}", daemon=True)
+            self._asking.start()
+
+    def _ask(self) -> None:
+        """Ping the forwarder (the thread started at the raise)."""
+        self._answers = ping(self.address) is not None
+
+    @property
+    def bus_answers(self) -> bool:
+        """Whether the forwarder answered a ping sent as the silence was raised (waits for it)."""
+        if self._asking is not None:
+            self._asking.join()
+        return bool(self._answers)
 
     def __str__(self) -> str:
-        if self._why is None:
-            url = self.address.url
-            self._why = (f"no forwarder answers on {url}: the launch is gone or not started"
-                         if ping(self.address) is None else f"the forwarder at {url} still answers")
-        return f"{self.args[0]} ({self._why})"
+        url = self.address.url
+        why = (f"the forwarder at {url} still answers" if self.bus_answers
+               else f"no forwarder answers on {url}: the launch is gone or not started")
+        return f"{self.args[0]} ({why})"
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({str(self)!r})"
+
+    def __reduce__(self) -> tuple[type[SilenceError], tuple[str, float, BusAddress, bool]]:
+        """Copied and pickled with its answer (the exception's args are its text alone)."""
+        return type(self), (self.topic, self.timeout_s, self.address, self.bus_answers)
 
 
 _C = TypeVar("_C", bound="_Closing")
@@ -210,7 +232,7 @@ class Listener(_Closing):
     bus without `FV_CURVE_DIR`) raises here, in the caller's thread, before any thread starts.
 
     timeout_s: with it, silence that long calls `on_timeout(error)` (the `SilenceError` `subscribe` raises,
-    saying whether the bus still answers) from the thread, once per silence, counted in `timeouts`;
+    saying whether the bus answered then) from the thread, once per silence, counted in `timeouts`;
     without `on_timeout` the error is logged. An `on_timeout` that raises is logged and counted in `errors`.
     """
 

@@ -2,7 +2,9 @@
 robot-code client (including the README snippet, verbatim)."""
 from __future__ import annotations
 
+import copy
 import os
+import pickle
 import socket
 import subprocess
 import sys
@@ -585,31 +587,66 @@ def test_silence_says_whether_the_bus_still_answers_and_reaches_a_listener(bus: 
                 pub.publish("/slip", SlipState())
                 assert time.monotonic() < deadline + 5.0, "no message reached the listener"
                 time.sleep(0.05)
-        bus.stop_forwarder()
+    pub.close()
+    assert f"no message on /slip within 0.3 s (the forwarder at {bus.address.url} still answers)" in str(silences[0])
+    bus.stop_forwarder()  # (stopped first: the bus is asked as the silence is raised)
+    gone: list[TimeoutError] = []
+    with listen("/slip", got.append, timeout_s=0.3, on_timeout=gone.append):
         deadline = time.monotonic() + 5.0
-        while len(silences) < 3:
+        while not gone:
             assert time.monotonic() < deadline, "the launch gone was not reported"
             time.sleep(0.05)
-    pub.close()
-    assert "no message on /slip within 0.3 s" in str(silences[0])
-    assert f"no forwarder answers on {bus.address.url}: the launch is gone" in str(silences[2])
+    assert f"no forwarder answers on {bus.address.url}: the launch is gone" in str(gone[0])
     with pytest.raises(TimeoutError, match="no forwarder answers on ipc://"):
         wait_for_message("/slip", timeout_s=0.2)
 
 
-def test_silence_is_raised_before_the_bus_is_asked(bus_env: Bus, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Whether the bus answers is found when the error's text is asked for: a ping before the raise
-    (2 s on TCP) would hold back the TimeoutError a gripper stops on."""
+def test_silence_is_raised_before_the_bus_answers(bus_env: Bus, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The bus is asked from a thread as the silence is raised: a ping before the raise (2 s on TCP) would
+    hold back the TimeoutError a gripper stops on. Its text waits for the answer."""
     import nodes.client
     from nodes.client import subscribe
 
-    pings: list[object] = []
-    monkeypatch.setattr(nodes.client, "ping", lambda address: pings.append(address))
+    asked, answer = threading.Event(), threading.Event()
+
+    def slow_ping(address: object) -> None:
+        asked.set()
+        assert answer.wait(10.0)
+
+    monkeypatch.setattr(nodes.client, "ping", slow_ping)
     with subscribe("/slip", timeout_s=0.1) as states, pytest.raises(TimeoutError) as silent:
         next(iter(states))
-    assert pings == []
-    assert "no forwarder answers" in str(silent.value) and "no forwarder answers" in str(silent.value)
-    assert pings == [bus_env.address], "asked once, when first formatted"
+    assert asked.wait(5.0) and not answer.is_set(), "raised while the bus was being asked"
+    answer.set()
+    assert f"no forwarder answers on {bus_env.address.url}" in str(silent.value)
+
+
+def test_silence_says_what_the_bus_answered_when_it_was_raised(bus_env: Bus) -> None:
+    """The text said what the bus answered when it was first read: a silence raised while the launch was
+    gone, logged after a new launch had started, said "the forwarder ... still answers"."""
+    from nodes.client import wait_for_message
+
+    with pytest.raises(TimeoutError) as silent:
+        wait_for_message("/slip", timeout_s=0.1)
+    assert silent.value.bus_answers is False  # asked at the raise
+    bus_env.start_forwarder()
+    assert ping(bus_env.address, 2.0) is not None
+    assert f"(no forwarder answers on {bus_env.address.url}: the launch is gone" in str(silent.value)
+
+
+def test_a_silence_error_pickles_and_reprs_with_its_answer(bus: Bus) -> None:
+    """A SilenceError could not be unpickled (`__init__() missing 2 required positional arguments`: a
+    process pool's result, a multiprocessing queue) nor copied, and its repr left out the bus's answer."""
+    from nodes.client import SilenceError, wait_for_message
+
+    with pytest.raises(SilenceError) as silent:
+        wait_for_message("/slip", timeout_s=0.1)
+    text = str(silent.value)
+    assert text == f"no message on /slip within 0.1 s (the forwarder at {bus.address.url} still answers)"
+    bus.stop_forwarder()  # neither a copy nor an unpickled one asks the bus again
+    for again in (pickle.loads(pickle.dumps(silent.value)), copy.copy(silent.value)):
+        assert isinstance(again, SilenceError) and str(again) == text and again.topic == "/slip"
+    assert repr(silent.value) == f"SilenceError({text!r})"
 
 
 @pytest.mark.parametrize("topic", ["slip", "", "/slip ", "/slip/"])
