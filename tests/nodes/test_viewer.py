@@ -161,15 +161,19 @@ def test_viewer_serves_the_page_state_and_pictures(viewer: ViewerNode, pipeline:
 def test_a_slip_decision_that_stops_coming_is_shown_stale(viewer: ViewerNode, pipeline: PublisherSocket) -> None:
     """After the pipeline stopped, the page's badge said "SLIP p=0.90" in red for good: the state gave
     the last decision with no age."""
+    viewer.params.stale_s = 60.0  # fresh however slow the machine
     publish_frame(pipeline, 0, 0.9)
     state = wait_state(viewer, lambda s: s["slip"] is not None)
-    assert state["slip"]["stale"] is False and state["slip"]["slip"] is True and state["slip"]["age_s"] < 3.0
+    assert state["slip"]["stale"] is False and state["slip"]["slip"] is True and state["slip"]["age_s"] < 60.0
     viewer.params.stale_s = 0.3
     state = wait_state(viewer, lambda s: s["slip"]["stale"])
-    assert state["slip"]["age_s"] > 0.3 and state["slip"]["probability"] == pytest.approx(0.9)
+    assert state["slip"]["age_s"] >= 0.3 and state["slip"]["probability"] == pytest.approx(0.9)  # (to 0.01 s)
+    viewer.params.stale_s = 60.0
+    sent_s = time.monotonic()
     publish_frame(pipeline, 1, 0.1)
     state = wait_state(viewer, lambda s: s["slip"]["probability"] == pytest.approx(0.1))
-    assert state["slip"]["stale"] == (state["slip"]["age_s"] > 0.3)  # fresh again, but on a stalled machine
+    assert state["slip"]["stale"] is False  # a new decision is fresh again: aged from its own arrival
+    assert state["slip"]["age_s"] <= time.monotonic() - sent_s + 0.01
 
 
 def _abort(sock: socket.socket) -> None:
