@@ -291,9 +291,10 @@ def _contact_state(msg: ContactSummary) -> dict[str, Any]:
             "rotation_rad": _finite(msg.rotation_rad), "divergence": _finite(msg.divergence)}
 
 
-def _slip_state(msg: SlipState, samples: list[tuple[float, float, bool]], age_s: float, stale_s: float) -> dict[str, Any]:
-    """The latest decision, its plot's samples, and how old it is: `stale` when none came for `stale_s`
-    (the page said "SLIP p=1.00" in red for good after the slip detector had gone)."""
+def _slip_state(msg: SlipState, samples: list[tuple[float, float, bool]], age_s: float,
+                stale_s: float) -> dict[str, Any]:
+    """The latest decision, its plot's samples, and how old it is (`age_s`: s since it came): `stale` when
+    none came for `stale_s` s (the page said "SLIP p=1.00" in red for good after the slip detector had gone)."""
     return {"probability": float(msg.probability), "slip": bool(msg.slip), "valid": bool(msg.valid),
             "age_s": round(age_s, 2), "stale": age_s > stale_s,
             "threshold": float(msg.threshold), "model": msg.model,
