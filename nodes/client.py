@@ -234,11 +234,16 @@ class Listener(_Closing):
     timeout_s: with it, silence that long calls `on_timeout(error)` (the `SilenceError` `subscribe` raises,
     saying whether the bus answered then) from the thread, once per silence, counted in `timeouts`;
     without `on_timeout` the error is logged. An `on_timeout` that raises is logged and counted in `errors`.
+    ValueError for a `timeout_s` <= 0, and for an `on_timeout` without `timeout_s` (it would never be called).
     """
 
     def __init__(self, topic: str, callback: Callable[[Message], object], msg_type: type[Message] | None = None,
                  *, latest: bool = False, timeout_s: float | None = None,
                  on_timeout: Callable[[TimeoutError], object] | None = None, address: BusAddress | None = None) -> None:
+        if timeout_s is not None and not timeout_s > 0:
+            raise ValueError(f"timeout_s {timeout_s} must be > 0 s (None: no timeout)")
+        if on_timeout is not None and timeout_s is None:
+            raise ValueError("on_timeout is never called without timeout_s (the silence, s, that calls it)")
         self.topic = topic
         self.callback = callback
         self.timeout_s = timeout_s

@@ -658,6 +658,21 @@ def test_client_advertise_refuses_a_topic_no_subscriber_can_ask_for(bus: Bus, to
         advertise(topic)
 
 
+@pytest.mark.parametrize("timeout_s, match", [
+    (None, r"on_timeout is never called without timeout_s"),
+    (0.0, r"timeout_s 0.0 must be > 0 s"),
+    (-1.0, r"timeout_s -1.0 must be > 0 s"),
+])
+def test_a_listener_refuses_a_timeout_it_cannot_keep(bus: Bus, timeout_s: float | None, match: str) -> None:
+    """`listen("/slip", cb, on_timeout=gripper.stop)` without `timeout_s` started and never called
+    `on_timeout`: the gripper was told of no silence, and nothing said why. A timeout of 0 s called it
+    on every gap between two messages."""
+    from nodes.client import listen
+
+    with pytest.raises(ValueError, match=match):
+        listen("/slip", print, timeout_s=timeout_s, on_timeout=print).close()
+
+
 def test_closing_a_listener_whose_callback_still_runs_says_so(bus: Bus, caplog: pytest.LogCaptureFixture) -> None:
     """close() waited 1 s for a callback that ran on (a gripper command at Ctrl-C) and returned without a
     word, the callback going on beside the code after the `with`."""
