@@ -140,6 +140,8 @@ class Subscription(_Closing):
 
     def __init__(self, topic: str, msg_type: type[Message] | None = None, *, timeout_s: float | None = None,
                  latest: bool = False, address: BusAddress | None = None) -> None:
+        if timeout_s is not None and not timeout_s > 0:  # 0 raised at once; nan never; -1 at once
+            raise ValueError(f"timeout_s {timeout_s} must be > 0 s (None: wait forever)")
         self.topic = validate_topic(topic)  # '' (an unset variable) would be every topic
         self.msg_type = expected_type(topic) if msg_type is None else msg_type
         self.timeout_s = timeout_s
@@ -289,8 +291,12 @@ class Listener(_Closing):
     def close(self, timeout_s: float = 1.0) -> None:
         """Stop the thread, waiting up to `timeout_s` for a callback that runs; one still running then is
         logged (it returned without a word, the callback going on beside the code after the `with`), and
-        no other follows it."""
+        no other follows it. Called from the listener's own callback (a gripper that stops listening once
+        it has seen a slip), it stops the thread after that callback and returns at once (it raised
+        RuntimeError: a thread cannot join itself)."""
         self._stop.set()
+        if threading.current_thread() is self._thread:
+            return
         self._thread.join(timeout_s)
         if self._thread.is_alive():
             log.warning("listener for %s closed while its callback still runs after %g s: no other call follows",

@@ -702,6 +702,48 @@ def test_closing_a_listener_whose_callback_still_runs_says_so(bus: Bus, caplog: 
     assert listener.received == 1, "no call follows the close"
 
 
+def test_a_listener_closed_from_its_own_callback_stops_after_it(bus: Bus) -> None:
+    """A gripper that stops listening once it has seen a slip, calling close() in its callback: the
+    callback raised RuntimeError ('cannot join current thread'), logged and counted, and the listener went
+    on calling it."""
+    from nodes.client import listen
+
+    calls: list[SlipState] = []
+    listener = None
+
+    def once(msg: SlipState) -> None:
+        calls.append(msg)
+        listener.close()
+
+    pub = PublisherSocket("slip_detector", bus.address)
+    assert pub.wait_connected(2.0)
+    listener = listen("/slip", once)
+    try:
+        deadline = time.monotonic() + 5.0
+        while not calls:
+            pub.publish("/slip", SlipState())
+            assert time.monotonic() < deadline, "the callback was never called"
+            time.sleep(0.05)
+        for _ in range(5):  # more messages, which no call follows
+            pub.publish("/slip", SlipState())
+            time.sleep(0.05)
+        listener._thread.join(5.0)
+        assert not listener._thread.is_alive()
+    finally:
+        listener.close()
+        pub.close()
+    assert (len(calls), listener.errors) == (1, 0)
+
+
+@pytest.mark.parametrize("timeout_s", [0.0, -1.0, float("nan")])
+def test_a_subscription_refuses_a_timeout_it_cannot_keep(bus: Bus, timeout_s: float) -> None:
+    """subscribe("/slip", timeout_s=0) raised at the first wait, and nan never: a silence went unnoticed."""
+    from nodes.client import subscribe
+
+    with pytest.raises(ValueError, match=f"timeout_s {timeout_s} must be > 0 s"):
+        subscribe("/slip", timeout_s=timeout_s)
+
+
 def test_the_forwarder_answers_a_request_of_several_frames(bus: Bus) -> None:
     """A two-frame request on the control socket ended the forwarder (ZMQError: Operation cannot be
     accomplished in current state: its REP had read one frame of two before answering)."""
