@@ -94,9 +94,8 @@ def test_fields_past_float16_count_as_the_largest_motion_and_non_finite_ones_are
 @pytest.mark.parametrize("grid", [0, 1, 10])
 def test_a_field_of_another_grid_than_the_trained_one_is_refused_by_name(grid: int) -> None:
     """The trial models read 30x30 fields, whose divergence and curl are per grid cell: one rotation of the
-    skin read 1.33 on a 10x10 grid against 0.41 on 30x30 (3.2x, /tmp/s30/extremes/p11_trial_grid_bias.py),
-    taken silently; a 1x1 or 0x0 field raised numpy's 'Shape of array too small to calculate a numerical
-    gradient'. Refused now, naming both grids, before the frame changes the judge's state."""
+    skin read 1.33 on a 10x10 grid against 0.41 on 30x30 (3.2x), taken silently; a 1x1 or 0x0 field raised
+    numpy's 'Shape of array too small to calculate a numerical gradient'. Refused now, naming both grids, before the frame changes the judge's state."""
     judge = GraspJudge(TrialNet(4))
     image = np.full((240, 320, 3), 128, np.uint8)
     with pytest.raises(ValueError, match=rf"field grid {grid}x{grid} is not the 30x30 grid"):
