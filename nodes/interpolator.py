@@ -55,6 +55,10 @@ class InterpolatorNode(Node):
         self.counters.update(invalid_fields=0, too_many_markers=0, bad_references=0)
 
     def on_markers(self, msg: MarkerArray) -> None:
+        """Publish the field (and the contact summary) of `msg`'s markers, interpolated on the grid from its
+        reference (the operator rebuilt when the reference changes). Refused with a warning: more than
+        max_markers markers (too_many_markers), a reference the interpolator cannot be built from
+        (bad_references; the last good one is kept)."""
         if len(msg.ref_px) > self.params.max_markers:
             self.counters["too_many_markers"] += 1
             self.warn(f"a MarkerArray of {len(msg.ref_px)} markers from {msg.node!r} refused: more than max_markers "

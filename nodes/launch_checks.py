@@ -16,6 +16,7 @@ _noted: set[str] = set()
 
 
 def _given() -> set[str]:
+    """The keys of the checks the launch that started this process saw pass (`CHECKED_ENV`)."""
     return set(os.environ.get(CHECKED_ENV, "").split())
 
 

@@ -224,6 +224,10 @@ class SlipDetectorNode(Node):
         return False
 
     def on_field(self, msg: DisplacementField) -> None:
+        """Window model: add the field to the window and judge the window once it holds `cfg.window` fields.
+        ValueError for a field of another grid than the model's; a field stamped as the last is dropped
+        (duplicate_fields); one stamped before the last or more than window_gap_s after it starts a new
+        window (window_restarts)."""
         cfg = self.classifier.config
         require_grid(msg, (cfg.grid, cfg.grid))
         gap_ns = msg.stamp_ns - self.window[-1][0] if self.window else None
@@ -285,6 +289,10 @@ class SlipDetectorNode(Node):
         self.counters["grasps"] += 1
 
     def on_grasp_field(self, msg: DisplacementField) -> None:
+        """Trial model: judge the grasp so far with the field and the camera image of its stamp, and publish
+        its P(slip). ValueError for a field of another grid than `real_trials.FIELD_GRID`; left out and
+        counted: a field before the grasp's reference (before_grasp), one stamped at or before the grasp's
+        last field (out_of_order_fields), one without its image (unmatched_fields); ValueError for mono8 images."""
         require_grid(msg, self.field_grid)
         if self.grasp_start_ns is None or msg.stamp_ns < self.grasp_start_ns:
             self.counters["before_grasp"] += 1  # no reference yet, or a field of the grasp before the current one

@@ -157,6 +157,10 @@ class TrackerNode(Node):
             self.inherited, self.inherited_from = msg, "the recording's"
 
     def on_image(self, msg: Image) -> None:
+        """Track the frame's markers against the reference (mono8, bgr8 or rgb8, read as BGR) and publish them;
+        without a reference, take one: the previous process's or the recording's when it can be resumed on
+        this frame, else this frame's (at `reference_frame`, or the next after /tracker/reset). A frame with
+        no reference in it is a reference_retries warning, and the next frame is tried."""
         self.frames_seen += 1
         image = as_bgr(msg.data, msg.encoding) if msg.encoding == "rgb8" else msg.data  # perception reads BGR
         if 0 <= msg.frame_index < self.last_index:  # the source started over (a looped video's next pass)
