@@ -281,6 +281,10 @@ class SlipDetectorNode(Node):
             return
         self.grasp_start_ns = msg.stamp_ns
         self.reference_markers = len(msg.ref_px)
+        self.start_grasp()
+
+    def start_grasp(self) -> None:
+        """Judge the grasp from its reference frame (`grasp_start_ns`) on, from nothing."""
         self.slow_gaps_before = self.judge.slow_gaps
         self.judge.reset()
         self.judged = None
@@ -292,11 +296,17 @@ class SlipDetectorNode(Node):
         """Trial model: judge the grasp so far with the field and the camera image of its stamp, and publish
         its P(slip). ValueError for a field of another grid than `real_trials.FIELD_GRID`; left out and
         counted: a field before the grasp's reference (before_grasp), one stamped at or before the grasp's
-        last field (out_of_order_fields), one without its image (unmatched_fields); ValueError for mono8 images."""
+        last field (out_of_order_fields), one without its image (unmatched_fields); ValueError for mono8 images.
+        A field of the reference frame's own stamp after later ones is that frame played again (`fv bag play
+        --loop` of a recording whose frames carry no `frame_index`): the grasp is judged again from it, as a
+        new grasp (its fields were all left out as out of order)."""
         require_grid(msg, self.field_grid)
         if self.grasp_start_ns is None or msg.stamp_ns < self.grasp_start_ns:
             self.counters["before_grasp"] += 1  # no reference yet, or a field of the grasp before the current one
             return
+        if msg.stamp_ns == self.grasp_start_ns and self.last_field_ns is not None:
+            self.log.info("the grasp's reference frame again (a recording played again): its grasp is judged anew")
+            self.start_grasp()
         if self.last_field_ns is not None and msg.stamp_ns <= self.last_field_ns:  # judged after it, out of order
             self.counters["out_of_order_fields"] += 1
             self.warn(f"a field stamped {(msg.stamp_ns - self.last_field_ns) / 1e9:+.9g} s from the grasp's last left "

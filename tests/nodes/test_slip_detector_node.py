@@ -274,11 +274,39 @@ def test_a_field_not_after_the_grasps_last_is_left_out_by_a_trial_model() -> Non
             node.on_grasp_field(_field(stamp, 0.1))
         assert node.counters["out_of_order_fields"] == 2 and node.counters["rate_skipped"] == 0
         assert node.judge.frames == 12 and len(published) == 12 and node.counters["unmatched_fields"] == 0
-        node.on_grasp_field(_field(0, 0.1))
-        assert node.state == "warn" and node.message == ("a field stamped -0.44 s from the grasp's last left out "
+        node.on_grasp_field(_field(40_000_000, 0.1))
+        assert node.state == "warn" and node.message == ("a field stamped -0.4 s from the grasp's last left out "
                                                          "(out_of_order_fields)")
     finally:
         node.close()
+
+
+def test_a_grasp_played_again_is_judged_again_by_a_trial_model() -> None:
+    """`fv bag play --loop` of a recording whose frames carry no frame_index (the simulator's, a live camera's)
+    plays its frames again with their stamps, and the tracker keeps its reference: every field of the second
+    pass was left out as out of order, and /slip fell silent after the first. The reference frame's field again
+    starts the grasp anew, and the second pass is judged as the first."""
+    from msgs import Image
+    from nodes.slip_detector import SlipDetectorNode
+    node = SlipDetectorNode("slip_detector", {"model": "gelsight_online"})
+    published: list[SlipState] = []
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 255, (240, 320, 3), np.uint8) for _ in range(12)]
+    try:
+        node.setup()
+        node.slip_pub.publish = published.append
+        node.on_reference(_reference(40_000_000, 320))
+        for _ in range(2):
+            for k, image in enumerate(images):  # frame 0 comes before the reference, as a recording's does
+                node.on_image(Image(stamp_ns=k * 40_000_000, encoding="bgr8", data=image))
+                node.on_grasp_field(_field(k * 40_000_000, 0.2 * k))
+        assert node.counters["out_of_order_fields"] == 0 and node.counters["before_grasp"] == 2
+        assert node.counters["grasps"] == 2 and len(published) == 22
+    finally:
+        node.close()
+    first, second = published[:11], published[11:]
+    assert [m.probability for m in first] == [m.probability for m in second]
+    assert [m.window_stamps_ns.tolist() for m in first] == [m.window_stamps_ns.tolist() for m in second]
 
 
 def test_a_slow_camera_is_warned_of_for_the_rest_of_its_grasp() -> None:
