@@ -16,6 +16,7 @@ from types import FrameType
 from fv_algos.allocator import steady_malloc
 from nodes.exit_codes import (CONFIG, CONFIG_WHILE_RUNNING, FAILED, INTERRUPTED, OK, TEMPFAIL, NodeFailed,
                               NotReadyError, stop_signals)
+from nodes.parent_death import stop_with_parent
 
 COMMAND_MODULES = [
     "nodes.core_commands",
@@ -96,7 +97,8 @@ def _quiet_pool_threads(args: threading.ExceptHookArgs) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Run the command; its exit code (`nodes.exit_codes`): a NotReadyError gives TEMPFAIL, an error
     of input or configuration (ValueError, KeyError, OSError, RuntimeError) CONFIG, each said in one line;
-    Ctrl-C INTERRUPTED, SIGTERM and SIGHUP 128 + their number, after the command's clean-up."""
+    Ctrl-C INTERRUPTED, SIGTERM and SIGHUP 128 + their number, after the command's clean-up. A process
+    started by `fv launch` (`nodes.parent_death`) gets SIGTERM when its launcher dies."""
     args = parse_args(argv)
     steady_malloc()  # every fv process: nodes, training, benchmarks
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
@@ -105,6 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     previous = {sig: signal.signal(sig, stop_like_ctrl_c) for sig in stop_signals()
                 if in_main_thread and sig != signal.SIGINT}
     try:
+        stop_with_parent()  # with the stop handlers in place: the launcher's death is a clean stop
         return int(args.func(args) or OK)
     except Stopped as stop:
         return stop.exit_code

@@ -100,17 +100,18 @@ def _json_params(text: str) -> dict:
 
 def _wait_for_takeover(cls: type, params: dict, check_s: float = 0.5) -> bool:
     """Preload `cls` for `params`, print STANDBY_READY and block: True on SIGUSR1 (take over), False
-    on SIGTERM / SIGINT (the launch is stopping) or when the launcher has died (checked every
-    `check_s` seconds)."""
+    on SIGTERM / SIGINT (the launch is stopping, or the launcher died: `nodes.parent_death`). A signal
+    that another thread of the process took (the preload's, which do not block them) is handled, by
+    `nodes.cli`'s handler, when the wait ends, within `check_s` seconds."""
     import signal
 
-    from nodes.node import STANDBY_READY, launcher_gone
+    from nodes.node import STANDBY_READY
     cls.preload(params)
     signals = {signal.SIGUSR1, signal.SIGTERM, signal.SIGINT}
     signal.pthread_sigmask(signal.SIG_BLOCK, signals)
     print(STANDBY_READY, flush=True)
     received = None
-    while received is None and not launcher_gone():
+    while received is None:
         received = signal.sigtimedwait(signals, check_s)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, signals)
     return received is not None and received.si_signo == signal.SIGUSR1

@@ -31,6 +31,7 @@ from nodes.bus import LATCHED, LINGER_MS, connect_client, new_context
 from nodes.endpoints import BUS_ENV, BusAddress, bus_address, secure_server
 from nodes.exit_codes import FAILED, OK, stop_signals
 from nodes.latched_cache import LatchedCache
+from nodes.parent_death import parent_env
 
 log = logging.getLogger("fv.forwarder")
 FWD_HWM = 200
@@ -219,12 +220,12 @@ def ping(address: BusAddress | None = None, timeout_s: float = 0.3) -> dict | No
 
 
 def ensure_forwarder(address: BusAddress | None = None, timeout_s: float = 5.0) -> subprocess.Popen | None:
-    """Start a forwarder process unless one answers; returns it (the caller stops it) or
-    None when one was already running."""
+    """Start a forwarder process unless one answers; returns it (the caller stops it; it also stops
+    when the caller dies: `nodes.parent_death`) or None when one was already running."""
     address = address or bus_address()
     if ping(address) is not None:
         return None
-    env = dict(os.environ, **{BUS_ENV: address.url})
+    env = dict(os.environ, **{BUS_ENV: address.url}, **parent_env())
     proc = subprocess.Popen([sys.executable, "-m", "nodes.cli", "forwarder"], env=env,
                             start_new_session=False)
     deadline = time.monotonic() + timeout_s

@@ -6,7 +6,8 @@ cannot start (`fv launch FILE [name:=value ...]`).
 Each node runs in its own process group, so a terminal's Ctrl-C reaches only the
 launcher, which then stops the nodes in order: SIGTERM to each group, SIGKILL after
 `GRACE_S`, then the forwarder it started. A launcher killed outright (SIGKILL) cannot: its
-nodes and spares stop by themselves when they see it gone (`LAUNCHER_PID_ENV`).
+nodes, spares and forwarder get SIGTERM from the kernel when it dies (`nodes.parent_death`), so
+they must be started from the main thread or the supervisor, which live as long as the launch.
 
 The launcher supervises the forwarder it started (restarted when it dies; nodes
 reconnect by themselves and re-send their latched messages). A launch that found another's
@@ -47,7 +48,8 @@ from typing import Any, TextIO
 from nodes import launch_checks
 from nodes.exit_codes import CONFIG, CONFIG_WHILE_RUNNING, FAILED, OK, TEMPFAIL, stop_signals
 from nodes.launch_file import NodeSpec, load_launch, parse_arg_overrides
-from nodes.node import LAUNCH_ENV, LAUNCHER_PID_ENV, STANDBY_READY
+from nodes.node import LAUNCH_ENV, STANDBY_READY
+from nodes.parent_death import parent_env
 
 GRACE_S = 1.2
 NAMESAKE_WAIT_S = 0.5  # how long a launch on a running bus listens for the NodeStatus of namesakes
@@ -166,8 +168,8 @@ class Launch:
 
     # -- processes -------------------------------------------------------------------
     def _popen(self, spec: NodeSpec, *extra: str) -> subprocess.Popen:
-        env = {**os.environ, "PYTHONUNBUFFERED": "1", LAUNCH_ENV: str(self._started_ns),
-               LAUNCHER_PID_ENV: str(os.getpid()), **launch_checks.env(), **spec.env}  # checks made as it loaded
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", LAUNCH_ENV: str(self._started_ns), **parent_env(),
+               **launch_checks.env(), **spec.env}  # launch_checks: the checks made as it loaded
         return subprocess.Popen([sys.executable, "-m", "nodes.cli", *spec.argv(), *extra], env=env,
                                 stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                 text=True, bufsize=1, start_new_session=True)
@@ -232,7 +234,8 @@ class Launch:
         return None if self._forwarder is None else self._forwarder.pid
 
     def start(self) -> None:
-        """Start the forwarder (when none answers) and every node; supervise in a thread."""
+        """Start the forwarder (when none answers) and every node; supervise in a thread. Call it from a
+        thread that lives as long as the launch: what it starts gets SIGTERM when it ends (`nodes.parent_death`)."""
         from nodes.bus import PublisherSocket, TopicReader
         from nodes.endpoints import bus_address
         from nodes.forwarder import ensure_forwarder, ping

@@ -25,8 +25,6 @@ also the watchdog: besides the node's own `warn()`, the status reports
   re-sent and counters["bus_reconnects"] counts it;
 - warn "no forwarder answers on ipc://... (4.0 s): start one with `fv forwarder` or `fv launch`":
   none answered within `CONNECT_WAIT_S` of the start (logged once); cleared when one answers.
-A node started by `fv launch` (`LAUNCHER_PID_ENV`) stops when that launcher has died (killed
-with SIGKILL: the node was re-parented), seen by the status thread within `WATCH_PERIOD_S`.
 """
 from __future__ import annotations
 
@@ -54,7 +52,6 @@ from nodes.params import build_params
 STATUS_TOPIC = "/status"
 STANDBY_READY = "fv-standby-ready"  # the line a standby process prints once it waits to take over
 LAUNCH_ENV = "FV_LAUNCH_NS"  # set by `fv launch` for its nodes: when the launch started, ns since the epoch
-LAUNCHER_PID_ENV = "FV_LAUNCHER_PID"  # set by `fv launch` for its nodes: the launcher's pid, their parent
 KEEP_ALL_CAP = 10_000
 _PAGE = os.sysconf("SC_PAGE_SIZE")
 _SEVERITY = {"ok": 0, "warn": 1, "error": 2}
@@ -529,9 +526,8 @@ class Node:
     def _watch_loop(self) -> None:
         """The status thread: NodeStatus every STATUS_PERIOD_S and at once when the health
         changes (which fault, not how long it has lasted); logs stuck callbacks and the
-        forwarder going and coming back (or answering at last); stops the node when its launcher
-        died. An exception in one round is logged once per kind and the thread goes on: a node
-        whose status stopped dropped out of `fv node list`."""
+        forwarder going and coming back (or answering at last). An exception in one round is logged
+        once per kind and the thread goes on: a node whose status stopped dropped out of `fv node list`."""
         now = time.monotonic()
         with self._cond:
             for s in (s for ss in self._subs.values() for s in ss if not s.received):
@@ -549,11 +545,6 @@ class Node:
 
     def _watch_once(self, watch: _Watch) -> None:
         """One round of the status thread; `watch` holds what the rounds share."""
-        if launcher_gone():
-            self.log.warning("the launcher that started this node (pid %s) is gone; stopping",
-                             os.environ[LAUNCHER_PID_ENV])
-            self.stop()
-            return
         for sock in self._answering:
             sock.update()
         now = time.monotonic()
@@ -597,13 +588,6 @@ def launch_started_ns() -> int:
     """When the `fv launch` that started this process started (ns since the epoch); 0 for a node started
     by hand."""
     return int(os.environ.get(LAUNCH_ENV, "0"))
-
-
-def launcher_gone() -> bool:
-    """True when this process was started by `fv launch` (LAUNCHER_PID_ENV holds its pid) and that
-    launcher has died: the process has been re-parented (to init or a subreaper)."""
-    launcher_pid = os.environ.get(LAUNCHER_PID_ENV)
-    return launcher_pid is not None and os.getppid() != int(launcher_pid)
 
 
 def _name(fn: Callable) -> str:

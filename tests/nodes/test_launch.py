@@ -10,20 +10,23 @@ import signal
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 import cv2
 import numpy as np
 import pytest
 
-from nodes.bag.reader import MCAP_MAGIC
+from nodes.bag.codec import RECORDING_END_META
+from nodes.bag.reader import MCAP_MAGIC, BagReader
 from nodes.bus import TopicReader, resolve_topic
 from nodes.camera_sources import SourceError, SourceMissing, find_v4l2_device
 from nodes.exit_codes import CONFIG, OK, TEMPFAIL
 from nodes.forwarder import ping
 from nodes.launch_file import LaunchError, load_launch, parse_arg_overrides
 from nodes.launcher import START_TRIES, Launch
-from tests.nodes.conftest import REPO, Bus, children_of, pid_alive, run_fv, wait_status
+from tests.nodes.conftest import REPO, Bus, children_of, kill_group, pid_alive, run_fv, wait_status
 
 GOOD_NODE = "  - kind: talker\n    name: t\n"
 
@@ -497,13 +500,18 @@ def test_the_live_gelsight_mini_camera_waits_for_its_sensor_quietly(bus_env: Bus
                       "without repeating its output") == 1, text
 
 
-def _talker_wrapped(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, shell: str) -> None:
-    """The launch's python (sys.executable) becomes a script that runs the talker node with `shell` (sh:
-    "$@" the python arguments, $PY the python) and anything else as before."""
-    script = _write(tmp_path, "python", f'#!/bin/sh\nPY={sys.executable}\ncase "$*" in *"node talker"*) {shell};; '
-                                        'esac\nexec "$PY" "$@"\n')
+def _talker_script(folder: Path, shell: str) -> Path:
+    """A python for a launch: a script that runs the talker node (and its spare) with `shell` (sh: "$@"
+    the python arguments, $PY the python) and anything else as before."""
+    script = _write(folder, "python", f'#!/bin/sh\nPY={sys.executable}\ncase "$*" in *"node talker"*) {shell};; '
+                                      'esac\nexec "$PY" "$@"\n')
     script.chmod(0o755)
-    monkeypatch.setattr(sys, "executable", str(script))
+    return script
+
+
+def _talker_wrapped(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, shell: str) -> None:
+    """The launch's python (sys.executable) becomes `_talker_script(tmp_path, shell)`."""
+    monkeypatch.setattr(sys, "executable", str(_talker_script(tmp_path, shell)))
 
 
 def _said(out: io.StringIO, text: str, timeout_s: float) -> bool:
@@ -584,8 +592,12 @@ def _kill(pids: list[int]) -> None:
 
 
 def _cmdline(pid: int) -> list[str]:
-    with open(f"/proc/{pid}/cmdline") as f:
-        return f.read().split("\0")
+    """The command line of process `pid` ([""] once it has gone)."""
+    try:
+        with open(f"/proc/{pid}/cmdline") as f:
+            return f.read().split("\0")
+    except FileNotFoundError:
+        return [""]
 
 
 def _blocks(pid: int, sig: int) -> bool:
@@ -613,30 +625,87 @@ def test_sighup_stops_everything_as_sigterm_does(bus_env: Bus, spawn) -> None:
         _kill(family)
 
 
-def test_nodes_and_spares_stop_when_their_launcher_is_killed(bus_env: Bus, spawn, tmp_path: Path) -> None:
-    """A launcher killed with SIGKILL cannot stop its nodes (each in its own session): they and the
-    standby spare see it gone and stop by themselves. The forwarder it started stays (a later launch
-    uses it)."""
-    path = _write(tmp_path, "l.yaml", "nodes:\n  - {kind: talker, respawn: true, standby: true}\n"
-                                      "  - {kind: listener}\n")
-    proc = spawn("launch", str(path))
-    nodes: list[int] = []
+@contextmanager
+def _launcher(python: Path, path: Path) -> Iterator[subprocess.Popen]:
+    """`fv launch path` in its own process (group), its nodes run with `python` (`sys.executable` or a `_talker_script`);
+    killed at the end."""
+    code = "import sys; sys.executable = sys.argv.pop(1); from nodes.cli import main; sys.exit(main(sys.argv[1:]))"
+    proc = subprocess.Popen([sys.executable, "-c", code, str(python), "launch", str(path)], cwd=REPO,
+                            start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        wait_status("listener", lambda st: st.counters.get("received", 0) > 0, timeout_s=15.0)
-        deadline = time.monotonic() + 15.0
-        while time.monotonic() < deadline:
-            nodes = [pid for pid in children_of(proc.pid) if "node" in _cmdline(pid)]
-            spares = [pid for pid in nodes if "--standby" in _cmdline(pid)]
-            if len(nodes) == 3 and spares and _blocks(spares[0], signal.SIGUSR1):
-                break
-            time.sleep(0.05)
-        assert len(nodes) == 3 and spares, f"expected talker, its spare and listener, found {nodes}"
-        proc.kill()
-        proc.wait(5.0)
-        leftover = _gone(nodes, 10.0)
-        assert not leftover, f"left running after the launcher was killed: {leftover}"
+        yield proc
     finally:
-        _kill(nodes)
+        kill_group(proc)
+
+
+def _descendants(pid: int) -> list[int]:
+    """The processes `pid` started, their children, and so on."""
+    found, todo = [], [pid]
+    while todo:
+        children = children_of(todo.pop())
+        found += children
+        todo += children
+    return found
+
+
+# a talker that starts after delay_s, then imports for 60 s
+SLOW_START = ("exec \"$PY\" -c 'import sys, time; time.sleep(float(sys.argv[1])); import nodes.registry as r; "
+              "r.node_class = lambda kind, load=r.node_class: (time.sleep(60), load(kind))[1]; "
+              "from nodes.cli import main; main(sys.argv[4:])' {delay_s} \"$@\"")
+
+
+def test_every_process_of_a_launch_stops_when_its_launcher_is_killed(bus_env: Bus, tmp_path: Path) -> None:
+    """A launcher killed with SIGKILL cannot stop what it started (each node in its own session): the nodes,
+    the standby spare and the forwarder get SIGTERM from the kernel and stop, cleanly: the recorder's bag is
+    finished. Before, the forwarder ran on for good."""
+    bag = tmp_path / "bag"
+    path = _write(tmp_path, "l.yaml", "nodes:\n"
+                                      "  - {kind: talker, params: {rate_hz: 50}, respawn: true, standby: true}\n"
+                                      "  - {kind: listener}\n"
+                                      f"  - {{kind: bag_record, params: {{output: '{bag}', topics: [/chatter]}}}}\n")
+    family: list[int] = []
+    try:
+        with _launcher(Path(sys.executable), path) as proc:
+            wait_status("listener", lambda st: st.counters.get("received", 0) > 0, timeout_s=20.0)
+            wait_status("bag_record", lambda st: st.counters.get("recorded", 0) > 0, timeout_s=10.0)
+            deadline = time.monotonic() + 20.0
+            while time.monotonic() < deadline:
+                family = _descendants(proc.pid)
+                spares = [pid for pid in family if "--standby" in _cmdline(pid)]
+                if len(family) == 5 and spares and _blocks(spares[0], signal.SIGUSR1):
+                    break
+                time.sleep(0.05)
+            assert len(family) == 5 and spares, \
+                f"expected the forwarder, 3 nodes and a spare, found {[_cmdline(p)[:4] for p in family]}"
+            proc.kill()
+            proc.wait(5.0)
+            leftover = _gone(family, 10.0)
+        assert not leftover, f"left running after the launcher was killed: {[_cmdline(p)[:4] for p in leftover]}"
+        assert ping(bus_env.address) is None
+        reader = BagReader(bag)
+        assert reader.message_count > 0 and RECORDING_END_META in reader.metadata()
+    finally:
+        _kill(family)
+
+
+@pytest.mark.parametrize("delay_s", [0, 3])
+def test_nodes_still_starting_stop_when_their_launcher_is_killed(bus_env: Bus, tmp_path: Path, delay_s: int) -> None:
+    """A node still importing (a slip detector's torch) when its launcher was killed stopped only once it
+    spun (here never: its import takes 60 s); one whose process began its start after the launcher died
+    (delay_s) is told at its start."""
+    path = _write(tmp_path, "l.yaml", "nodes:\n  - {kind: talker}\n  - {kind: listener}\n")
+    family: list[int] = []
+    try:
+        with _launcher(_talker_script(tmp_path, SLOW_START.format(delay_s=delay_s)), path) as proc:
+            wait_status("listener", timeout_s=20.0)
+            family = _descendants(proc.pid)
+            assert any("talker" in _cmdline(pid) for pid in family), [_cmdline(p)[:4] for p in family]
+            proc.kill()
+            proc.wait(5.0)
+            leftover = _gone(family, delay_s + 10.0)
+        assert not leftover, f"left running after the launcher was killed: {[_cmdline(p)[:4] for p in leftover]}"
+    finally:
+        _kill(family)
 
 
 @pytest.mark.parametrize("kind, params", [("camera", {"source": "sim"}), ("tracker", {}), ("interpolator", {}),

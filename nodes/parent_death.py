@@ -1,0 +1,67 @@
+"""A process started by another `fv` process that owns it (the nodes, standby spares and forwarder of
+`fv launch`) stops when that owner dies, however it dies: SIGKILL, the OOM killer, a crash.
+
+The owner puts its pid in the environment of the process it starts (`parent_env()`); the process calls
+`stop_with_parent()` once, early, with its stop handlers installed. From then on the owner's death
+arrives as `STOP_SIGNAL` (SIGTERM), which every `fv` process already handles as a clean stop: a node
+runs its teardown (a recorder finishes its bag), a spare and the forwarder exit, a command cleans up.
+
+On Linux the kernel sends it (`prctl(PR_SET_PDEATHSIG)`), whatever the process's own threads are doing;
+the owner may have died before the request, so the parent pid is checked after it. Where prctl is not
+there (macOS), a thread compares the parent pid with the owner's every `WATCH_PERIOD_S`. On Linux the
+signal comes when the owner's *thread* that started the process ends: an owner starts its processes from
+threads that live as long as those processes should.
+"""
+from __future__ import annotations
+
+import ctypes
+import os
+import signal
+import sys
+import threading
+import time
+
+PARENT_PID_ENV = "FV_PARENT_PID"  # the pid of the process that started this one and owns it
+STOP_SIGNAL = signal.SIGTERM
+WATCH_PERIOD_S = 0.2  # the fallback watcher's period (no prctl)
+_PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+
+
+def parent_env() -> dict[str, str]:
+    """The environment entry that ties a process this one starts to this one's life."""
+    return {PARENT_PID_ENV: str(os.getpid())}
+
+
+def stop_with_parent() -> None:
+    """Have `STOP_SIGNAL` sent to this process when the process named in `PARENT_PID_ENV` (its parent)
+    dies, and at once when it has died already; nothing without that variable. The variable is removed
+    from the environment: this process's own children have another parent."""
+    owner = os.environ.pop(PARENT_PID_ENV, None)
+    if owner is None:
+        return
+    try:
+        owner_pid = int(owner)
+    except ValueError:
+        raise ValueError(f"{PARENT_PID_ENV}={owner!r} is not a process id") from None
+    if not _kernel_signals_parent_death():
+        threading.Thread(target=_watch_parent, args=(owner_pid,), name="fv-parent-watch", daemon=True).start()
+    if os.getppid() != owner_pid:  # died before the request (this process was re-parented)
+        os.kill(os.getpid(), STOP_SIGNAL)
+
+
+def _kernel_signals_parent_death() -> bool:
+    """Ask the kernel for `STOP_SIGNAL` at the parent's death; False where it cannot be asked."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return False
+    return prctl(_PR_SET_PDEATHSIG, int(STOP_SIGNAL), 0, 0, 0) == 0
+
+
+def _watch_parent(owner_pid: int) -> None:
+    """The fallback: send `STOP_SIGNAL` to this process once its parent is no longer `owner_pid`."""
+    while os.getppid() == owner_pid:
+        time.sleep(WATCH_PERIOD_S)
+    os.kill(os.getpid(), STOP_SIGNAL)
