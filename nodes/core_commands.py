@@ -53,6 +53,7 @@ def parse_remaps(items: list[str]) -> dict[str, str]:
 def _node(args: argparse.Namespace) -> int:
     from nodes.bus import LINGER_MS, stop_handshake_watchers
     from nodes.exit_codes import OK
+    from nodes.parent_death import end_own_group
     from nodes.params import parse_assignments
     from nodes.registry import NODES, node_class
     if args.kind == "kinds":
@@ -71,12 +72,13 @@ def _node(args: argparse.Namespace) -> int:
     # The node has stopped cleanly. Python's own teardown of torch and numpy took the slip detector past
     # the launcher's grace time when a whole launch stopped at once on 2 cores (it was killed on every
     # Ctrl-C): send what ZeroMQ still queues (its last frames and status, within the sockets' linger),
-    # flush, and leave without it.
+    # flush, and leave without it (its children, which that teardown would have ended, with it).
     stop_handshake_watchers()
     node.ctx.destroy(linger=LINGER_MS)
     logging.shutdown()
     sys.stdout.flush()
     sys.stderr.flush()
+    end_own_group()
     os._exit(OK)
 
 

@@ -203,6 +203,7 @@ class Launch:
         """Start a standby node's next spare when due; notice a spare that died."""
         if child.spare is not None and child.spare.poll() is not None:
             self.say(f"spare {child.spec.name} pid {child.spare.pid} exited with code {child.spare.returncode}")
+            _signal_group(child.spare, signal.SIGTERM)
             child.spare = None
             child.spare_at = now + max(child.spec.respawn_delay_s, SPARE_RETRY_S)
         if child.spare is None and child.spare_at is not None and now >= child.spare_at and child.proc is not None:
@@ -423,6 +424,7 @@ class Launch:
         spec, code = child.spec, child.proc.returncode
         failed_start = code == CONFIG and child.last_status_s is None
         child.exit_code = code
+        _signal_group(child.proc, signal.SIGTERM)  # what it started and left (it was killed or crashed)
         child.proc = None
         if child.reader is not None:
             child.reader.join(1.0)

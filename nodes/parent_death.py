@@ -11,9 +11,14 @@ the owner may have died before the request, so the parent pid is checked after i
 there (macOS), a thread compares the parent pid with the owner's every `WATCH_PERIOD_S`. On Linux the
 signal comes when the owner's *thread* that started the process ends: an owner starts its processes from
 threads that live as long as those processes should.
+
+A started process that leads its own process group (a launched node or spare) takes its children with
+it when it ends (`end_own_group`): a multiprocessing worker or a subprocess of a node would otherwise
+outlive it, and its launcher.
 """
 from __future__ import annotations
 
+import atexit
 import ctypes
 import os
 import signal
@@ -25,6 +30,7 @@ PARENT_PID_ENV = "FV_PARENT_PID"  # the pid of the process that started this one
 STOP_SIGNAL = signal.SIGTERM
 WATCH_PERIOD_S = 0.2  # the fallback watcher's period (no prctl)
 _PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+_owner_pid: int | None = None  # the parent this process stops with (`stop_with_parent`)
 
 
 def parent_env() -> dict[str, str]:
@@ -36,17 +42,29 @@ def stop_with_parent() -> None:
     """Have `STOP_SIGNAL` sent to this process when the process named in `PARENT_PID_ENV` (its parent)
     dies, and at once when it has died already; nothing without that variable. The variable is removed
     from the environment: this process's own children have another parent."""
+    global _owner_pid
     owner = os.environ.pop(PARENT_PID_ENV, None)
     if owner is None:
         return
     try:
-        owner_pid = int(owner)
+        _owner_pid = owner_pid = int(owner)
     except ValueError:
         raise ValueError(f"{PARENT_PID_ENV}={owner!r} is not a process id") from None
+    atexit.register(end_own_group)
     if not _kernel_signals_parent_death():
         threading.Thread(target=_watch_parent, args=(owner_pid,), name="fv-parent-watch", daemon=True).start()
     if os.getppid() != owner_pid:  # died before the request (this process was re-parented)
         os.kill(os.getpid(), STOP_SIGNAL)
+
+
+def end_own_group() -> None:
+    """Send `STOP_SIGNAL` to the rest of this process's group, its children, when this process was
+    started by an owner (`stop_with_parent`) and leads the group; this process then ignores the
+    signal: call it as the process ends (registered with atexit; call it before `os._exit`)."""
+    if _owner_pid is None or os.getpgrp() != os.getpid():
+        return
+    signal.signal(STOP_SIGNAL, signal.SIG_IGN)
+    os.killpg(os.getpid(), STOP_SIGNAL)
 
 
 def _kernel_signals_parent_death() -> bool:

@@ -648,6 +648,7 @@ def _descendants(pid: int) -> list[int]:
     return found
 
 
+SLEEPER = 'sleep 60 >/dev/null 2>&1 & exec "$PY" "$@"'  # the talker (and its spare) with a child of its own
 # a talker that starts after delay_s, then imports for 60 s
 SLOW_START = ("exec \"$PY\" -c 'import sys, time; time.sleep(float(sys.argv[1])); import nodes.registry as r; "
               "r.node_class = lambda kind, load=r.node_class: (time.sleep(60), load(kind))[1]; "
@@ -656,8 +657,8 @@ SLOW_START = ("exec \"$PY\" -c 'import sys, time; time.sleep(float(sys.argv[1]))
 
 def test_every_process_of_a_launch_stops_when_its_launcher_is_killed(bus_env: Bus, tmp_path: Path) -> None:
     """A launcher killed with SIGKILL cannot stop what it started (each node in its own session): the nodes,
-    the standby spare and the forwarder get SIGTERM from the kernel and stop, cleanly: the recorder's bag is
-    finished. Before, the forwarder ran on for good."""
+    the standby spare, their children and the forwarder get SIGTERM from the kernel and stop, cleanly: the
+    recorder's bag is finished. Before, the forwarder and the nodes' children ran on for good."""
     bag = tmp_path / "bag"
     path = _write(tmp_path, "l.yaml", "nodes:\n"
                                       "  - {kind: talker, params: {rate_hz: 50}, respawn: true, standby: true}\n"
@@ -665,18 +666,19 @@ def test_every_process_of_a_launch_stops_when_its_launcher_is_killed(bus_env: Bu
                                       f"  - {{kind: bag_record, params: {{output: '{bag}', topics: [/chatter]}}}}\n")
     family: list[int] = []
     try:
-        with _launcher(Path(sys.executable), path) as proc:
+        with _launcher(_talker_script(tmp_path, SLEEPER), path) as proc:
             wait_status("listener", lambda st: st.counters.get("received", 0) > 0, timeout_s=20.0)
             wait_status("bag_record", lambda st: st.counters.get("recorded", 0) > 0, timeout_s=10.0)
             deadline = time.monotonic() + 20.0
             while time.monotonic() < deadline:
                 family = _descendants(proc.pid)
                 spares = [pid for pid in family if "--standby" in _cmdline(pid)]
-                if len(family) == 5 and spares and _blocks(spares[0], signal.SIGUSR1):
+                if len(family) == 7 and spares and _blocks(spares[0], signal.SIGUSR1):
                     break
                 time.sleep(0.05)
-            assert len(family) == 5 and spares, \
-                f"expected the forwarder, 3 nodes and a spare, found {[_cmdline(p)[:4] for p in family]}"
+            sleeps = [pid for pid in family if _cmdline(pid)[0] == "sleep"]
+            assert len(family) == 7 and spares and len(sleeps) == 2, \
+                f"expected the forwarder, 3 nodes, a spare and 2 sleeps, found {[_cmdline(p)[:4] for p in family]}"
             proc.kill()
             proc.wait(5.0)
             leftover = _gone(family, 10.0)
@@ -686,6 +688,27 @@ def test_every_process_of_a_launch_stops_when_its_launcher_is_killed(bus_env: Bu
         assert reader.message_count > 0 and RECORDING_END_META in reader.metadata()
     finally:
         _kill(family)
+
+
+def test_the_children_of_a_killed_node_are_stopped(bus_env: Bus, tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """A node killed outright (SIGKILL, the OOM killer) cannot end its children: the launcher ends its
+    process group when it sees it exit. Before, they ran on, past the launch's end."""
+    _talker_wrapped(tmp_path, monkeypatch, SLEEPER)
+    launch, _ = _launch(tmp_path, "nodes:\n  - {kind: talker, respawn: true, respawn_delay: 0.1}\n")
+    launch.start()
+    sleeps: list[int] = []
+    try:
+        wait_status("talker", timeout_s=20.0)
+        talker = launch.pid("talker")
+        sleeps = [pid for pid in children_of(talker) if _cmdline(pid)[0] == "sleep"]
+        assert sleeps, f"the talker has no sleep child: {[_cmdline(p)[:4] for p in children_of(talker)]}"
+        os.kill(talker, signal.SIGKILL)
+        leftover = _gone(sleeps, 5.0)
+        assert not leftover, f"the killed talker's child ran on: {leftover}"
+    finally:
+        launch.stop()
+        _kill(sleeps)
 
 
 @pytest.mark.parametrize("delay_s", [0, 3])
