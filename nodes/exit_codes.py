@@ -15,6 +15,8 @@ number in the same way (`nodes.cli.Stopped`).
 from __future__ import annotations
 
 import signal
+from types import FrameType
+from typing import Callable
 
 OK = 0
 FAILED = 1
@@ -30,6 +32,24 @@ def stop_signals() -> tuple[int, ...]:
     after the terminal closes (each stopped on SIGHUP, whatever nohup said)."""
     ignored = signal.getsignal(signal.SIGHUP) == signal.SIG_IGN
     return (signal.SIGINT, signal.SIGTERM) + (() if ignored else (signal.SIGHUP,))
+
+
+def on_stop_signals(stop: Callable[[], None]) -> None:
+    """Call `stop()` on the first of `stop_signals()`, the rest then ignored (call it from the main thread).
+    A handler run again inside its own first run, as Python runs a signal that comes while its handler runs,
+    deadlocked in threading.Event.set, which takes a lock that the first run held: a forwarder whose
+    launcher was killed ran on for good (1 run in 11). The kernel sends a launched process SIGTERM once per
+    thread of its dying launcher (`nodes.parent_death`); a forwarder in a terminal's process group gets
+    Ctrl-C's SIGINT, then its launcher's SIGTERM."""
+    signals = stop_signals()
+
+    def handler(_signum: int, _frame: FrameType | None) -> None:
+        for sig in signals:
+            signal.signal(sig, signal.SIG_IGN)
+        stop()
+
+    for sig in signals:
+        signal.signal(sig, handler)
 
 
 class NodeFailed(RuntimeError):

@@ -15,7 +15,6 @@ from __future__ import annotations
 import fcntl
 import logging
 import os
-import signal
 import subprocess
 import sys
 import threading
@@ -29,7 +28,7 @@ from zmq.utils.monitor import recv_monitor_message
 
 from nodes.bus import LATCHED, LINGER_MS, connect_client, new_context
 from nodes.endpoints import BUS_ENV, BusAddress, bus_address, secure_server
-from nodes.exit_codes import FAILED, OK, stop_signals
+from nodes.exit_codes import FAILED, OK, on_stop_signals
 from nodes.latched_cache import LatchedCache
 from nodes.parent_death import parent_env
 
@@ -247,8 +246,7 @@ def serve(tcp_url: str | None = None, keys: Path | None = None) -> int:
         log.error("%s", exc)
         return FAILED
     stop = threading.Event()
-    for sig in stop_signals():
-        signal.signal(sig, lambda *_: stop.set())
+    on_stop_signals(stop.set)
     log.info("forwarder on %s%s", fwd.address.url, f" and {tcp_url} (CURVE)" if tcp_url else "")
     try:
         fwd.run(stop)

@@ -46,7 +46,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from nodes import launch_checks
-from nodes.exit_codes import CONFIG, CONFIG_WHILE_RUNNING, FAILED, OK, TEMPFAIL, stop_signals
+from nodes.exit_codes import CONFIG, CONFIG_WHILE_RUNNING, FAILED, OK, TEMPFAIL, on_stop_signals
 from nodes.launch_file import NodeSpec, load_launch, parse_arg_overrides
 from nodes.node import LAUNCH_ENV, STANDBY_READY
 from nodes.parent_death import parent_env
@@ -292,8 +292,7 @@ class Launch:
         """start(), then wait for one of `stop_signals()` (Ctrl-C, SIGTERM, SIGHUP unless nohup ignores it)
         or the end of the launch, then stop()."""
         if threading.current_thread() is threading.main_thread():
-            for sig in stop_signals():
-                signal.signal(sig, lambda signum, _frame: self._stop.set())
+            on_stop_signals(self._stop.set)
         try:
             self.start()
             while not self._done.wait(0.1):

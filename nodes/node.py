@@ -32,7 +32,6 @@ import collections
 import itertools
 import logging
 import os
-import signal
 import threading
 import time
 from dataclasses import dataclass
@@ -46,7 +45,7 @@ from msgs import Message, MessageError, NodeStatus
 from nodes.bus import (ALL_TOPICS, GONE, LINGER_MS, SUB_HWM, PublisherSocket, SeqTracker, connect_client,
                        new_context, absolute_namespace, parse_envelope, resolve_topic, subscription_prefixes)
 from nodes.endpoints import BusAddress, bus_address
-from nodes.exit_codes import NodeFailed, stop_signals
+from nodes.exit_codes import NodeFailed, on_stop_signals
 from nodes.params import build_params
 
 STATUS_TOPIC = "/status"
@@ -296,8 +295,7 @@ class Node:
         """Run setup, then callbacks and timers until stop() or one of `stop_signals()`; NodeFailed after
         fail()."""
         if install_signals and threading.current_thread() is threading.main_thread():
-            for sig in stop_signals():
-                signal.signal(sig, lambda *_: self.stop())
+            on_stop_signals(self.stop)
         self._receiver = threading.Thread(target=self._receive_loop, name=f"{self.name}-rx", daemon=True)
         self._receiver.start()
         started_s = time.monotonic()
