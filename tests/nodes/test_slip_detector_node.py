@@ -4,8 +4,10 @@ the model was not trained for; with the trial model, a replayed real grasp judge
 frame exactly as offline, and grey images refused by name."""
 from __future__ import annotations
 
+import contextlib
 import time
 from pathlib import Path
+from typing import Any, Iterator
 
 import numpy as np
 import pytest
@@ -144,9 +146,10 @@ def test_a_standby_slip_detector_loads_its_window_model_before_it_takes_over() -
     assert SlipDetectorNode.prepared is None
 
 
-def test_a_field_out_of_its_windows_stream_starts_a_new_window() -> None:
-    """One field stamped an hour before the others was judged with them: ten windows spanning 3600 s with
-    their stamps out of order, without a word. A bag looped back in time did the same."""
+@contextlib.contextmanager
+def _window_node() -> Iterator[tuple[Any, list[np.ndarray]]]:
+    """A set-up `sim_fast` slip detector with its reference (640 px wide frames), and the stamps of every
+    window it judges, (10,) int64 ns each, in a list; closed after the block."""
     from nodes.slip_detector import SlipDetectorNode
     node = SlipDetectorNode("slip_detector", {"model": "sim_fast"})
     try:
@@ -154,6 +157,15 @@ def test_a_field_out_of_its_windows_stream_starts_a_new_window() -> None:
         node.on_window_reference(_reference(0, 640))
         windows: list[np.ndarray] = []
         node.publish_state = lambda msg, probability, stamps, valid: windows.append(stamps)
+        yield node, windows
+    finally:
+        node.close()
+
+
+def test_a_field_out_of_its_windows_stream_starts_a_new_window() -> None:
+    """One field stamped an hour before the others was judged with them: ten windows spanning 3600 s with
+    their stamps out of order, without a word. A bag looped back in time did the same."""
+    with _window_node() as (node, windows):
         hour, frame = 3600 * 10**9, 66_000_000
         start = 2 * hour
         for stamp in [start + k * frame for k in range(12)] + [start - hour]:
@@ -165,8 +177,6 @@ def test_a_field_out_of_its_windows_stream_starts_a_new_window() -> None:
         assert len(windows) == 3 + 1 and node.counters["window_restarts"] == 2  # back an hour, then forward again
         assert all(np.all(np.diff(w) > 0) and w[-1] - w[0] < 10 * frame for w in windows)
         assert node.state == "ok"  # cleared by the next window judged
-    finally:
-        node.close()
 
 
 def test_a_field_stamped_as_the_last_is_dropped_and_a_restart_names_its_gap_and_the_param() -> None:
@@ -174,13 +184,7 @@ def test_a_field_stamped_as_the_last_is_dropped_and_a_restart_names_its_gap_and_
     window: ten fields of five frames, each twice, judged as ten. It is now dropped, warned and counted
     (duplicate_fields). A field 1 us early was said to be stamped '-0.000 s' from the last, and a camera
     slower than 1 Hz (every field a new window, no decision ever) was not told of window_gap_s."""
-    from nodes.slip_detector import SlipDetectorNode
-    node = SlipDetectorNode("slip_detector", {"model": "sim_fast"})
-    try:
-        node.setup()
-        node.on_window_reference(_reference(0, 640))
-        windows: list[np.ndarray] = []
-        node.publish_state = lambda msg, probability, stamps, valid: windows.append(stamps)
+    with _window_node() as (node, windows):
         frame = 33_000_000
         for k in range(10):
             node.on_field(_field(10**9 + k * frame, 0.5))
@@ -192,8 +196,6 @@ def test_a_field_stamped_as_the_last_is_dropped_and_a_restart_names_its_gap_and_
                                 "(window_restarts)")
         node.on_field(_field(10**9 + 9 * frame - 1000 + 10**10, 0.5))
         assert node.message.startswith("field stamped +10 s from the last (window_gap_s 1 s)")
-    finally:
-        node.close()
 
 
 def test_trial_model_refuses_grey_images_by_name() -> None:
