@@ -359,13 +359,14 @@ class Node:
             ctl.close(linger=0)
 
     def _enqueue(self, frames: list[zmq.Frame]) -> None:
+        node = None  # the publisher, once the envelope is read
         try:
             topic, node, latched = parse_envelope(frames[0])
             if len(frames) < 2:
                 raise ValueError(f"topic {topic!r}: no header frame")
             header = msgs.decode_header(frames[1], topic)
         except (ValueError, MessageError) as exc:
-            self._malformed(exc)
+            self._malformed(exc, node)
             return
         gone = frames[0].bytes[:1] == GONE
         with self._cond:
@@ -378,7 +379,7 @@ class Node:
             for s in targets:
                 s.received += 1
                 s.last_rx_s = now
-                s.queue.append((self._arrivals, topic, frames[1:]))
+                s.queue.append((self._arrivals, topic, node, frames[1:]))
                 limit = s.depth or KEEP_ALL_CAP
                 while len(s.queue) > limit:
                     s.queue.popleft()
@@ -387,8 +388,9 @@ class Node:
             self._cond.notify()
 
     # -- executing -----------------------------------------------------------------
-    def _next_work(self) -> tuple[Subscription, str, list] | Timer | None:
-        """Wait for the next due timer or queued message; None when stopping."""
+    def _next_work(self) -> tuple[Subscription, str, str, list] | Timer | None:
+        """Wait for the next due timer or queued message (its subscription, topic, publishing node and
+        frames after the envelope); None when stopping."""
         with self._cond:
             while not self._stop.is_set():
                 now = time.monotonic()
@@ -399,8 +401,8 @@ class Node:
                 waiting = [s for subs in self._subs.values() for s in subs if s.queue]
                 if waiting:  # the message that arrived first, of any topic
                     s = min(waiting, key=lambda s: s.queue[0][0])
-                    _, topic, frames = s.queue.popleft()
-                    return s, topic, frames
+                    _, topic, node, frames = s.queue.popleft()
+                    return s, topic, node, frames
                 # a timer due past threading.TIMEOUT_MAX (292 years: a camera at fps 1e-12) is waited for in steps:
                 # a longer wait raised OverflowError and ended the node
                 self._cond.wait(None if due is None else min(due.next_s - now, threading.TIMEOUT_MAX))
@@ -414,13 +416,13 @@ class Node:
             if isinstance(work, Timer):
                 self._run(work.callback, label=f"timer {_name(work.callback)}")
                 continue
-            sub, topic, frames = work
+            sub, topic, node, frames = work
             try:
                 msg = msgs.decode(frames, topic)
                 if sub.msg_type is not None and not isinstance(msg, sub.msg_type):
                     raise MessageError(topic, msg.TYPE, "type", f"subscription expects {sub.msg_type.TYPE}")
             except MessageError as exc:
-                self._malformed(exc)
+                self._malformed(exc, node)
                 continue
             self._run(sub.callback, msg, label=f"callback {_name(sub.callback)} ({topic})",
                       timed=topic != STATUS_TOPIC)
@@ -450,11 +452,15 @@ class Node:
             self._stats.calls += 1
             self._stats.proc_ms.append((time.perf_counter() - t0) * 1e3)
 
-    def _malformed(self, exc: Exception) -> None:
+    def _malformed(self, exc: Exception, node: str | None = None) -> None:
+        """Count and log (once per topic, type and field) a message dropped as malformed, naming its
+        publishing `node` when its envelope could be read."""
         with self._cond:  # counted from the receiver and the executor thread
             self._totals["malformed"] += 1
         kind = f"{getattr(exc, 'topic', '?')}:{getattr(exc, 'type_name', '?')}:{getattr(exc, 'field', type(exc).__name__)}"
-        self._log_once("bad:" + kind, logging.WARNING, f"dropped malformed message: {exc} (counted; repeats not logged)")
+        sender = "" if node is None else f" from node {node!r}"
+        self._log_once("bad:" + kind, logging.WARNING,
+                       f"dropped malformed message{sender}: {exc} (counted; repeats not logged)")
 
     def _log_once(self, kind: str, level: int, text: str, exc_info: bool = False) -> None:
         if kind not in self._logged_kinds:
