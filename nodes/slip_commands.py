@@ -455,14 +455,18 @@ def _variants(args: argparse.Namespace, sequences, store: _ModelStore, splits: d
 
 
 def add_bench_parser(kinds: argparse._SubParsersAction, name: str) -> None:
-    """`fv bench slip`: inference time per window of a slip checkpoint in each variant."""
-    p = kinds.add_parser(name, help="slip classifier inference speed per variant (fp32, bf16, int8)")
+    """`fv bench slip`: inference time per window of a slip checkpoint in each variant and, with --data,
+    each variant's accuracy and F1 on every window of that data set."""
+    p = kinds.add_parser(name, help="slip classifier inference speed per variant (fp32, bf16, int8), and with "
+                         "--data its accuracy")
     p.add_argument("--model", default="sim", help="shipped model name or checkpoint path (default sim)")
     p.add_argument("--variants", default=None, help="comma-separated variants (fp32,bf16,int8,compile; default "
                    "fp32,bf16,int8 on the cpu, fp32,bf16 elsewhere: int8 runs on the cpu only)")
     p.add_argument("--threads", default="1,2", help="comma-separated torch thread counts (default 1,2)")
     p.add_argument("--repeats", type=positive_int, default=50, help="timed calls per measurement (default 50)")
     p.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda, cuda:N, mps, xpu[:N]")
+    p.add_argument("--data", type=Path, default=None, help="sequence dataset .npz (fv dataset sim) the model was "
+                   "not trained on: each variant's accuracy and F1 on every window of it, beside its speed")
     p.add_argument("--json", action="store_true", help="print the rows as JSON")
     p.set_defaults(func=_bench_slip)
 
@@ -471,8 +475,9 @@ def _bench_slip(args: argparse.Namespace) -> int:
     import numpy as np
 
     from fv_algos.slip.classifier import load_checkpoint, model_from_checkpoint
-    from fv_algos.slip.evaluate import time_forward, variant_predictor
+    from fv_algos.slip.evaluate import evaluate_rows, model_windows, time_forward, variant_predictor
     from fv_algos.slip.models import count_parameters
+    from fv_algos.slip.windows import load_sequences
     from nodes.plots import markdown_table
     from nodes.slip_detector import model_path
     model = model_from_checkpoint(load_checkpoint(model_path(args.model)))
@@ -483,12 +488,17 @@ def _bench_slip(args: argparse.Namespace) -> int:
     if min(thread_counts) < 1:
         raise ValueError(f"--threads {args.threads}: every thread count must be >= 1")
     variants = args.variants or ("fp32,bf16,int8" if args.device == "cpu" else "fp32,bf16")
+    windows = None if args.data is None else model_windows(load_sequences(args.data), cfg, f"--data {args.data}")
     for variant in _csv(variants, str):
         predictor = variant_predictor(model, variant, args.device)
+        scores = {}
+        if windows is not None:
+            metrics = evaluate_rows(predictor, windows, np.arange(len(windows)))
+            scores = {"accuracy": metrics.accuracy, "f1": metrics.f1, "windows": metrics.n}
         for threads in thread_counts:
             rows.append({"model": args.model, "variant": variant, "device": args.device, "threads": threads,
                          "params": count_parameters(model),
-                         "ms_per_window": time_forward(predictor, window, threads, args.repeats)})
+                         "ms_per_window": time_forward(predictor, window, threads, args.repeats), **scores})
     print(json.dumps(rows, indent=1) if args.json else markdown_table(rows, list(rows[0])))
     return 0
 

@@ -19,8 +19,8 @@ import torch
 from torch import nn
 
 from fv_algos.slip.classifier import predict_proba
-from fv_algos.slip.models import count_parameters, fast_layout, usable_device
-from fv_algos.slip.windows import Split, WindowSet
+from fv_algos.slip.models import ModelConfig, count_parameters, fast_layout, usable_device
+from fv_algos.slip.windows import SequenceSet, Split, WindowSet, make_windows
 
 Predictor = Callable[[np.ndarray], np.ndarray]
 VARIANTS = ("fp32", "bf16", "int8", "compile")
@@ -57,10 +57,33 @@ def predict_rows(predictor: Predictor, windows: WindowSet, rows: np.ndarray, bat
     return np.concatenate([predictor(windows.get(rows[i : i + batch])[0]) for i in range(0, rows.size, batch)])
 
 
+def evaluate_rows(predictor: Predictor, windows: WindowSet, rows: np.ndarray) -> Metrics:
+    """Metrics of ``predictor`` on window ``rows`` (N,) of ``windows`` (slip when probability >= 0.5)."""
+    prob = predict_rows(predictor, windows, rows)
+    return classification_metrics(windows.labels[rows], (prob >= 0.5).astype(np.int64))
+
+
 def evaluate_predictor(predictor: Predictor, split: Split) -> Metrics:
-    """Metrics of ``predictor`` on the test side of ``split`` (slip when probability >= 0.5)."""
-    prob = predict_rows(predictor, split.windows, split.test)
-    return classification_metrics(split.windows.labels[split.test], (prob >= 0.5).astype(np.int64))
+    """Metrics of ``predictor`` on the test side of ``split``."""
+    return evaluate_rows(predictor, split.windows, split.test)
+
+
+def model_windows(sequences: SequenceSet, config: ModelConfig, source: str) -> WindowSet:
+    """Every window of ``config.window`` frames (stride 1) of ``sequences``, for a model of ``config``.
+    ValueError naming ``source`` (where the sequences came from) when their grid is not the model's,
+    they hold fewer frames than its window, or their frames' width (px) is known and not the one the
+    model was trained on (its scale_px is in those px)."""
+    if sequences.grid != config.grid:
+        raise ValueError(f"{source}: fields on a {sequences.grid}x{sequences.grid} grid; the model takes "
+                         f"{config.grid}x{config.grid}")
+    if sequences.n_frames < config.window:
+        raise ValueError(f"{source}: sequences of {sequences.n_frames} frames; the model's window is "
+                         f"{config.window} frames")
+    width = sequences.frame_width_px
+    if width and config.field_width_px and width != config.field_width_px:
+        raise ValueError(f"{source}: fields of frames {width} px wide; the model was trained on frames "
+                         f"{config.field_width_px} px wide")
+    return make_windows(sequences, window=config.window, per_sequence=None)
 
 
 def time_forward(predictor: Predictor, window: np.ndarray, threads: int, repeats: int = 50, warmup: int = 10) -> float:

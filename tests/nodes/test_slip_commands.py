@@ -147,6 +147,40 @@ def test_bench_slip_times_the_shipped_model(capsys: pytest.CaptureFixture) -> No
     assert main(["bench", "slip", "--variants", "fp32", "--threads", "1", "--repeats", "2", "--json"]) == 0
     (row,) = json.loads(capsys.readouterr().out)
     assert row["params"] == 269_826 and row["ms_per_window"] > 0 and row["device"] == "cpu"
+    assert "accuracy" not in row  # speed alone without --data
+
+
+def test_bench_slip_scores_every_variant_on_a_data_set(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    sequences = synthetic_sequences(6, SyntheticConfig(grid=30, n_frames=11), seed=5)
+    data = save_sequences(tmp_path / "held_out.npz", sequences)
+    argv = ["bench", "slip", "--model", "sim_fast", "--threads", "1", "--repeats", "2", "--json", "--data", str(data)]
+    assert main([*argv, "--variants", "fp32,bf16,int8"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert [row["variant"] for row in rows] == ["fp32", "bf16", "int8"]
+    for row in rows:
+        assert 0.0 <= row["accuracy"] <= 1.0 and 0.0 <= row["f1"] <= 1.0 and row["ms_per_window"] > 0
+        assert row["windows"] == 6 * 2  # every window of 10 frames of each 11-frame sequence
+
+
+@pytest.mark.parametrize("config, refusal", [
+    (SyntheticConfig(grid=8, n_frames=11), "fields on a 8x8 grid; the model takes 30x30"),
+    (SyntheticConfig(grid=30, n_frames=6), "sequences of 6 frames; the model's window is 10 frames"),
+])
+def test_bench_slip_refuses_a_data_set_the_model_cannot_take(config: SyntheticConfig, refusal: str, tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture) -> None:
+    data = save_sequences(tmp_path / "other.npz", synthetic_sequences(2, config, seed=5))
+    assert main(["bench", "slip", "--model", "sim_fast", "--variants", "fp32", "--threads", "1", "--repeats", "2",
+                 "--data", str(data)]) == 2
+    assert f"--data {data}: {refusal}" in capsys.readouterr().err
+
+
+def test_bench_slip_refuses_fields_of_another_frame_width(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    sequences = synthetic_sequences(2, SyntheticConfig(grid=30, n_frames=11), seed=5)
+    sequences.metadata["frame_width_px"] = 320  # the shipped sim models learnt from 640 px frames
+    data = save_sequences(tmp_path / "narrow.npz", sequences)
+    assert main(["bench", "slip", "--model", "sim_fast", "--variants", "fp32", "--threads", "1", "--data",
+                 str(data)]) == 2
+    assert "frames 320 px wide; the model was trained on frames 640 px wide" in capsys.readouterr().err
 
 
 SHIPPED_SIM = {  # trained on the simulated camera's 640x480 frames
