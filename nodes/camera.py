@@ -108,6 +108,10 @@ def make_source(p: CameraParams) -> FrameSource:
     return SimSource(p.scene, p.seed, p.fps, p.prerender)
 
 
+RATE_CHECK_S = 5.0  # the stretch of published frames the camera's rate is checked over, s
+RATE_SHORT = 0.75  # a stretch below this share of the rate asked for is warned of (not a busy second)
+
+
 class CameraNode(Node):
     """Publishes frames at `fps` from the configured source."""
 
@@ -131,9 +135,12 @@ class CameraNode(Node):
             self._first_frame("playing it")
         self._publish_info()
         rate = p.fps or getattr(self.source, "file_fps", 0.0) or 30.0
+        self.rate_hz = rate
         self.backoff_s = 0.0
         self.retry_at = 0.0
-        self.counters.update(frames=0, lost=0, reopened=0)
+        self.stretch: tuple[float, int] | None = None  # (monotonic s, frames published since) of the rate check
+        self.slow_message = ""  # the below-rate warning while it stands
+        self.counters.update(frames=0, lost=0, reopened=0, below_rate=0)
         self.start_gate = StartGate(self, p.start_after, p.start_timeout_s)
         self.timer(1.0 / rate, self.tick)
 
@@ -229,6 +236,7 @@ class CameraNode(Node):
         backoff; counters["lost"] counts losses, not the failed retries that follow."""
         if not self.retry_at:
             self.counters["lost"] += 1
+        self.stretch = None  # the time lost is no measure of the rate
         self.backoff_s = min(8.0, max(self.params.reopen_backoff_s, 2 * self.backoff_s))
         self.retry_at = time.monotonic() + self.backoff_s
         self.warn(f"{why}; reopening in {self.backoff_s:.1f} s")
@@ -260,6 +268,33 @@ class CameraNode(Node):
                                      encoding=self.params.encoding, data=np.ascontiguousarray(image),
                                      frame_index=frame.index))
         self.counters["frames"] += 1
+        self._check_rate(time.monotonic())
+
+    def _check_rate(self, now_s: float) -> None:
+        """After a frame published at `now_s` (monotonic s): over every `RATE_CHECK_S` of frames, warn when
+        fewer came than `RATE_SHORT` of the rate asked for (a renderer, decoder or driver slower than `fps`:
+        the camera fell behind without a word, its status "ok"), counted in `below_rate`; the warning
+        clears once a stretch keeps the rate."""
+        if self.stretch is None:
+            self.stretch = (now_s, 0)
+            return
+        start_s, frames = self.stretch[0], self.stretch[1] + 1
+        elapsed_s = now_s - start_s
+        if elapsed_s < RATE_CHECK_S:
+            self.stretch = (start_s, frames)
+            return
+        self.stretch = (now_s, 0)
+        measured = frames / elapsed_s
+        if measured < RATE_SHORT * self.rate_hz:
+            self.counters["below_rate"] += 1
+            self.slow_message = (f"{self.source.name}: {measured:.1f} frames/s over {elapsed_s:.1f} s, below the "
+                                 f"{self.rate_hz:g} asked for (fps): a frame takes longer than 1/fps to read and "
+                                 "publish (below_rate)")
+            self.warn(self.slow_message, kind="below rate")
+        elif self.slow_message:
+            if self.message == self.slow_message:
+                self.clear_warning()
+            self.slow_message = ""
 
     def teardown(self) -> None:
         if hasattr(self, "source"):

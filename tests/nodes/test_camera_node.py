@@ -472,3 +472,36 @@ def test_a_scene_whose_prerendered_images_pass_prerender_max_mb_is_refused_namin
     CameraParams(scene=str(scene), scene_check_frames=1)  # played as it renders: no bound
     with pytest.raises(ValueError, match="prerender_max_mb 0.0 must be > 0"):
         CameraParams(scene=str(scene), prerender=True, prerender_max_mb=0.0)
+
+
+def test_a_camera_slower_than_its_fps_says_so_until_it_keeps_the_rate_again() -> None:
+    """A camera asked for fps 1000 published about 180 frames/s (the simulator renders a frame in 5 ms), its
+    status "ok", and nothing said it could not keep the rate: a renderer, decoder or driver slower than fps
+    fell behind without a word. Published frames are counted over stretches of RATE_CHECK_S (here on a
+    made-up clock); a stretch below RATE_SHORT of the rate warns, and one that keeps it clears the warning."""
+    from nodes.camera import RATE_CHECK_S, CameraNode
+    node = CameraNode("camera", {"fps": 100.0})
+    try:
+        node.setup()
+        now = 0.0
+
+        def publish(period_s: float, seconds: float) -> None:
+            nonlocal now
+            for _ in range(round(seconds / period_s)):
+                now += period_s
+                node._check_rate(now)
+
+        publish(0.0105, 2 * RATE_CHECK_S)  # 95 frames/s: a busy machine's camera, not warned
+        assert node.state == "ok" and node.counters["below_rate"] == 0
+        publish(0.02, 2 * RATE_CHECK_S)
+        assert node.state == "warn" and node.counters["below_rate"] >= 1
+        assert node.message.startswith("sim random scenarios: 50.0 frames/s over 5.0 s, below the 100 asked for (fps)")
+        node._lost("sim random scenarios: no frame")  # another warning, which the rate check leaves alone
+        publish(0.01, 2 * RATE_CHECK_S)
+        assert node.message.startswith("sim random scenarios: no frame")
+        node.clear_warning()
+        publish(0.02, 2 * RATE_CHECK_S)
+        publish(0.01, 2 * RATE_CHECK_S)  # back to the rate: cleared
+        assert node.state == "ok" and node.message == ""
+    finally:
+        node.close()
