@@ -73,11 +73,17 @@ def stop_like_ctrl_c(signum: int, _frame: FrameType | None) -> None:
     them, only ended the task it was on, and the pool waited for the worker), then `Stopped` is raised. The
     pools' threads then find their workers gone, which they are not told of (`_quiet_pool_threads`). A
     multiprocessing.Pool's workers are left to its exit. A forked worker, which inherits this handler, is
-    ended by the signal as before (no traceback)."""
+    ended by the signal as before (no traceback). The signals this handler takes are then ignored until
+    `main` returns (`kill -9` still ends the command): a second one raised a second `Stopped` inside the
+    clean-up, which `fv sim --out` then left undone, its partial folder of PNGs left behind (the kernel sends
+    a launched process its parent-death SIGTERM once per thread of the dying launcher)."""
     if os.getpid() != COMMAND_PID:
         signal.signal(signum, signal.SIG_DFL)
         os.kill(os.getpid(), signum)
         return
+    for sig in stop_signals():
+        if signal.getsignal(sig) is stop_like_ctrl_c:
+            signal.signal(sig, signal.SIG_IGN)
     threading.excepthook = _quiet_pool_threads
     for child in multiprocessing.active_children():
         if "PoolWorker" not in child.name:  # a multiprocessing.Pool's: its exit ends them (it replaced those ended here)
