@@ -4,6 +4,7 @@ died before it asked."""
 from __future__ import annotations
 
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -28,9 +29,10 @@ CHILD = ("import os, time; import nodes.parent_death as p; "
 def test_a_process_stops_when_its_parent_is_killed(how: str) -> None:
     """`kernel`: prctl(PR_SET_PDEATHSIG) on Linux; `watcher`: the fallback where there is no prctl (macOS)."""
     parent = subprocess.Popen([sys.executable, "-c", PARENT, CHILD.replace("HOW", repr(how))], cwd=REPO,
-                              stdout=subprocess.PIPE, text=True)
-    child = int(parent.stdout.readline())
+                              stdout=subprocess.PIPE, text=True, start_new_session=True)  # the child in its group
     try:
+        assert select.select([parent.stdout], [], [], 30.0)[0], "the child did not say its pid within 30 s"
+        child = int(parent.stdout.readline())
         assert pid_alive(child)
         parent.kill()
         parent.wait(5.0)
@@ -39,9 +41,10 @@ def test_a_process_stops_when_its_parent_is_killed(how: str) -> None:
             time.sleep(0.05)
         assert not pid_alive(child), f"the child ({how}) outlived its parent"
     finally:
-        if pid_alive(child):
-            os.kill(child, signal.SIGKILL)
-        parent.kill()
+        try:
+            os.killpg(parent.pid, signal.SIGKILL)  # the parent and the child, whatever failed
+        except ProcessLookupError:
+            pass
         parent.wait()
 
 
