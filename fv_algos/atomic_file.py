@@ -8,16 +8,29 @@ from pathlib import Path
 import numpy as np
 
 
+_writing: set[Path] = set()  # the temporary files this process is writing
+
+
 def write_atomically(path: Path, write: Callable[[Path], None]) -> None:
     """Create ``path`` through ``write(tmp)`` on a temporary file beside it (named after this process,
     so processes sharing a cache never write the same file), then rename it into place: a reader sees
     the whole file or none. Missing folders are created."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    _writing.add(tmp)
     try:
         write(tmp)
         tmp.replace(path)
     finally:
+        tmp.unlink(missing_ok=True)
+        _writing.discard(tmp)
+
+
+def remove_partial_files() -> None:
+    """Remove the temporary files of the writes under way in this process: for a process about to be ended
+    by a signal's default action, which runs no `finally` (a terminated worker left a `*.tmp.npz` beside the
+    cache it was filling)."""
+    for tmp in list(_writing):
         tmp.unlink(missing_ok=True)
 
 

@@ -73,11 +73,14 @@ def stop_like_ctrl_c(signum: int, _frame: FrameType | None) -> None:
     them, only ended the task it was on, and the pool waited for the worker), then `Stopped` is raised. The
     pools' threads then find their workers gone, which they are not told of (`_quiet_pool_threads`). A
     multiprocessing.Pool's workers are left to its exit. A forked worker, which inherits this handler, is
-    ended by the signal as before (no traceback). The signals this handler takes are then ignored until
+    ended by the signal as before (no traceback), its files being written removed first (one left a
+    `*.tmp.npz` in the field cache). The signals this handler takes are then ignored until
     `main` returns (`kill -9` still ends the command): a second one raised a second `Stopped` inside the
     clean-up, which `fv sim --out` then left undone, its partial folder of PNGs left behind (the kernel sends
     a launched process its parent-death SIGTERM once per thread of the dying launcher)."""
     if os.getpid() != COMMAND_PID:
+        from fv_algos.atomic_file import remove_partial_files
+        remove_partial_files()  # the default action below runs no `finally`
         signal.signal(signum, signal.SIG_DFL)
         os.kill(os.getpid(), signum)
         return
