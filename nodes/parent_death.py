@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import atexit
 import ctypes
+import logging
 import os
 import signal
 import sys
@@ -54,6 +55,8 @@ def stop_with_parent() -> None:
     if not _kernel_signals_parent_death():
         threading.Thread(target=_watch_parent, args=(owner_pid,), name="fv-parent-watch", daemon=True).start()
     if os.getppid() != owner_pid:  # died before the request (this process was re-parented)
+        logging.getLogger("fv").warning("the process that started this one (pid %d) is gone (the parent is pid %d "
+                                        "now): stopping", owner_pid, os.getppid())
         os.kill(os.getpid(), STOP_SIGNAL)
 
 

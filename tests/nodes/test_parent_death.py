@@ -58,3 +58,4 @@ def test_a_node_whose_launcher_died_before_it_asked_stops_at_once(bus: Bus) -> N
     result = subprocess.run([sys.executable, "-m", "nodes.cli", "node", "talker"], cwd=REPO, env=env,
                             capture_output=True, text=True, timeout=30)
     assert result.returncode == 128 + 15 != OK, result.stderr
+    assert f"the process that started this one (pid {launcher.pid}) is gone" in result.stderr  # it said nothing
