@@ -25,6 +25,7 @@ Kernel = Literal["thin_plate_spline", "multiquadric", "inverse_multiquadric", "g
 # Every kernel gets a linear polynomial term (1, x, y), as scipy.interpolate.RBFInterpolator
 # does by default: it is the most any of these kernels needs, and it reproduces uniform
 # translation and linear strain exactly.
+MAX_MARKERS = 400  # the most markers a pipeline takes by default: the RBF solve grows as N^3 (3000 took 19 s)
 _KERNELS = ("thin_plate_spline", "multiquadric", "inverse_multiquadric", "gaussian", "linear", "cubic")
 _SCALED = ("multiquadric", "inverse_multiquadric", "gaussian")
 _POLY_TERMS = 3

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fv_algos.contact_summary import ContactParams, summarise_contact
-from fv_algos.field import FieldInterpolator, FieldParams
+from fv_algos.field import MAX_MARKERS, FieldInterpolator, FieldParams
 from msgs import ContactSummary, DisplacementField, MarkerArray
 from nodes.node import Node
 
@@ -22,7 +22,7 @@ class InterpolatorParams:
     contact: bool = True  # also publish /contact
     contact_threshold_px: float = 1.0
     input_timeout_s: float = 2.0  # warn in NodeStatus after this long without markers (0 = never)
-    max_markers: int = 400  # a MarkerArray with more is refused: the RBF solve grows as N^3 (3000 took 19 s)
+    max_markers: int = MAX_MARKERS  # a MarkerArray with more is refused: the RBF solve grows as N^3
 
     def __post_init__(self) -> None:
         self.field_params()  # ValueError names a bad method, kernel, grid, smoothing or width_px

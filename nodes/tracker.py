@@ -35,10 +35,11 @@ forwarder left running keeps it): neither is resumed."""
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from fv_algos.field import MAX_MARKERS
 from fv_algos.perception import Perception, PerceptionParams, resumable_reference
 from fv_algos.visualize import as_bgr
 from msgs import Image, MarkerArray
@@ -55,12 +56,15 @@ class TrackerNodeParams:
     resume_wait_s: float = 0.3  # how long to wait for it before taking a new reference
     input_timeout_s: float = 2.0  # warn in NodeStatus after this long without a frame (0 = never)
     recorded_reference: str = ""  # a replay's topic for the reference its recording holds ("" = none; module doc)
+    max_markers: int = MAX_MARKERS  # a frame showing more is no reference (noise; the interpolator's default too)
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
             raise ValueError(f"preset {self.preset!r} is not one of {PRESETS}")
         if self.reference_frame < 0:
             raise ValueError(f"reference_frame {self.reference_frame} must be >= 0")
+        if self.max_markers < 3:
+            raise ValueError(f"max_markers {self.max_markers} must be >= 3")
         if self.resume_wait_s < 0 or self.input_timeout_s < 0:
             raise ValueError(f"resume_wait_s {self.resume_wait_s} and input_timeout_s {self.input_timeout_s} must be >= 0")
 
@@ -80,7 +84,7 @@ class TrackerNode(Node):
 
     def setup(self) -> None:
         p = self.params
-        self.perception = Perception(PerceptionParams.preset(p.preset))
+        self.perception = Perception(replace(PerceptionParams.preset(p.preset), max_markers=p.max_markers))
         self.frames_seen = 0
         self.last_index = -1  # the frame_index of the frame before (-1: none, or a live camera's)
         self.take_next = False  # after /tracker/reset: the next frame is the reference, whatever its number

@@ -171,6 +171,26 @@ def test_a_dark_first_frame_is_no_reference_and_the_next_is_taken() -> None:
         assert len(references) == 1 and node.counters["references"] == 1 and node.state == "ok"
 
 
+def test_a_frame_of_noise_is_no_reference_and_the_next_is_taken() -> None:
+    """A frame of pixel noise (a camera's garbage frame) became the reference with 3,494 "markers": 1.5 s to
+    build, 0.2 s a frame to track (the tracker fell to 5 frames/s) and every marker array refused by the
+    interpolator (too_many_markers) until /tracker/reset. A frame of more than max_markers is no reference."""
+    from msgs import Image
+    rest = _skin_at_rest()
+    noise = np.random.default_rng(0).integers(0, 256, rest.shape, np.uint8)
+    with _tracker({"reference_frame": 0, "resume": False}) as (node, references, _):
+        started = time.perf_counter()
+        node.on_image(Image(stamp_ns=1, encoding="mono8", data=noise))
+        noise_s = time.perf_counter() - started
+        assert node.counters["reference_retries"] == 1 and node.state == "warn" and not references
+        assert "markers, more than max_markers 400: noise, not a marker grid" in node.message, node.message
+        node.on_image(Image(stamp_ns=2, encoding="mono8", data=rest))
+        assert len(references) == 1 and node.counters["references"] == 1 and node.state == "ok"
+    print(f"noise frame refused in {noise_s:.3f} s")
+    with pytest.raises(ValueError, match="max_markers 2 must be >= 3"):
+        _tracker({"max_markers": 2}).__enter__()
+
+
 @pytest.mark.parametrize("first_seq, first_index, resumed", [(0, -1, True), (40, -1, True), (120, 0, False),
                                                               (120, 40, True)])
 def test_a_replay_is_tracked_against_the_recorded_reference_from_before_its_first_frame(
