@@ -36,6 +36,7 @@ or, for any topic, ``with advertise("/my/topic") as pub: pub.publish(msg)``. A l
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from abc import ABC, abstractmethod
@@ -330,11 +331,11 @@ class Publisher(_Closing):
     the forwarder's refreshes (`nodes.latched_cache`) while the caller publishes nothing.
     """
 
-    def __init__(self, topic: str, *, name: str = "robot", latched: bool = False, connect_timeout_s: float = 2.0,
+    def __init__(self, topic: str, *, name: str | None = None, latched: bool = False, connect_timeout_s: float = 2.0,
                  address: BusAddress | None = None) -> None:
         self.topic = validate_topic(topic)  # "slip" was published where no subscriber can ask for it
         self.latched = latched
-        self._sock = PublisherSocket(name, address)
+        self._sock = PublisherSocket(default_name() if name is None else name, address)
         if not self._sock.wait_connected(connect_timeout_s):
             url = self._sock.address.url
             self._sock.close()
@@ -361,9 +362,18 @@ class Publisher(_Closing):
         self._sock.close()
 
 
-def advertise(topic: str, *, name: str = "robot", latched: bool = False, connect_timeout_s: float = 2.0,
+def default_name() -> str:
+    """The name robot code publishes under when it gives none: `robot_<pid>`, one per process, as ROS names
+    anonymous nodes. Under one shared name ("robot", before) two scripts' latched messages on one topic were
+    one to the bus: a late subscriber got only the last one's, and each script's sequence read as the
+    other's gaps."""
+    return f"robot_{os.getpid()}"
+
+
+def advertise(topic: str, *, name: str | None = None, latched: bool = False, connect_timeout_s: float = 2.0,
               address: BusAddress | None = None) -> Publisher:
-    """A `Publisher` on `topic`: ``with advertise("/my/topic") as pub: pub.publish(msg)``."""
+    """A `Publisher` on `topic` under `name` (default `default_name()`):
+    ``with advertise("/my/topic") as pub: pub.publish(msg)``."""
     return Publisher(topic, name=name, latched=latched, connect_timeout_s=connect_timeout_s, address=address)
 
 

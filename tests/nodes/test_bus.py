@@ -88,6 +88,37 @@ def test_latched_message_reaches_late_joiner_once(bus: Bus) -> None:
         pub.close()
 
 
+LATCHED_SCRIPT = """
+import sys, time
+from nodes.client import advertise
+from msgs import SlipState
+with advertise("/grip/state", latched=True) as pub:
+    pub.publish(SlipState(probability=float(sys.argv[1])))
+    print("published", flush=True)
+    sys.stdin.read()  # until the test closes it
+"""
+
+
+def test_two_scripts_latched_messages_on_one_topic_both_reach_a_late_subscriber(bus: Bus) -> None:
+    """Robot code advertised under one default name, "robot": two scripts' latched messages on one topic were
+    one publisher's to the bus, and a subscriber started later got only the last one's."""
+    from nodes.client import subscribe
+
+    scripts = [subprocess.Popen([sys.executable, "-c", LATCHED_SCRIPT, p], cwd=REPO, stdin=subprocess.PIPE,
+                                stdout=subprocess.PIPE, text=True) for p in ("0.1", "0.9")]
+    try:
+        for script in scripts:
+            assert script.stdout.readline().strip() == "published"
+        with subscribe("/grip/state", timeout_s=5.0) as states:
+            got = sorted((next(iter(states)), next(iter(states))), key=lambda m: m.probability)
+        assert [m.probability for m in got] == [0.1, 0.9]
+        assert {m.node for m in got} == {f"robot_{script.pid}" for script in scripts}
+    finally:
+        for script in scripts:
+            script.stdin.close()
+            script.wait(10)
+
+
 def test_a_gone_publisher_s_latched_message_reaches_only_those_who_ask(bus: Bus) -> None:
     """A latched message goes with its publisher, as in ROS: on a forwarder left running, a reader
     joining after a session got that session's camera info as a live one (a bag recorded before the
