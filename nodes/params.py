@@ -68,21 +68,21 @@ def param_types(cls: type) -> dict[str, Any]:
     return typing.get_type_hints(cls)
 
 
-def build_params(cls: type, overrides: dict[str, Any], where: str = "params") -> Any:
-    """An instance of dataclass `cls` with `overrides` applied; ParamError names the key,
-    the expected type and `where` the value came from."""
+def build_params(cls: type, overrides: dict[str, Any], where: str = "params", what: str = "param") -> Any:
+    """An instance of dataclass `cls` with `overrides` applied; ParamError names the key (a `what`: "field"
+    for a message's), the expected type and `where` the value came from."""
     hints = param_types(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     values = {}
     for key, value in overrides.items():
         if key not in names:
-            raise ParamError(f"{where}: unknown param {key!r}; known: {sorted(names)}", key)
+            raise ParamError(f"{where}: unknown {what} {key!r}; known: {sorted(names)}", key)
         if isinstance(value, str) and hints[key] is not str and not _accepts(hints[key], value):
             value = parse_text(value)
         if not _accepts(hints[key], value):
-            raise ParamError(f"{where}: param {key!r} = {value!r} is not of type {_type_name(hints[key])}", key)
+            raise ParamError(f"{where}: {what} {key!r} = {value!r} is not of type {_type_name(hints[key])}", key)
         if hints[key] is float and not math.isfinite(value):  # nan / inf: no rate, period or time means that
-            raise ParamError(f"{where}: param {key!r} = {value!r} is not a finite number", key)
+            raise ParamError(f"{where}: {what} {key!r} = {value!r} is not a finite number", key)
         values[key] = _coerce(hints[key], value)
     try:
         return cls(**values)

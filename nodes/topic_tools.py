@@ -20,7 +20,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from nodes.arg_types import positive_float, positive_int
+from nodes.arg_types import non_negative_float, positive_float, positive_int
 
 STATUS_TOPIC = "/status"
 STALE_AFTER_S = 3.0
@@ -341,7 +341,7 @@ def build_message(type_name: str, text: str) -> Any:
                 raise ValueError(f"{type_name}.{name}: {values[name]!r:.80} is not an array of {default.dtype}: "
                                  f"{exc}") from None
     values.setdefault("stamp_ns", time.time_ns())
-    msg = build_params(cls, values, where=type_name)
+    msg = build_params(cls, values, where=type_name, what="field")
     check_message(msg)  # as subscribers decode it: "SlipState.probability: 2.0 is not in [0, 1]"
     return msg
 
@@ -443,6 +443,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--latched", action="store_true",
                    help="latched: later subscribers get the last message while this command runs (it stays "
                         "after its last message, until Ctrl-C)")
-    p.add_argument("--wait-matching", type=float, default=1.0,
+    p.add_argument("--wait-matching", type=non_negative_float, default=1.0,
                    help="seconds to wait for a subscriber before the first message (default 1)")
 

@@ -144,10 +144,18 @@ def test_measures_of_too_few_messages_are_null_and_no_bus_is_an_error(bus_env: B
     ("SlipState", "{stamp_ns: -1}", "stamp_ns"),
     ("SlipState", "{threshold: -1}", "threshold"),
     ("MarkerArray", "{width: 0}", "width/height: 0x0"),
+    ("SlipState", "{probability: x}", r"^SlipState: field 'probability' = 'x' is not of type float$"),  # said "param"
 ])
 def test_pub_fields_errors_name_the_field(type_name: str, text: str, match: str) -> None:
     with pytest.raises((ValueError, KeyError), match=match):
         build_message(type_name, text)
+
+
+@pytest.mark.parametrize("wait", ["-1", "nan"])
+def test_pub_refuses_a_wait_for_subscribers_that_is_no_time(wait: str) -> None:
+    """`--wait-matching -1` and `nan` were taken (a wait of no time, or none at all), said nothing."""
+    result = run_fv("topic", "pub", "/x", "SlipState", "{}", "--once", f"--wait-matching={wait}")
+    assert result.returncode == 2 and f"--wait-matching: {wait} is not a finite number >= 0" in result.stderr
 
 
 def test_pub_builds_arrays_in_the_field_dtype() -> None:
