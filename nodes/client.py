@@ -235,7 +235,8 @@ class Listener(_Closing):
     bus without `FV_CURVE_DIR`) raises here, in the caller's thread, before any thread starts.
 
     timeout_s: with it, silence that long calls `on_timeout(error)` (the `SilenceError` `subscribe` raises,
-    saying whether the bus answered then) from the thread, once per silence, counted in `timeouts`;
+    saying whether the bus answered then) from the thread, once per silence (up to `POLL_S` after
+    `timeout_s`: the thread looks every `POLL_S`), counted in `timeouts`;
     without `on_timeout` the error is logged. An `on_timeout` that raises is logged and counted in `errors`.
     ValueError for a `timeout_s` <= 0, and for an `on_timeout` without `timeout_s` (it would never be called).
     """
