@@ -178,9 +178,12 @@ def predict_proba(
 
     ``model`` must carry a ``config`` (:class:`ModelConfig`); ``autocast`` runs the forward pass
     under ``torch.autocast`` with that dtype (e.g. torch.bfloat16). The softmax is taken in
-    float32. Raises ValueError for invalid input and if the model yields non-finite logits.
+    float32. Raises ValueError for invalid input and if the model yields non-finite logits. No windows
+    (B = 0) give no probabilities (the CNN+LSTM's reshape raised RuntimeError).
     """
     x = to_model_input(validate_windows(windows, model.config), width_gain(model.config, width_px)).to(device)
+    if x.shape[0] == 0:
+        return np.zeros(0, np.float64)
     with torch.inference_mode():
         with autocast_context(device, autocast):
             logits = model(x).float()

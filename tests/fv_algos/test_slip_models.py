@@ -54,6 +54,14 @@ def test_models_map_windows_to_two_logits(arch: str) -> None:
         _model(config)(x[:, :3])
 
 
+@pytest.mark.parametrize("arch", ["convlstm", "cnn_lstm", "lstm"])
+def test_no_windows_give_no_probabilities(arch: str) -> None:
+    """An empty batch raised RuntimeError in the CNN+LSTM's reshape."""
+    config = ModelConfig(arch=arch, hidden=8, window=4, grid=12, pool=3)
+    prob = predict_proba(_model(config), np.zeros((0, 4, 12, 12, 3), np.float32))
+    assert prob.shape == (0,) and prob.dtype == np.float64
+
+
 def test_convlstm_matches_single_concat_convolution() -> None:
     """The split x/h convolution must equal the textbook conv(concat[x, h]) ConvLSTM."""
     model = _model(ModelConfig(hidden=6, window=5, grid=9, kernel=5))
