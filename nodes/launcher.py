@@ -57,6 +57,7 @@ FORWARDER_GRACE_S = 0.5
 FORWARDER_RETRY_S = 1.0  # wait between failed forwarder restarts
 FORWARDER_CHECK_S = 1.0  # period of the pings to a forwarder this launch shares (did not start)
 SPARE_RETRY_S = 1.0  # at least this long before replacing a spare that died (a spare that cannot start loops slowly)
+SPARE_RETRY_MAX_S = 60.0  # the longest wait, doubled from SPARE_RETRY_S for each spare in a row that never got ready
 POLL_S = 0.05
 STATUS_PERIOD_S = 1.0  # the launcher's own NodeStatus period
 SILENT_AFTER_S = 3.0  # a running node whose NodeStatus stopped this long is reported (nodes send one per second)
@@ -79,7 +80,7 @@ class Child:
     exits with TEMPFAIL in a row (None when the last exit was another), quiet: the lines those
     tries printed (`_numbers_masked`), not echoed again. spare: the standby process (standby
     nodes), spare_ready: it said STANDBY_READY, spare_lines: its output lines, spare_at: when to
-    start the next spare.
+    start the next spare, spare_failures: spares in a row that exited before they were ready.
     """
 
     spec: NodeSpec
@@ -101,6 +102,7 @@ class Child:
     spare_ready: bool = False
     spare_lines: list[str] = field(default_factory=list)
     spare_at: float | None = None
+    spare_failures: int = 0
 
 
 class Launch:
@@ -202,10 +204,15 @@ class Launch:
     def _watch_spare(self, child: Child, now: float) -> None:
         """Start a standby node's next spare when due; notice a spare that died."""
         if child.spare is not None and child.spare.poll() is not None:
-            self.say(f"spare {child.spec.name} pid {child.spare.pid} exited with code {child.spare.returncode}")
+            child.spare_failures = 0 if child.spare_ready else child.spare_failures + 1
+            wait_s = min(SPARE_RETRY_MAX_S, max(child.spec.respawn_delay_s, SPARE_RETRY_S)
+                         * 2 ** max(child.spare_failures - 1, 0))  # one that cannot start: its error said less often
+            self.say(f"spare {child.spec.name} pid {child.spare.pid} exited with code {child.spare.returncode}"
+                     + (f" before it was ready ({child.spare_failures} in a row); next spare in {wait_s:g} s"
+                        if child.spare_failures else ""))
             _signal_group(child.spare, signal.SIGTERM)
             child.spare = None
-            child.spare_at = now + max(child.spec.respawn_delay_s, SPARE_RETRY_S)
+            child.spare_at = now + wait_s
         if child.spare is None and child.spare_at is not None and now >= child.spare_at and child.proc is not None:
             self._spawn_spare(child)
 

@@ -747,3 +747,41 @@ def test_a_pipeline_node_in_a_namespace_uses_its_topics_there(bus_env: Bus, kind
     topics = {topic for topic, _ in status.publishes + status.subscribes}
     assert topics - {"/tracker/reset", "/status"} and all(
         t.startswith("/left/") for t in topics - {"/tracker/reset", "/status"}), topics
+
+
+def test_a_spare_that_cannot_get_ready_is_started_less_and_less_often(tmp_path: Path) -> None:
+    """A standby spare whose start failed (exit 2: e.g. its model file gone since the node started) was
+    started again every second for good, its error echoed each time. Spares in a row that exit before they
+    are ready now wait twice as long each (1, 2, 4 ... s, at most SPARE_RETRY_MAX_S); a ready one resets it."""
+    import io
+    import subprocess
+    import sys
+
+    from nodes.launcher import SPARE_RETRY_MAX_S, Launch
+    path = _write(tmp_path, "l.yaml", "nodes:\n  - kind: talker\n    respawn: true\n    respawn_delay: 0.1\n"
+                                      "    standby: true\n")
+    out = io.StringIO()
+    launch = Launch.from_file(path, output=out)
+    child = launch.children[0]
+    failed = subprocess.Popen([sys.executable, "-c", "raise SystemExit(2)"])
+    failed.wait()
+    child.proc = failed  # any process: the node is there, so spares are due
+    spawned: list[float] = []
+
+    def spawn(c) -> None:
+        spawned.append(now)
+        c.spare, c.spare_ready, c.spare_at = failed, False, None
+
+    launch._spawn_spare = spawn
+    now, waits = 0.0, []
+    child.spare = failed
+    for _ in range(9):
+        launch._watch_spare(child, now)  # the spare has exited: the next one is scheduled
+        waits.append(child.spare_at - now)
+        now = child.spare_at
+        launch._watch_spare(child, now)  # due: started
+    assert waits == [1.0, 2.0, 4.0, 8.0, 16.0, 32.0, SPARE_RETRY_MAX_S, SPARE_RETRY_MAX_S, SPARE_RETRY_MAX_S]
+    assert len(spawned) == 9 and "exited with code 2 before it was ready (3 in a row); next spare in 4 s" in out.getvalue()
+    child.spare_ready = True  # a spare that got ready, then exited (its node took it over, or it was killed)
+    launch._watch_spare(child, now)
+    assert child.spare_failures == 0 and child.spare_at - now == 1.0
