@@ -316,11 +316,13 @@ class BagPlay(Node):
     def summary_line(self, elapsed_s: float, paused_s: float) -> str:
         """The closing line; `elapsed_s` is the time spent playing, the `paused_s` seconds paused left out."""
         c = self.counters
-        what = f"on {', '.join(self.sync_on)}" if self.sync_on else "messages"
         sync = f", sync timeouts {c['sync_timeouts']}" if self._sync is not None else ""
         paused = f" (and {paused_s:.2f} s paused)" if paused_s > 0 else ""
-        return (f"played {c['played']} messages ({c['frames']} {what}) in {elapsed_s:.2f} s{paused}: "
-                f"{c['frames'] / max(elapsed_s, 1e-9):.1f} frames/s{sync}")
+        rate = c["frames"] / max(elapsed_s, 1e-9)
+        if not self.sync_on:  # every message counts: "played 201 messages (201 messages)" said it twice
+            return f"played {c['played']} messages in {elapsed_s:.2f} s{paused}: {rate:.1f} messages/s{sync}"
+        return (f"played {c['played']} messages ({c['frames']} on {', '.join(self.sync_on)}) in {elapsed_s:.2f} "
+                f"s{paused}: {rate:.1f} frames/s{sync}")
 
     def teardown(self) -> None:
         thread = getattr(self, "_thread", None)

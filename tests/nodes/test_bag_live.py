@@ -242,6 +242,16 @@ def test_fast_play_with_sync_never_overruns_a_slow_consumer(bus: BusAddress, spa
     assert 10 < fps < 1 / work_s * 1.1  # paced by the consumer, not by the bag's 100 Hz
 
 
+def test_a_play_without_frames_counts_its_messages_once(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
+    """`fv bag play --topics /slip` (no frames to count) ended with "played 100 messages (100 messages) in ...:
+    ... frames/s"."""
+    original = write_bag(tmp_path / "one", sample_messages(100, np.random.default_rng(5)))
+    play = spawn("bag", "play", str(original.output), "--topics", "/slip", "--rate", "10", "--wait-timeout", "20")
+    assert play.wait(60) == 0
+    summary = play.stderr.read()
+    assert "played 100 messages in " in summary and " messages/s" in summary and "(100" not in summary, summary
+
+
 def test_fast_play_syncs_each_finger_on_its_own_answers(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
     """Two cameras' frames interleaved in one bag (one pipeline per finger): each waits for its own finger's
     answer, so neither slow consumer loses a frame, the slower one (30 ms) paces the whole."""
