@@ -110,6 +110,12 @@ class SilenceError(TimeoutError):
         return type(self), (self.topic, self.timeout_s, self.address, self.bus_answers)
 
 
+def check_timeout(timeout_s: float | None) -> None:
+    """ValueError for a silence allowed (s) that is not > 0: 0 or -1 raised at the first wait, nan never."""
+    if timeout_s is not None and not timeout_s > 0:
+        raise ValueError(f"timeout_s {timeout_s} must be > 0 s (None: no timeout)")
+
+
 _C = TypeVar("_C", bound="_Closing")
 
 
@@ -141,8 +147,7 @@ class Subscription(_Closing):
 
     def __init__(self, topic: str, msg_type: type[Message] | None = None, *, timeout_s: float | None = None,
                  latest: bool = False, address: BusAddress | None = None) -> None:
-        if timeout_s is not None and not timeout_s > 0:  # 0 raised at once; nan never; -1 at once
-            raise ValueError(f"timeout_s {timeout_s} must be > 0 s (None: wait forever)")
+        check_timeout(timeout_s)
         self.topic = validate_topic(topic)  # '' (an unset variable) would be every topic
         self.msg_type = expected_type(topic) if msg_type is None else msg_type
         self.timeout_s = timeout_s
@@ -244,8 +249,7 @@ class Listener(_Closing):
     def __init__(self, topic: str, callback: Callable[[Message], object], msg_type: type[Message] | None = None,
                  *, latest: bool = False, timeout_s: float | None = None,
                  on_timeout: Callable[[TimeoutError], object] | None = None, address: BusAddress | None = None) -> None:
-        if timeout_s is not None and not timeout_s > 0:
-            raise ValueError(f"timeout_s {timeout_s} must be > 0 s (None: no timeout)")
+        check_timeout(timeout_s)
         if on_timeout is not None and timeout_s is None:
             raise ValueError("on_timeout is never called without timeout_s (the silence, s, that calls it)")
         self.topic = topic

@@ -20,11 +20,17 @@ def source_name(scene_path: str) -> str:
     return f"sim {scene_path or 'random scenarios'}"
 
 
+def _image_size() -> tuple[int, int]:
+    """(width, height) px of the simulator's camera images: one byte a pixel (mono8)."""
+    camera = FisheyeCamera.default()
+    return camera.width, camera.height
+
+
 def prerender_bytes(scene: Scene) -> int:
     """Memory the images of ``scene`` take once prerendered, bytes: one (H, W) uint8 image a frame, at the
     simulator's camera size (640x480: 307 kB a frame, 9.2 MB per second of scene at 30 fps)."""
-    camera = FisheyeCamera.default()
-    return scene.n_frames * camera.width * camera.height
+    width, height = _image_size()
+    return scene.n_frames * width * height
 
 
 def _check_prerender(name: str, scene: Scene, max_mb: float) -> None:
@@ -33,10 +39,10 @@ def _check_prerender(name: str, scene: Scene, max_mb: float) -> None:
     need = prerender_bytes(scene)
     if need <= max_mb * 1e6:
         return
-    camera = FisheyeCamera.default()
-    frame = camera.width * camera.height
+    width, height = _image_size()
+    frame = need // scene.n_frames
     raise ValueError(f"{name}: prerender would hold its {scene.n_frames:,} frames ({scene.duration_s:g} s at "
-                     f"{scene.fps:g} fps) as {camera.width}x{camera.height} images of {frame / 1e3:.0f} kB: "
+                     f"{scene.fps:g} fps) as {width}x{height} images of {frame / 1e3:.0f} kB: "
                      f"{need / 1e6:,.0f} MB, over prerender_max_mb {max_mb:g} (room for {int(max_mb * 1e6 // frame):,} "
                      f"frames, {max_mb * 1e6 / frame / scene.fps:.3g} s of this scene); play it without prerender, "
                      "shorten it or raise prerender_max_mb")
