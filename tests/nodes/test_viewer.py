@@ -6,16 +6,14 @@ from __future__ import annotations
 import json
 import math
 import re
-import shutil
 import socket
 import struct
-import subprocess
 import threading
 import time
 import urllib.error
 import urllib.request
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import cv2
 import numpy as np
@@ -26,11 +24,11 @@ from msgs import ContactSummary, DisplacementField, Image, MarkerArray, Message,
 from nodes.bus import PublisherSocket
 from nodes.launch_file import load_launch
 from nodes.viewer import ViewerNode, ViewerParams
-from tests.nodes.conftest import REPO, Bus, kill_group
+from tests.nodes.conftest import REPO, Bus
+from tests.nodes.headless_browser import HeadlessChromium
 
 T0_NS = 1_700_000_000_000_000_000
 FRAME_NS = 33_000_000
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 
 
 def synthetic(k: int, probability: float) -> list[tuple[str, Message]]:
@@ -268,35 +266,13 @@ def test_view_launch_file_adds_the_viewer_to_the_pipeline() -> None:
 
 
 # -- the page in a real browser ----------------------------------------------------------
-def _chromium(profile: Path, url: str, *extra: str, timeout_s: float = 20.0, attempts: int = 3) -> str:
-    """Run headless Chromium on `url`; its stdout. Every process it starts is killed. Headless
-    Chromium with a virtual-time budget now and then never exits (seen three times in full-suite runs
-    on a busy 2-core machine, once twice in a row; the same test then passed alone), so a run that
-    hangs is retried with a fresh profile; `attempts` hangs in a row fail."""
-    if not Path(CHROMIUM).exists():
-        pytest.skip("headless Chromium not found (apt-get install chromium)")
-    for attempt in range(attempts):
-        args = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                "--disable-dev-shm-usage", f"--user-data-dir={profile / str(attempt)}", "--window-size=1280,800",
-                *extra, url]
-        proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
-                                start_new_session=True)
-        try:
-            out, _ = proc.communicate(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            kill_group(proc)
-            continue
-        kill_group(proc, 0.5)  # helpers it may leave behind
-        return out
-    raise AssertionError(f"chromium did not finish within {timeout_s} s, {attempts} times in a row")
+PROGRESS = "JSON.stringify(Object.assign({}, document.body ? document.body.dataset : {}))"
 
 
-def _progress(dom: str) -> dict[str, str]:
-    """The page's data-* progress attributes on <body>."""
-    body = re.search(r"<body([^>]*)>", dom)
-    assert body, dom[:500]
-    return dict(re.findall(r'data-([a-z-]+)="([^"]*)"', body.group(1)))
+def _progress(browser: HeadlessChromium, ready: Callable[[dict[str, str]], bool]) -> dict[str, str]:
+    """The page's data-* progress attributes on <body> (as `dataset` names them: slipPoints ...) once
+    `ready` holds for them."""
+    return json.loads(browser.wait_for(PROGRESS, lambda text: ready(json.loads(text))))
 
 
 def test_page_in_headless_chromium_shows_frames_and_a_moving_slip_plot(
@@ -314,25 +290,18 @@ def test_page_in_headless_chromium_shows_frames_and_a_moving_slip_plot(
     thread.start()
     try:
         wait_state(viewer, lambda s: s["slip"] is not None and len(s["slip"]["t_s"]) >= 3)
-        url = f"http://127.0.0.1:{viewer.port}/"
-        runs = []
-        for _ in range(2):
-            dom = _chromium(tmp_path / "profile", url, "--virtual-time-budget=600", "--dump-dom")
-            runs.append(_progress(dom))
-            time.sleep(0.5)
-        shot = tmp_path / "shot.png"
-        _chromium(tmp_path / "profile", url, "--virtual-time-budget=600", f"--screenshot={shot}")
+        with HeadlessChromium(tmp_path / "profile") as browser:
+            browser.open(f"http://127.0.0.1:{viewer.port}/")
+            first = _progress(browser, lambda p: int(p.get("polls", 0)) >= 2 and int(p["slipPoints"]) >= 3
+                              and int(p["framesShown"]) >= 1 and int(p["fieldsShown"]) >= 1)
+            second = _progress(browser, lambda p: float(p["lastT"]) > float(first["lastT"])  # the plot moved on
+                               and int(p["slipPoints"]) > int(first["slipPoints"]))
+            shot = browser.screenshot()
     finally:
         stop.set()
         thread.join(2.0)
-    for p in runs:
-        assert int(p["polls"]) >= 2, p
-        assert int(p["frames-shown"]) >= 1 and int(p["fields-shown"]) >= 1, p
-        assert int(p["slip-points"]) >= 3, p
-    first, second = runs
-    assert float(second["last-t"]) > float(first["last-t"]), runs  # the plot moved on
-    assert int(second["slip-points"]) > int(first["slip-points"]), runs
-    picture = cv2.imread(str(shot))
+    assert int(second["polls"]) > int(first["polls"]), (first, second)
+    picture = cv2.imdecode(np.frombuffer(shot, np.uint8), cv2.IMREAD_COLOR)
     assert picture is not None and picture.shape[:2] == (800, 1280)
     frame_area = picture[60:450, 10:450]
     assert frame_area.std() > 20  # a camera frame with markers, not an empty panel
