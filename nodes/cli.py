@@ -11,11 +11,10 @@ import os
 import signal
 import sys
 import threading
-from types import FrameType
 
 from fv_algos.allocator import steady_malloc
 from nodes.exit_codes import (CONFIG, CONFIG_WHILE_RUNNING, FAILED, INTERRUPTED, OK, TEMPFAIL, NodeFailed,
-                              NotReadyError, stop_signals)
+                              NotReadyError, on_stop_signals, stop_signals, stopping)
 from nodes.parent_death import stop_with_parent
 
 COMMAND_MODULES = [
@@ -53,9 +52,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
-COMMAND_PID = os.getpid()  # the command's process; a worker forked from it has another
-
-
 class Stopped(KeyboardInterrupt):
     """SIGTERM or SIGHUP (`kill`, systemd, `timeout`, a closed terminal), raised where the command runs, so
     that it stops as on Ctrl-C: its clean-up runs (a partial output folder is removed) and it exits 128 +
@@ -66,36 +62,24 @@ class Stopped(KeyboardInterrupt):
         self.exit_code = 128 + signum
 
 
-def stop_like_ctrl_c(signum: int, _frame: FrameType | None) -> None:
-    """The handler of SIGTERM and SIGHUP (not under nohup: `stop_signals`) for commands (nodes, launches and
-    the forwarder install their own): the worker processes of the command's process pools are terminated (a
+def _stop_command(signum: int) -> None:
+    """A command's stop on the first of `stop_signals()` (`on_stop_signals`; nodes, launches and the forwarder
+    put their own in its place): the worker processes of the command's process pools are terminated (a
     `kill` of this process did not reach them: a benchmark's worker ran on for 80 s; SIGINT, as Ctrl-C gives
-    them, only ended the task it was on, and the pool waited for the worker), then `Stopped` is raised. The
-    pools' threads then find their workers gone, which they are not told of (`_quiet_pool_threads`). A
-    multiprocessing.Pool's workers are left to its exit. A forked worker, which inherits this handler, is
-    ended by the signal as before (no traceback), its files being written removed first (one left a
-    `*.tmp.npz` in the field cache). The signals this handler takes are then ignored until
-    `main` returns (`kill -9` still ends the command): a second one raised a second `Stopped` inside the
-    clean-up, which `fv sim --out` then left undone, its partial folder of PNGs left behind (the kernel sends
-    a launched process its parent-death SIGTERM once per thread of the dying launcher)."""
-    if os.getpid() != COMMAND_PID:
-        from fv_algos.atomic_file import remove_partial_files
-        remove_partial_files()  # the default action below runs no `finally`
-        signal.signal(signum, signal.SIG_DFL)
-        os.kill(os.getpid(), signum)
-        return
-    for sig in stop_signals():
-        if signal.getsignal(sig) is stop_like_ctrl_c:
-            signal.signal(sig, signal.SIG_IGN)
+    them, only ended the task it was on, and the pool waited for the worker), then KeyboardInterrupt (Ctrl-C)
+    or `Stopped` is raised. The pools' threads then find their workers gone, which they are not told of
+    (`_quiet_pool_threads`). A multiprocessing.Pool's workers are left to its exit. The stop signals that
+    come after it are ignored (`ignore_stop_signals`): one during the clean-up cut it short, also after Ctrl-C
+    (`fv sim --out` left its partial folder of PNGs behind)."""
     threading.excepthook = _quiet_pool_threads
     for child in multiprocessing.active_children():
         if "PoolWorker" not in child.name:  # a multiprocessing.Pool's: its exit ends them (it replaced those ended here)
             child.terminate()
-    raise Stopped(signum)
+    raise KeyboardInterrupt if signum == signal.SIGINT else Stopped(signum)
 
 
 def _quiet_pool_threads(args: threading.ExceptHookArgs) -> None:
-    """After a stop: a process pool's thread that finds the workers ended by `stop_like_ctrl_c` raises (in
+    """After a stop: a process pool's thread that finds the workers ended by `_stop_command` raises (in
     Python 3.11, InvalidStateError for the futures the stop cancelled); other errors are printed as ever."""
     from concurrent.futures import InvalidStateError
     from concurrent.futures.process import BrokenProcessPool
@@ -106,15 +90,17 @@ def _quiet_pool_threads(args: threading.ExceptHookArgs) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Run the command; its exit code (`nodes.exit_codes`): a NotReadyError gives TEMPFAIL, an error
     of input or configuration (ValueError, KeyError, OSError, RuntimeError) CONFIG, each said in one line;
-    Ctrl-C INTERRUPTED, SIGTERM and SIGHUP 128 + their number, after the command's clean-up. A process
-    started by `fv launch` (`nodes.parent_death`) gets SIGTERM when its launcher dies."""
+    Ctrl-C INTERRUPTED, SIGTERM and SIGHUP 128 + their number, after the command's clean-up, the stop signals
+    after the first ignored to the process's exit. A process started by `fv launch` (`nodes.parent_death`)
+    gets SIGTERM when its launcher dies."""
     args = parse_args(argv)
     steady_malloc()  # every fv process: nodes, training, benchmarks
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="[%(name)s] %(levelname)s: %(message)s", stream=sys.stderr)
     in_main_thread = threading.current_thread() is threading.main_thread()  # (tests call main() in threads too)
-    previous = {sig: signal.signal(sig, stop_like_ctrl_c) for sig in stop_signals()
-                if in_main_thread and sig != signal.SIGINT}
+    previous = {sig: signal.getsignal(sig) for sig in stop_signals()} if in_main_thread else {}
+    if in_main_thread:
+        on_stop_signals(_stop_command)
     try:
         stop_with_parent()  # with the stop handlers in place: the launcher's death is a clean stop
         return int(args.func(args) or OK)
@@ -137,8 +123,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"fv {args.command}: error: {msg}", file=sys.stderr)
         return CONFIG
     finally:
-        for sig, handler in previous.items():  # a caller's own (main() called in a test's process)
-            signal.signal(sig, handler)
+        if not stopping():  # once stopping, this process ignores them to its exit (`ignore_stop_signals`)
+            for sig, handler in previous.items():  # a caller's own (main() called in a test's process)
+                signal.signal(sig, handler)
 
 
 if __name__ == "__main__":

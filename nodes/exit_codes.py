@@ -14,6 +14,8 @@ number in the same way (`nodes.cli.Stopped`).
 """
 from __future__ import annotations
 
+import atexit
+import os
 import signal
 from types import FrameType
 from typing import Callable
@@ -25,6 +27,8 @@ TEMPFAIL = 75
 CONFIG_WHILE_RUNNING = 78
 INTERRUPTED = 130
 
+_stopped_by: int | None = None  # the first of `stop_signals()` to come (`ignore_stop_signals`)
+
 
 def stop_signals() -> tuple[int, ...]:
     """The signals that stop a node, a launch or a command cleanly: SIGINT, SIGTERM and SIGHUP (its terminal
@@ -34,22 +38,77 @@ def stop_signals() -> tuple[int, ...]:
     return (signal.SIGINT, signal.SIGTERM) + (() if ignored else (signal.SIGHUP,))
 
 
-def on_stop_signals(stop: Callable[[], None]) -> None:
-    """Call `stop()` on the first of `stop_signals()`, the rest then ignored (call it from the main thread).
-    A handler run again inside its own first run, as Python runs a signal that comes while its handler runs,
-    deadlocked in threading.Event.set, which takes a lock that the first run held: a forwarder whose
-    launcher was killed ran on for good (1 run in 11). The kernel sends a launched process SIGTERM once per
-    thread of its dying launcher (`nodes.parent_death`); a forwarder in a terminal's process group gets
-    Ctrl-C's SIGINT, then its launcher's SIGTERM."""
-    signals = stop_signals()
+def on_stop_signals(stop: Callable[[int], None]) -> None:
+    """Call `stop(signum)` on the first of `stop_signals()` to come (call it from the main thread): one
+    definition of a stop for every `fv` process, the command line's (`nodes.cli`) as a node's, a launcher's or
+    the forwarder's. The process then ignores them all to its exit (`ignore_stop_signals`).
 
-    def handler(_signum: int, _frame: FrameType | None) -> None:
-        for sig in signals:
-            signal.signal(sig, signal.SIG_IGN)
-        stop()
+    A process forked from this one (a pool's worker) inherits the handler: there, a stop signal acts as
+    Python's default would, SIGINT raising KeyboardInterrupt and SIGTERM or SIGHUP ending it by the signal,
+    its files being written removed first (a terminated worker left a `*.tmp.npz` in the field cache), so
+    that its parent's `terminate()` still ends it (a node's worker ran the node's stop on its copy, then
+    ignored them)."""
+    installer = os.getpid()
 
-    for sig in signals:
+    def handler(signum: int, frame: FrameType | None) -> None:
+        if os.getpid() != installer:
+            _stop_by_default(signum, frame)
+        elif _stopped_by is None:  # (a run inside the first one's, once that has begun, does nothing)
+            ignore_stop_signals(signum)
+            stop(signum)
+
+    for sig in stop_signals():
         signal.signal(sig, handler)
+
+
+def ignore_stop_signals(signum: int) -> None:
+    """This process is stopping on `signum`: ignore every stop signal from now on, to the process's exit, where
+    `kill -9` still ends it. A stop signal run inside its first one's handler deadlocked it in
+    threading.Event.set, on the lock that run held: a forwarder whose launcher was killed ran on for good
+    (1 run in 11); one that came during a command's clean-up cut it short (a partial `fv sim --out` folder
+    left); one that came once `nodes.cli.main` had returned, its handlers restored, ended the process by the
+    signal (exit -15 where 0 or 143 was due). The kernel sends a launched process SIGTERM once per thread of
+    its dying launcher (`nodes.parent_death`); a process in a terminal's process group gets Ctrl-C's SIGINT,
+    then its launcher's SIGTERM; supervisors send SIGTERM again.
+
+    They are ignored by a handler that does nothing, and by the system only at the exit (atexit), as the
+    interpreter's finalisation resets handlers written in Python to the default: a stop signal that had come
+    but whose handler had not yet run when the system was told to ignore them was reported as an error
+    ("OSError: Signal 15 ignored due to race condition": SIGINT and SIGTERM at once to a forwarder, 7 runs of
+    10)."""
+    global _stopped_by
+    if _stopped_by is None:
+        _stopped_by = signum
+        atexit.register(_ignore_to_the_exit)
+    for sig in stop_signals():
+        signal.signal(sig, _ignore)
+
+
+def stopping() -> bool:
+    """Whether one of `stop_signals()` has come to this process (`ignore_stop_signals`)."""
+    return _stopped_by is not None
+
+
+def _ignore(_signum: int, _frame: FrameType | None) -> None:
+    """The handler of the stop signals once the process is stopping."""
+
+
+def _ignore_to_the_exit() -> None:
+    """Have the system ignore the stop signals, through the interpreter's finalisation."""
+    for sig in stop_signals():
+        signal.signal(sig, signal.SIG_IGN)
+
+
+def _stop_by_default(signum: int, frame: FrameType | None) -> None:
+    """Python's default for stop signal `signum` in a process without handlers: KeyboardInterrupt for
+    SIGINT, else the end of the process by the signal (which runs no `finally`: the files it is writing are
+    removed first)."""
+    if signum == signal.SIGINT:
+        signal.default_int_handler(signum, frame)
+    from fv_algos.atomic_file import remove_partial_files
+    remove_partial_files()
+    signal.signal(signum, signal.SIG_DFL)
+    os.kill(os.getpid(), signum)
 
 
 class NodeFailed(RuntimeError):

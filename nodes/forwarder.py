@@ -246,7 +246,7 @@ def serve(tcp_url: str | None = None, keys: Path | None = None) -> int:
         log.error("%s", exc)
         return FAILED
     stop = threading.Event()
-    on_stop_signals(stop.set)
+    on_stop_signals(lambda _signum: stop.set())
     log.info("forwarder on %s%s", fwd.address.url, f" and {tcp_url} (CURVE)" if tcp_url else "")
     try:
         fwd.run(stop)

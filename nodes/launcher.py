@@ -299,7 +299,7 @@ class Launch:
         """start(), then wait for one of `stop_signals()` (Ctrl-C, SIGTERM, SIGHUP unless nohup ignores it)
         or the end of the launch, then stop()."""
         if threading.current_thread() is threading.main_thread():
-            on_stop_signals(self._stop.set)
+            on_stop_signals(lambda _signum: self._stop.set())
         try:
             self.start()
             while not self._done.wait(0.1):

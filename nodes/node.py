@@ -295,7 +295,7 @@ class Node:
         """Run setup, then callbacks and timers until stop() or one of `stop_signals()`; NodeFailed after
         fail()."""
         if install_signals and threading.current_thread() is threading.main_thread():
-            on_stop_signals(self.stop)
+            on_stop_signals(lambda _signum: self.stop())
         self._receiver = threading.Thread(target=self._receive_loop, name=f"{self.name}-rx", daemon=True)
         self._receiver.start()
         started_s = time.monotonic()
