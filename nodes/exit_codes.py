@@ -41,13 +41,19 @@ def stop_signals() -> tuple[int, ...]:
 def on_stop_signals(stop: Callable[[int], None]) -> None:
     """Call `stop(signum)` on the first of `stop_signals()` to come (call it from the main thread): one
     definition of a stop for every `fv` process, the command line's (`nodes.cli`) as a node's, a launcher's or
-    the forwarder's. The process then ignores them all to its exit (`ignore_stop_signals`).
+    the forwarder's. The process then ignores them all to its exit (`ignore_stop_signals`). Where one has come
+    already, `stop` is called at once: the command line's `Stopped`, raised in a node still importing, was
+    lost where Python ignores exceptions (a weakref callback of the import system: 1 run in 10 of two SIGTERMs
+    50 ms apart as `fv node talker` started), and the node then ran on as if it had not been stopped.
 
     A process forked from this one (a pool's worker) inherits the handler: there, a stop signal acts as
     Python's default would, SIGINT raising KeyboardInterrupt and SIGTERM or SIGHUP ending it by the signal,
     its files being written removed first (a terminated worker left a `*.tmp.npz` in the field cache), so
     that its parent's `terminate()` still ends it (a node's worker ran the node's stop on its copy, then
     ignored them)."""
+    if _stopped_by is not None:
+        stop(_stopped_by)
+        return
     installer = os.getpid()
 
     def handler(signum: int, frame: FrameType | None) -> None:
