@@ -1,11 +1,14 @@
 """Message types of the FingerVision bus and their wire codec."""
 from msgs.camera import CameraInfo, Image
 from msgs.message import ArraySpec, Message, MessageError
+from msgs.param import ParamSet, ParamState
 from msgs.status import NodeStatus
 from msgs.tactile import ContactSummary, DisplacementField, MarkerArray, SlipState
 from msgs.wire import decode, decode_header, encode, known_types, message_type, register
 
 for _cls in (Image, CameraInfo, MarkerArray, DisplacementField, ContactSummary, SlipState, NodeStatus):
+    register(_cls)
+for _cls in (ParamSet, ParamState):  # nodes.param_service
     register(_cls)
 
 __all__ = [

@@ -22,6 +22,7 @@ COMMAND_MODULES = [
     "nodes.sim_commands",
     "nodes.launcher",
     "nodes.topic_tools",
+    "nodes.param_commands",
     "nodes.bag.commands",
     "nodes.bench_commands",
     "nodes.slip_commands",

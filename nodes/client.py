@@ -32,6 +32,13 @@ Publishing (the gripper closed: every tracker takes a new reference, a new grasp
 
 or, for any topic, ``with advertise("/my/topic") as pub: pub.publish(msg)``. A latched message
 (``advertise(..., latched=True)``) reaches later subscribers while its publisher is open, as in ROS.
+
+Tuning a running node (`fv param set` from Python; only the params a node takes live, e.g. a slip detector's
+`threshold`; ValueError when the node refuses, TimeoutError when it does not answer)::
+
+    from nodes.client import set_param
+
+    set_param("slip_detector", "threshold", 0.7)
 """
 from __future__ import annotations
 
@@ -47,6 +54,7 @@ from msgs.wire import check_message
 from nodes.bus import PublisherSocket, TopicReader, validate_topic
 from nodes.endpoints import BusAddress
 from nodes.forwarder import ping
+from nodes.param_service import ANSWER_TIMEOUT_S, read_params, set_params
 
 log = logging.getLogger("fv.client")
 POLL_S = 0.1
@@ -387,3 +395,18 @@ def reset_grasp(*, connect_timeout_s: float = 2.0, address: BusAddress | None = 
     tracker takes its next frame as the reference; the slip detectors judge the grasp from there."""
     with advertise(RESET_TOPIC, name="robot_reset", connect_timeout_s=connect_timeout_s, address=address) as pub:
         pub.publish(SlipState(stamp_ns=time.time_ns()))
+
+
+def set_param(node: str, name: str, value: Any, *, timeout_s: float = ANSWER_TIMEOUT_S,
+              address: BusAddress | None = None) -> Any:
+    """Set param `name` of the running node named `node` (as `fv node list` shows it) to `value` and return
+    it as the node now holds it, as `fv param set` does (`nodes.param_service`): from the node's next callback
+    on. `ParamError` (a ValueError) with the node's reason when it refuses it (an unknown param, a wrong type,
+    an invalid value, one it takes only at start); TimeoutError when it does not answer within `timeout_s` s."""
+    return set_params(node, {name: value}, timeout_s, address).params[name]
+
+
+def get_params(node: str, *, timeout_s: float = ANSWER_TIMEOUT_S, address: BusAddress | None = None) -> dict[str, Any]:
+    """{name: value} of the running node named `node`'s params now (`fv param get`); TimeoutError when it
+    does not answer within `timeout_s` s."""
+    return read_params(node, timeout_s, address).params

@@ -46,6 +46,7 @@ from nodes.bus import (ALL_TOPICS, GONE, LINGER_MS, SUB_HWM, PublisherSocket, Se
                        new_context, absolute_namespace, parse_envelope, resolve_topic, subscription_prefixes)
 from nodes.endpoints import BusAddress, bus_address
 from nodes.exit_codes import NodeFailed, on_stop_signals
+from nodes.param_service import ParamService
 from nodes.params import build_params
 
 STATUS_TOPIC = "/status"
@@ -153,6 +154,8 @@ class Node:
     WATCH_PERIOD_S: how often the status thread checks the node's health (s).
     CONNECT_WAIT_S: how long spin() waits for the forwarder before warning that none answers (s).
     FAILING_AFTER: calls in a row a callback has raised on when the status says it fails.
+    LIVE_PARAMS: the params `fv param set` may change while the node runs (`nodes.param_service`): ones the
+    node reads afresh at each use; the others need a restart.
     """
 
     Params: ClassVar[type] = NoParams
@@ -161,6 +164,7 @@ class Node:
     WATCH_PERIOD_S: ClassVar[float] = 0.2
     CONNECT_WAIT_S: ClassVar[float] = 2.0
     FAILING_AFTER: ClassVar[int] = 3
+    LIVE_PARAMS: ClassVar[frozenset[str]] = frozenset()
 
     def __init__(self, name: str, params: dict[str, Any] | None = None, *, namespace: str = "",
                  remap: dict[str, str] | None = None, address: BusAddress | None = None) -> None:
@@ -198,6 +202,7 @@ class Node:
         self._ctl_out.bind(self._ctl_addr)
         self._started = time.monotonic()
         self._status_pub = self.publisher(STATUS_TOPIC, NodeStatus, latched=True)
+        self._param_service = ParamService(self, self._pub_sock)  # `fv param`: /<name>/param/set and .../state
 
     # -- names ---------------------------------------------------------------------
     def resolve(self, topic: str) -> str:
@@ -512,7 +517,8 @@ class Node:
         except OSError:
             rss = 0
         with self._cond:
-            subs = [[t, (s.msg_type.TYPE if s.msg_type else "*")] for t, ss in self._subs.items() for s in ss]
+            subs = [[t, (s.msg_type.TYPE if s.msg_type else "*")] for t, ss in self._subs.items() for s in ss
+                    if t != self._param_service.set_topic]
         state, message = self.health(now)
         return NodeStatus(
             stamp_ns=time.time_ns(), state=state, message=message, pid=os.getpid(),

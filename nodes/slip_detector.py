@@ -128,6 +128,7 @@ class SlipDetectorNode(Node):
     """Publishes a slip decision per field: from a sliding window, or from the grasp so far."""
 
     Params = SlipDetectorParams
+    LIVE_PARAMS = frozenset({"threshold", "hysteresis"})  # read by each decision (`fv param set`)
     # a standby process's window model, loaded and run once before it takes over: (model, device,
     # threads) it was loaded for, the classifier, its first pass in s
     prepared: ClassVar[tuple[tuple[str, str, int], Any, float] | None] = None

@@ -77,6 +77,7 @@ class SlipFusion(Node):
     `wall_clock` the wall clock (ns since the epoch) stamps are compared with."""
 
     Params = SlipFusionParams
+    LIVE_PARAMS = frozenset({"threshold"})  # read by each vote (`fv param set`)
 
     def setup(self) -> None:
         p = self.params

@@ -10,6 +10,7 @@ import pytest
 import msgs
 from msgs import (CameraInfo, ContactSummary, DisplacementField, Image, MarkerArray, MessageError, NodeStatus,
                   SlipState)
+from msgs.param import ParamSet, ParamState
 from msgs.wire import check_message
 
 
@@ -31,6 +32,9 @@ def _examples() -> list[msgs.Message]:
                   model="convlstm"),
         NodeStatus(state="warn", message="camera lost", pid=42, publishes=[["/slip", "SlipState"]],
                    counters={"reopen": 2}),
+        ParamSet(request_id="r1", values={"threshold": 0.7, "inputs": ["/a", "/b"]}),
+        ParamState(params={"threshold": 0.7, "model": "sim"}, live=["threshold"], request_id="r1", accepted=False,
+                   error="param 'model' takes effect only at start"),
     ]
 
 

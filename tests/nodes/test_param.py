@@ -1,0 +1,141 @@
+"""`fv param list | get | set` and `nodes.client.set_param`: a running node's params read from the node over
+the bus; a live param (a slip detector's threshold) set without a restart, from its next decision on; every
+refusal (a param taken only at start, a wrong type, an invalid value, an unknown param or node) named, with a
+non-zero exit; a malformed request dropped and counted by a node that runs on."""
+from __future__ import annotations
+
+import json
+import time
+
+import pytest
+
+from msgs import SlipState
+from msgs.param import ParamSet, ParamState
+from nodes.bus import PublisherSocket, TopicReader
+from nodes.client import get_params, set_param
+from nodes.param_service import param_topics
+from nodes.params import ParamError
+from nodes.slip_fusion import SlipFusion
+from tests.nodes.conftest import run_fv, spinning, wait_status
+from tests.nodes.test_slip_detector_node import _field, _reference
+
+FUSION = "left_slip_fusion"  # as `fv launch` names a node included under the namespace `left`
+
+
+@pytest.fixture
+def fusion(bus):
+    """A slip_fusion node in the namespace /left, spinning, its param state on the bus."""
+    node = SlipFusion(FUSION, {"inputs": ["a/slip", "b/slip"], "output": "slip"}, namespace="/left")
+    with spinning(node):
+        get_params(FUSION, timeout_s=10.0)
+        yield node
+
+
+def test_get_reads_all_params_or_one_from_the_running_node(fusion) -> None:
+    everything = run_fv("param", "get", FUSION, "--json")
+    assert everything.returncode == 0, everything.stderr
+    got = json.loads(everything.stdout)
+    assert got["params"]["threshold"] == 0.5 and got["params"]["inputs"] == ["a/slip", "b/slip"]
+    assert got["live"] == ["threshold"]
+    one = run_fv("param", "get", FUSION, "threshold")
+    assert one.returncode == 0 and one.stdout.strip() == "0.5"
+    listed = run_fv("param", "list")  # every running node (discovered from /status) with its params
+    assert listed.returncode == 0, listed.stderr
+    assert f"{FUSION}:\n" in listed.stdout and "  threshold: 0.5  (live)" in listed.stdout
+    assert "  same_grasp_s: 1.0\n" in listed.stdout
+
+
+def test_set_applies_a_live_param_and_the_node_publishes_it(fusion) -> None:
+    done = run_fv("param", "set", FUSION, "threshold", "0.8")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == f"{FUSION}: threshold set to 0.8"
+    assert fusion.params.threshold == 0.8
+    assert json.loads(run_fv("param", "get", FUSION, "threshold", "--json").stdout)["value"] == 0.8
+    assert set_param(FUSION, "threshold", 0.3, timeout_s=10.0) == 0.3  # robot code: the same request
+
+
+@pytest.mark.parametrize("name, value, message", [
+    ("stale_after_s", "2.0", "param 'stale_after_s' takes effect only at start: restart the node to change it "
+                             "(set live: threshold)"),
+    ("threshold", "abc", "param 'threshold' = 'abc' is not of type float"),
+    ("threshold", "1.5", "threshold 1.5 must be in (0, 1)"),  # the params dataclass's own check
+    ("nope", "1", "unknown param 'nope'"),
+])
+def test_a_refused_value_is_named_and_leaves_the_params_unchanged(fusion, name: str, value: str,
+                                                                 message: str) -> None:
+    refused = run_fv("param", "set", FUSION, name, value)
+    assert refused.returncode != 0 and message in refused.stderr, refused.stderr
+    assert f"node {FUSION!r}" in refused.stderr
+    assert fusion.params.threshold == 0.5 and fusion.params.stale_after_s == 1.0
+    with pytest.raises(ParamError, match="takes effect only at start"):
+        set_param(FUSION, "inputs", ["/x", "/y"], timeout_s=10.0)
+
+
+@pytest.mark.parametrize("verb", [("get",), ("set", "threshold", "0.7")])
+def test_a_node_that_does_not_run_is_named(bus, verb: tuple[str, ...]) -> None:
+    result = run_fv("param", verb[0], "slip_detector", *verb[1:], "--timeout", "0.5")
+    assert result.returncode != 0
+    assert "no node 'slip_detector' answers on /slip_detector/param/state within 0.5 s" in result.stderr
+
+
+def test_a_malformed_request_is_counted_and_the_node_runs_on(fusion) -> None:
+    set_topic, state_topic = param_topics(FUSION)
+    sock = PublisherSocket("test_bad_requests")
+    try:
+        assert sock.wait_connected(5.0)
+        deadline = time.monotonic() + 10.0
+        while not sock.has_subscribers(set_topic) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        sock.publish_raw(set_topic, "test_bad_requests", False, [b"\xc1 not msgpack"])
+        sock.publish(set_topic, SlipState(stamp_ns=1))  # a message of another type
+        with TopicReader([state_topic]) as reader:
+            sock.publish(set_topic, ParamSet(request_id="r1", values={"threshold": {"a": 1}}))  # a value of no type
+            answer = None
+            while answer is None or answer.request_id != "r1":
+                item = reader.recv(10.0)
+                assert item is not None, "no answer to the request"
+                answer = item.msg
+            assert isinstance(answer, ParamState) and not answer.accepted and "is not of type float" in answer.error
+    finally:
+        sock.close()
+    wait_status(FUSION, lambda st: st.malformed >= 2, timeout_s=10.0)
+    assert set_param(FUSION, "threshold", 0.6, timeout_s=10.0) == 0.6  # it runs on
+
+
+def test_a_new_threshold_decides_the_next_window_of_a_running_slip_detector(bus) -> None:
+    """Fed windows of one probability p, a slip detector set live to a threshold on the other side of p
+    flips its decision from the next window on, with its window kept (no restart, no window restart)."""
+    from nodes.slip_detector import SlipDetectorNode
+
+    node = SlipDetectorNode("slip_detector", {})
+    pub = PublisherSocket("test_fields")
+    stamps = iter(range(1_000_000_000, 10**12, 66_000_000))  # 15 fps
+
+    def decision() -> SlipState:
+        """The state of the next field (the window full)."""
+        pub.publish("/field", _field(next(stamps), 0.5))
+        item = reader.recv(10.0)
+        assert item is not None, "no decision"
+        return item.msg
+
+    try:
+        with spinning(node), TopicReader(["/slip"]) as reader:
+            assert pub.wait_connected(5.0)
+            wait_status("slip_detector", timeout_s=10.0)
+            deadline = time.monotonic() + 10.0
+            while not pub.has_subscribers("/field") and time.monotonic() < deadline:
+                time.sleep(0.01)
+            pub.publish("/markers/reference", _reference(900_000_000, 640), latched=True)  # subscribed before /field
+            for _ in range(node.classifier.config.window - 1):
+                pub.publish("/field", _field(next(stamps), 0.5))
+            before = decision()
+            p = before.probability
+            assert 0.0 < p < 1.0 and before.threshold == 0.5 and before.slip == (p > 0.5)
+            threshold = (p + 1) / 2 if p > 0.5 else p / 2  # p on its other side
+            assert set_param("slip_detector", "threshold", threshold, timeout_s=10.0) == threshold
+            after = decision()
+            assert after.threshold == threshold and after.probability == pytest.approx(p, abs=1e-6)
+            assert after.slip != before.slip
+            assert node.counters["window_restarts"] == 0 and node.params.threshold == threshold
+    finally:
+        pub.close()
