@@ -33,6 +33,7 @@ class SlipMonitor(Node):
     """Human-readable slip decisions, e.g. ``t=3.20s  SLIP     p=0.97  latency 9.1 ms``."""
 
     Params = SlipMonitorParams
+    LIVE_PARAMS = frozenset({"every_s"})  # read per state (`fv param set`)
 
     def setup(self) -> None:
         self.t0_ns = 0

@@ -117,6 +117,8 @@ class ViewerNode(Node):
     """Serves the live view; see the module docstring."""
 
     Params = ViewerParams
+    # `fv param set`: read for each picture (from the next frame on) or page update (the page polls at rate_hz)
+    LIVE_PARAMS = frozenset({"rate_hz", "arrow_scale", "field_range_px", "view_height_px", "jpeg_quality", "stale_s"})
 
     def setup(self) -> None:
         p = self.params

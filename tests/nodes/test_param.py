@@ -4,6 +4,7 @@ refusal (a param taken only at start, a wrong type, an invalid value, an unknown
 non-zero exit; a malformed request dropped and counted by a node that runs on."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 
@@ -15,6 +16,7 @@ from nodes.bus import PublisherSocket, TopicReader
 from nodes.client import get_params, set_param
 from nodes.param_service import param_topics
 from nodes.params import ParamError
+from nodes.registry import NODES, node_class
 from nodes.slip_fusion import SlipFusion
 from tests.nodes.conftest import run_fv, spinning, wait_status
 from tests.nodes.test_slip_detector_node import _field, _reference
@@ -142,3 +144,10 @@ def test_a_new_threshold_decides_the_next_window_of_a_running_slip_detector(bus)
             assert node.counters["window_restarts"] == 0 and node.params.threshold == threshold
     finally:
         pub.close()
+
+
+@pytest.mark.parametrize("kind", sorted(NODES))
+def test_every_live_param_is_a_param_of_its_node(kind: str) -> None:
+    """A misspelt name in LIVE_PARAMS would list a live param the node has not, and leave the real one fixed."""
+    cls = node_class(kind)
+    assert cls.LIVE_PARAMS <= {f.name for f in dataclasses.fields(cls.Params)}
