@@ -1,18 +1,19 @@
 """Message types of the FingerVision bus and their wire codec."""
 from msgs.camera import CameraInfo, Image
+from msgs.flow import Unanswered
 from msgs.message import ArraySpec, Message, MessageError
 from msgs.param import ParamSet, ParamState
 from msgs.status import NodeStatus
 from msgs.tactile import ContactSummary, DisplacementField, MarkerArray, SlipState
 from msgs.wire import decode, decode_header, encode, known_types, message_type, register
 
-for _cls in (Image, CameraInfo, MarkerArray, DisplacementField, ContactSummary, SlipState, NodeStatus):
+for _cls in (Image, CameraInfo, MarkerArray, DisplacementField, ContactSummary, SlipState, NodeStatus, Unanswered):
     register(_cls)
 for _cls in (ParamSet, ParamState):  # nodes.param_service
     register(_cls)
 
 __all__ = [
     "ArraySpec", "CameraInfo", "ContactSummary", "DisplacementField", "Image", "MarkerArray",
-    "Message", "MessageError", "NodeStatus", "SlipState", "decode", "decode_header", "encode",
+    "Message", "MessageError", "NodeStatus", "SlipState", "Unanswered", "decode", "decode_header", "encode",
     "known_types", "message_type", "register",
 ]

@@ -51,7 +51,7 @@ class InterpolatorNode(Node):
         self.field_pub = self.publisher("field", DisplacementField)
         self.contact_pub = self.publisher("contact", ContactSummary) if p.contact else None
         self.subscribe("markers", MarkerArray, self.on_markers, depth=5,
-                       stale_after_s=p.input_timeout_s or None)
+                       stale_after_s=p.input_timeout_s or None, answered_by=self.field_pub)
         self.counters.update(invalid_fields=0, too_many_markers=0, bad_references=0)
 
     def on_markers(self, msg: MarkerArray) -> None:

@@ -10,6 +10,11 @@ order they arrived, whatever their topic (as one callback queue): a message that
 another (a tracker's new reference, then the field of that frame through the interpolator)
 is handled first, and no topic starves another.
 
+A pipeline stage names, on its input's subscription, the publisher that answers it (`answered_by`): a
+message whose callback publishes nothing there (a tracker's frame before its reference, a window model's
+field while its window fills, a callback that raised) is said on `unanswered` (`msgs.Unanswered`), so that a
+batch replay's player (`nodes.bag.player`, `sync_topic`) sends the next frame at once.
+
 A third thread, the status thread, publishes `NodeStatus` every `STATUS_PERIOD_S` and at
 once when the node's health changes, so a node whose callback hangs still reports. It is
 also the watchdog: besides the node's own `warn()`, the status reports
@@ -41,7 +46,7 @@ import numpy as np
 import zmq
 
 import msgs
-from msgs import Message, MessageError, NodeStatus
+from msgs import Message, MessageError, NodeStatus, Unanswered
 from nodes.bus import (ALL_TOPICS, GONE, LINGER_MS, SUB_HWM, PublisherSocket, SeqTracker, connect_client,
                        new_context, absolute_namespace, parse_envelope, resolve_topic, subscription_prefixes)
 from nodes.endpoints import BusAddress, bus_address
@@ -50,6 +55,7 @@ from nodes.param_service import ParamService
 from nodes.params import build_params
 
 STATUS_TOPIC = "/status"
+UNANSWERED_TOPIC = "unanswered"  # relative: in the node's namespace, beside the topics it answers on
 STANDBY_READY = "fv-standby-ready"  # the line a standby process prints once it waits to take over
 LAUNCH_ENV = "FV_LAUNCH_NS"  # set by `fv launch` for its nodes: when the launch started, ns since the epoch
 KEEP_ALL_CAP = 10_000
@@ -91,12 +97,14 @@ class Subscription:
 
     stale_after_s: report "no <topic> for N s" in NodeStatus when no message came for
     this long (None = never: the topic may legitimately stay quiet). gone: also the last latched
-    message of each publisher of the topic that is gone (`nodes.latched_cache`). last_rx_s: monotonic
+    message of each publisher of the topic that is gone (`nodes.latched_cache`). answered_by: the
+    publisher of the answers to this topic's messages (`Node.subscribe`). last_rx_s: monotonic
     time of the last message received (or of the subscription / node start).
     """
 
     def __init__(self, topic: str, msg_type: type[Message] | None, callback: Callable[[Message], None],
-                 depth: int | None, stale_after_s: float | None = None, gone: bool = False) -> None:
+                 depth: int | None, stale_after_s: float | None = None, gone: bool = False,
+                 answered_by: Publisher | None = None) -> None:
         if depth is not None and depth < 1:
             raise ValueError(f"subscription {topic}: depth {depth} must be >= 1 or None (keep all)")
         if stale_after_s is not None and stale_after_s <= 0:
@@ -107,6 +115,7 @@ class Subscription:
         self.depth = depth
         self.stale_after_s = stale_after_s
         self.gone = gone
+        self.answered_by = answered_by
         self.queue: collections.deque = collections.deque()
         self.drops = 0
         self.received = 0
@@ -202,6 +211,7 @@ class Node:
         self._ctl_out.bind(self._ctl_addr)
         self._started = time.monotonic()
         self._status_pub = self.publisher(STATUS_TOPIC, NodeStatus, latched=True)
+        self._unanswered_pub: Publisher | None = None  # made by the first subscription with answered_by
         self._param_service = ParamService(self, self._pub_sock)  # `fv param`: /<name>/param/set and .../state
 
     # -- names ---------------------------------------------------------------------
@@ -224,13 +234,19 @@ class Node:
         self._answering.append(sock)
 
     def subscribe(self, topic: str, msg_type: type[Message] | None, callback: Callable[[Message], None],
-                  depth: int | None = 10, stale_after_s: float | None = None, gone: bool = False) -> Subscription:
+                  depth: int | None = 10, stale_after_s: float | None = None, gone: bool = False,
+                  answered_by: Publisher | None = None) -> Subscription:
         """Call `callback(msg)` for each message on `topic` (msg_type None = any type).
         With `stale_after_s` (s), NodeStatus warns when no message came for that long: give
         it for inputs that should stream (camera frames), not for occasional commands. With `gone`,
         the last latched message of a publisher of `topic` that is gone comes too (a latched topic
-        reaches late joiners only from publishers that are there: `nodes.latched_cache`)."""
-        sub = Subscription(self.resolve(topic), msg_type, callback, depth, stale_after_s, gone)
+        reaches late joiners only from publishers that are there: `nodes.latched_cache`). With
+        `answered_by` (a publisher of this node: a pipeline stage's output), a message whose callback
+        publishes nothing on it (returns without, or raises) is said on `unanswered` in the node's
+        namespace (`msgs.Unanswered`, with the message's stamp and topic)."""
+        if answered_by is not None and self._unanswered_pub is None:
+            self._unanswered_pub = self.publisher(UNANSWERED_TOPIC, Unanswered)
+        sub = Subscription(self.resolve(topic), msg_type, callback, depth, stale_after_s, gone, answered_by)
         with self._cond:
             first = sub.topic not in self._subs
             self._subs.setdefault(sub.topic, []).append(sub)
@@ -429,8 +445,11 @@ class Node:
             except MessageError as exc:
                 self._malformed(exc, node)
                 continue
+            answers = None if sub.answered_by is None else sub.answered_by.count
             self._run(sub.callback, msg, label=f"callback {_name(sub.callback)} ({topic})",
                       timed=topic != STATUS_TOPIC)
+            if answers is not None and sub.answered_by.count == answers:
+                self._unanswered_pub.publish(Unanswered(stamp_ns=msg.stamp_ns, frame_id=msg.frame_id, topic=topic))
 
     def _run(self, fn: Callable, *args: Any, label: str, timed: bool = True) -> None:
         """Call fn(*args), timing it for NodeStatus (when `timed`: not the other nodes' statuses a node

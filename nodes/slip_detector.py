@@ -168,7 +168,7 @@ class SlipDetectorNode(Node):
         if cfg.field_width_px:
             self.subscribe("markers/reference", MarkerArray, self.on_window_reference, depth=1)
         self.field_sub = self.subscribe("field", DisplacementField, self.on_field, depth=cfg.window,
-                                        stale_after_s=p.input_timeout_s or None)
+                                        stale_after_s=p.input_timeout_s or None, answered_by=self.slip_pub)
         self.log.info("model %s: window %d, grid %d, fields read at %s px wide frames; on %s, first pass %.0f ms",
                       p.model, cfg.window, cfg.grid, cfg.field_width_px or "any", p.device, 1e3 * warm_up_s)
 
@@ -192,7 +192,7 @@ class SlipDetectorNode(Node):
         self.subscribe("camera/image", Image, self.on_image, depth=IMAGE_BUFFER)
         self.subscribe("markers/reference", MarkerArray, self.on_reference, depth=1)
         self.subscribe("field", DisplacementField, self.on_grasp_field, depth=IMAGE_BUFFER,
-                       stale_after_s=p.input_timeout_s or None)
+                       stale_after_s=p.input_timeout_s or None, answered_by=self.slip_pub)
         self.counters.update(grasps=0, before_grasp=0, unmatched_fields=0, rate_skipped=0, slow_gaps=0,
                              out_of_order_fields=0)
         self.log.info("model %s: trial model, judges each grasp from the tracker's reference on (trained with "

@@ -97,7 +97,8 @@ class TrackerNode(Node):
         self.first_stamp_ns: int | None = None  # stamp of the first frame this process sees
         self.markers_pub = self.publisher("markers", MarkerArray)
         self.reference_pub = self.publisher("markers/reference", MarkerArray, latched=True)
-        self.subscribe("camera/image", Image, self.on_image, depth=1, stale_after_s=p.input_timeout_s or None)
+        self.subscribe("camera/image", Image, self.on_image, depth=1, stale_after_s=p.input_timeout_s or None,
+                       answered_by=self.markers_pub)
         self.subscribe("/tracker/reset", None, self.on_reset, depth=1)
         if p.resume:
             self.subscribe("markers/reference", MarkerArray, self.on_reference, depth=1, gone=True)

@@ -10,7 +10,9 @@ Timing follows the recorded log (receive) times scaled by `rate`; `fast` drops t
 timing for batch processing, and `sync_topic` adds flow control: after each message
 on `sync_on` the player waits until the pipeline answers on `sync_topic` with a
 message stamped at or after it, so a slow consumer never loses a frame (several streams,
-e.g. one camera per finger: each `sync_on` topic waits for its own answer topic). Before the
+e.g. one camera per finger: each `sync_on` topic waits for its own answer topic). A frame that a
+pipeline node says ends with it unanswered (`msgs.Unanswered` on `unanswered` beside the answer topic:
+`/unanswered` for `/slip`, `/left/unanswered` for `/left/slip`) waits no longer. Before the
 first message the player waits for the nodes of `start_after` to report (a replay
 pipeline's nodes, every subscription made) and until every played volatile topic has
 a subscriber.
@@ -24,6 +26,7 @@ from __future__ import annotations
 import collections
 import math
 import os
+import posixpath
 import select
 import signal
 import sys
@@ -39,7 +42,7 @@ from nodes.bag.clock import PlayClock
 from nodes.bag.codec import LATCHED_ENTRY, RECORDING_META, split_payload
 from nodes.bag.reader import BagError, BagMessage, BagReader, bag_files, check_magic
 from nodes.bus import PublisherSocket, TopicReader
-from nodes.node import Node
+from nodes.node import UNANSWERED_TOPIC, Node
 from nodes.start_gate import StartGate
 
 SUBSCRIBER_POLL_S = 0.02
@@ -66,7 +69,9 @@ class BagPlayParams:
     message ("" = off); sync_on: recorded topic that waits ("" = the first Image
     topic). Several streams (one pipeline per finger): a list of sync topics and a list
     of as many recorded topics, paired in order (each `sync_on[i]` message waits for
-    `sync_topic[i]`). sync_window: messages of one stream allowed in flight unanswered;
+    `sync_topic[i]`). A message that a pipeline node says it leaves unanswered (`msgs.Unanswered`
+    stamped as it, on `unanswered` in the answer topic's namespace: `unanswered_topic`) waits no
+    more (counted in `unanswered`). sync_window: messages of one stream allowed in flight unanswered;
     sync_timeout_s: give up waiting for one answer after this long (counted).
     keyboard: space/enter on the terminal toggles pause (when stdin is a terminal).
     """
@@ -142,6 +147,12 @@ def gone_at_start(bag: BagReader, topics: list[str]) -> set[tuple[str, str, int,
     return gone
 
 
+def unanswered_topic(answer_topic: str) -> str:
+    """Where the nodes that answer on `answer_topic` say what they leave unanswered: `unanswered` in its
+    namespace (`/slip` -> `/unanswered`, `/left/slip` -> `/left/unanswered`)."""
+    return posixpath.join(posixpath.dirname(answer_topic), UNANSWERED_TOPIC)
+
+
 def topic_list(value: str | list[str]) -> list[str]:
     """A topic param as a list: "" -> [], "/a" -> ["/a"], a list as it is."""
     if isinstance(value, str):
@@ -179,7 +190,7 @@ class BagPlay(Node):
                           ", ".join(sorted(f"{t} from {n}" for t, n, _, _ in self.gone_at_start)))
         self.clock = PlayClock(p.rate, paused=p.start_paused)
         self.error: str | None = None
-        self.counters.update(played=0, frames=0, sync_timeouts=0, loops=0)
+        self.counters.update(played=0, frames=0, sync_timeouts=0, unanswered=0, loops=0)
         # stream k: the messages on sync_on[k] (with one stream, every message counted), answered on
         # sync_topics[k]; per stream, the stamps of its messages sent and not yet answered
         self._pending: list[collections.deque[int]] = [collections.deque() for _ in self.sync_topics]
@@ -187,7 +198,9 @@ class BagPlay(Node):
         self._answer_stream = {topic: k for k, topic in enumerate(self.sync_topics)}
         self._pub = PublisherSocket(self.name, self.address, self.ctx)
         self.keep_answering(self._pub)
-        self._sync = TopicReader(self.sync_topics, self.address, self.ctx) if self.sync_topics else None
+        self._unanswered_topics = {unanswered_topic(t) for t in self.sync_topics} - set(self.sync_topics)
+        self._sync = (TopicReader(self.sync_topics + sorted(self._unanswered_topics), self.address, self.ctx)
+                      if self.sync_topics else None)
         self.start_gate = StartGate(self, p.start_after, p.start_timeout_s)
         if threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGUSR1, lambda *_: self._toggle_pause())
@@ -288,9 +301,8 @@ class BagPlay(Node):
             self._await_sync(self.params.sync_window)
 
     def _await_sync(self, limit: int) -> None:
-        """Wait until every synced stream has fewer than `limit` sent messages that lack an answer (a message
-        is answered by one on its sync topic stamped at or after it); after sync_timeout_s without one, the
-        oldest of every stream still at `limit` is given up (counted)."""
+        """Wait until every synced stream has fewer than `limit` sent messages that lack an answer (`_answered`);
+        after sync_timeout_s without one, the oldest of every stream still at `limit` is given up (counted)."""
         if self._sync is None:
             return
         deadline = time.monotonic() + self.params.sync_timeout_s
@@ -304,14 +316,25 @@ class BagPlay(Node):
                     self._pending[k].popleft()
                     self.counters["sync_timeouts"] += 1
                     self.warn(f"no answer on {self.sync_topics[k]} within {self.params.sync_timeout_s} s (counted)")
-            else:
-                pending = self._pending[self._answer_stream[raw[0]]]
-                stamp = msgs.decode_header(raw[3][0], raw[0])["stamp_ns"]
-                if not pending or pending[0] > stamp:
-                    continue
-                while pending and pending[0] <= stamp:
-                    pending.popleft()
+            elif not self._answered(raw[0], msgs.decode_header(raw[3][0], raw[0])["stamp_ns"]):
+                continue
             deadline = time.monotonic() + self.params.sync_timeout_s
+
+    def _answered(self, topic: str, stamp_ns: int) -> bool:
+        """Take what a message on `topic` stamped `stamp_ns` answers off the sent messages awaiting one: an
+        answer on a sync topic answers its stream's messages stamped at or before it; a notice on an unanswered
+        topic, the message of that very stamp in any stream (counted in `unanswered`). False when none."""
+        if topic in self._answer_stream:
+            pending = self._pending[self._answer_stream[topic]]
+            answered = bool(pending) and pending[0] <= stamp_ns
+            while pending and pending[0] <= stamp_ns:
+                pending.popleft()
+            return answered
+        holding = [pending for pending in self._pending if stamp_ns in pending]
+        for pending in holding:
+            pending.remove(stamp_ns)
+        self.counters["unanswered"] += len(holding)
+        return bool(holding)
 
     def summary_line(self, elapsed_s: float, paused_s: float) -> str:
         """The closing line; `elapsed_s` is the time spent playing, the `paused_s` seconds paused left out."""

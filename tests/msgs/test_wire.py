@@ -9,7 +9,7 @@ import pytest
 
 import msgs
 from msgs import (CameraInfo, ContactSummary, DisplacementField, Image, MarkerArray, MessageError, NodeStatus,
-                  SlipState)
+                  SlipState, Unanswered)
 from msgs.param import ParamSet, ParamState
 from msgs.wire import check_message
 
@@ -35,6 +35,7 @@ def _examples() -> list[msgs.Message]:
         ParamSet(request_id="r1", values={"threshold": 0.7, "inputs": ["/a", "/b"]}),
         ParamState(params={"threshold": 0.7, "model": "sim"}, live=["threshold"], request_id="r1", accepted=False,
                    error="param 'model' takes effect only at start"),
+        Unanswered(stamp_ns=9, frame_id="cam", topic="/camera/image"),
     ]
 
 

@@ -176,6 +176,46 @@ def test_messages_of_different_topics_are_handled_in_the_order_they_arrived(bus:
     assert [h for h in node.handled if h[1]] == sent
 
 
+class Stage(Node):
+    """A pipeline stage: answers on `out` the messages on `in` stamped a multiple of 3, returns without an answer
+    for those one more, raises for the others; never answers what comes on `other`."""
+
+    def setup(self) -> None:
+        self.out = self.publisher("out", SlipState)
+        self.inputs = self.subscribe("in", SlipState, self.on_in, depth=None, answered_by=self.out)
+        self.subscribe("other", SlipState, lambda msg: None, depth=None)
+
+    def on_in(self, msg: SlipState) -> None:
+        if msg.stamp_ns % 3 == 2:
+            raise ValueError("a stage that fails")
+        if msg.stamp_ns % 3 == 0:
+            self.out.publish(SlipState(stamp_ns=msg.stamp_ns))
+
+
+def test_a_message_a_stage_leaves_unanswered_is_said_on_unanswered(bus: Bus) -> None:
+    """A message whose callback publishes nothing on the subscription's `answered_by` publisher, returning or
+    raising, is said on `unanswered` in the node's namespace, with its stamp and topic (a batch replay's
+    player then sends the next frame at once); an answered one and one of a subscription without
+    `answered_by` are not."""
+    node = Stage("stage", namespace="left")
+    with spinning(node), TopicReader(["/left/unanswered", "/left/out"]) as reader:
+        wait_status("stage", timeout_s=5.0)
+        pub = PublisherSocket("sender")
+        assert pub.wait_connected(5.0)
+        _until(lambda: pub.has_subscribers("/left/in") and pub.has_subscribers("/left/other"), 5.0,
+               "the stage did not subscribe")
+        pub.publish("/left/other", SlipState(stamp_ns=100))
+        for stamp in range(1, 7):
+            pub.publish("/left/in", SlipState(stamp_ns=stamp))
+        got = [reader.recv(5.0) for _ in range(6)]
+        assert reader.recv(0.3) is None
+        pub.close()
+    assert all(item is not None for item in got), got
+    assert sorted(item.msg.stamp_ns for item in got if item.topic == "/left/out") == [3, 6]
+    notices = [(item.msg.stamp_ns, item.msg.topic, item.msg.node) for item in got if item.topic == "/left/unanswered"]
+    assert sorted(notices) == [(s, "/left/in", "stage") for s in (1, 2, 4, 5)]
+
+
 def test_nodes_never_closed_do_not_block_the_next_ones(bus: Bus) -> None:
     """A node dropped without close() keeps its control socket bound; the next node got the same inproc
     address (from the dropped one's id()) and failed to start: `Address already in use`."""
