@@ -179,15 +179,16 @@ def test_object_held_out_cross_validation_keeps_objects_apart() -> None:
     torch.set_num_threads(1)
     inputs, labels = _toy_trials(30)
     objects = [f"o{i % 6}" for i in range(30)]
-    report = cross_validate_trials(inputs, labels, objects, folds=3, config=TrialNetConfig(steps=40))
+    config = TrialNetConfig(steps=20)  # the toy trials are told apart after 10 steps (40 took twice as long)
+    report = cross_validate_trials(inputs, labels, objects, folds=3, config=config)
     assert len(report["folds"]) == 3 and report["summary"]["trial_accuracy_mean"] >= 0.8
     for fold in report["folds"]:  # every test object is absent from its fold's training trials
         assert {objects[i] for i in fold["trials"]} == set(fold["objects"])
     assert sum(fold["n_trials"] for fold in report["folds"]) == 30
-    in_two = cross_validate_trials(inputs, labels, objects, folds=3, config=TrialNetConfig(steps=40), workers=2)
+    in_two = cross_validate_trials(inputs, labels, objects, folds=3, config=config, workers=2)
     assert in_two == report  # folds in two spawned processes: the same figures
     assert "running" not in report
-    online = cross_validate_trials(inputs, labels, objects, folds=3, config=TrialNetConfig(steps=40), online=True)
+    online = cross_validate_trials(inputs, labels, objects, folds=3, config=config, online=True)
     assert online["folds"] == report["folds"]  # the online pass changes no figure
     assert [[len(series) for series in cameras] for cameras in online["running"]] == [
         [x.shape[1] for x in cameras] for cameras in inputs]
