@@ -30,13 +30,13 @@ SMALL_ARRAY = 32
 
 # -- discovery -----------------------------------------------------------------------
 def require_forwarder(wait_s: float = DISCOVERY_S) -> None:
-    """RuntimeError naming the bus when no forwarder answers on it within max(``wait_s``, 0.3) s: a tool
-    would otherwise wait for messages for good, or report an empty list or a rate of 0 Hz as a finding."""
+    """RuntimeError naming the bus when no forwarder answers on it within max(``wait_s``, ANSWER_WAIT_S) s:
+    a tool would otherwise wait for messages for good, or report an empty list or a rate of 0 Hz as a finding."""
     from nodes.endpoints import bus_address
-    from nodes.forwarder import ping
+    from nodes.forwarder import ANSWER_WAIT_S, ping
 
     address = bus_address()
-    if ping(address, max(wait_s, 0.3)) is None:
+    if ping(address, max(wait_s, ANSWER_WAIT_S)) is None:
         raise RuntimeError(f"no forwarder answers on {address.url}: no launch runs on this bus (FV_BUS)")
 
 
