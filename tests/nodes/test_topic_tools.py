@@ -6,6 +6,7 @@ import json
 import signal
 import subprocess
 import sys
+import threading
 import time
 from typing import Callable
 
@@ -166,12 +167,6 @@ def test_pub_builds_arrays_in_the_field_dtype() -> None:
 def test_hz_counts_a_played_bag_whose_messages_keep_their_recorded_pub_ns(bus: Bus) -> None:
     """A bag played keeps every message's recorded pub_ns: `fv topic hz` took them all for latched
     replays older than its start and printed 0 Hz."""
-    import threading
-    import time
-
-    import msgs
-    from nodes.bus import PublisherSocket
-
     pub = PublisherSocket("bag_play", bus.address)
     assert pub.wait_connected(2.0)
     stop = threading.Event()
@@ -212,21 +207,32 @@ def test_bad_topic_arguments_are_usage_errors(args: tuple, says: str) -> None:
 def test_a_malformed_latched_status_is_skipped_and_named(bus: Bus) -> None:
     """`fv topic pub /status NodeStatus '{publishes: [x], ...}' --latched` broke `fv topic list` and
     `fv topic info` for everyone on the bus ("not enough values to unpack")."""
+    from nodes.node import Node
+
     good = PublisherSocket("good_node")
     bad = PublisherSocket("bad_node")
     assert good.wait_connected(2.0) and bad.wait_connected(2.0)
-    good.publish("/status", NodeStatus(stamp_ns=time.time_ns(), publishes=[["/g", "SlipState"]]),
-                 latched=True)
     bad.publish("/status", NodeStatus(publishes=["x"], subscribes=[["/a", "B", "C"]]), latched=True)
+    stop = threading.Event()
+
+    def alive() -> None:  # as a node's status thread: a status older than 3 s is a node gone
+        while True:
+            good.publish("/status", NodeStatus(stamp_ns=time.time_ns(), publishes=[["/g", "SlipState"]]),
+                         latched=True)
+            if stop.wait(Node.STATUS_PERIOD_S):
+                return
+
+    thread = threading.Thread(target=alive)
+    thread.start()
     try:
         for args, shows in ((("topic", "list"), "/g"), (("topic", "info", "/g"), "good_node"),
                             (("node", "list"), "good_node")):
             result = run_fv(*args, "--wait", "0.5")
             assert result.returncode == 0 and shows in result.stdout, result.stderr
             assert "skipped a bad status" in result.stderr and "'bad_node'" in result.stderr, result.stderr
-            good.publish("/status", NodeStatus(stamp_ns=time.time_ns(), publishes=[["/g", "SlipState"]]),
-                         latched=True)  # alive: a status older than 3 s is a node gone
     finally:
+        stop.set()
+        thread.join()
         good.close()
         bad.close()
 
