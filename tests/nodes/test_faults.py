@@ -356,7 +356,7 @@ def test_launcher_restarts_the_forwarder_it_started(bus_env: Bus, tmp_path: Path
         os.kill(old, signal.SIGKILL)
         t0 = time.monotonic()
         wait_for(lambda: (ping(bus_env.address) or {}).get("pid") not in (None, old), 10.0, "forwarder restart")
-        wait_status("listener", lambda st: st.counters["received"] > before.counters["received"] + 5, 5.0)
+        wait_status("listener", lambda st: st.counters["received"] > before.counters["received"] + 5, 10.0)
         recovered_s = time.monotonic() - t0
         st = wait_status("launch_faults", lambda st: st.counters["forwarder_restarts"] == 1, 5.0)
         assert st.state == "ok", st.message
@@ -365,7 +365,8 @@ def test_launcher_restarts_the_forwarder_it_started(bus_env: Bus, tmp_path: Path
     assert f"forwarder pid {old} exited with code -9; restarting it" in out.getvalue()
     assert "(restart 1)" in out.getvalue()
     print(f"listener receiving again {recovered_s:.2f} s after the forwarder's kill")
-    assert recovered_s < 5.0, f"listener receiving again {recovered_s:.1f} s after the kill"
+    # idle 1.8 s; up to 4.8 s under 3 busy loops on 2 cores: the bound leaves room for a loaded CI host
+    assert recovered_s < 8.0, f"listener receiving again {recovered_s:.1f} s after the kill"
     assert ping(bus_env.address) is None, "the restarted forwarder outlived the launch"
 
 
@@ -499,7 +500,7 @@ def test_a_launch_takes_over_when_the_forwarder_it_shared_is_gone(bus: Bus, tmp_
         bus.stop_forwarder()
         t0 = time.monotonic()
         wait_for(lambda: run.forwarder_pid is not None, 10.0, "the launch starting its own forwarder")
-        wait_status("listener", lambda st: st.counters["received"] > before.counters["received"] + 5, 5.0)
+        wait_status("listener", lambda st: st.counters["received"] > before.counters["received"] + 5, 10.0)
         recovered_s = time.monotonic() - t0
     finally:
         run.stop()

@@ -8,7 +8,7 @@ import subprocess
 import sys
 import threading
 import time
-from typing import Callable
+from typing import Callable, Iterator
 
 import pytest
 
@@ -19,9 +19,25 @@ from nodes.topic_tools import build_message
 from tests.nodes.conftest import REPO, Bus, run_fv, wait_status
 
 
+_STARTED: list[subprocess.Popen] = []  # `_start`'s processes, killed as their test ends (`_end_started`)
+
+
 def _start(*args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "nodes.cli", *args], cwd=REPO, stdout=subprocess.PIPE,
+    proc = subprocess.Popen([sys.executable, "-m", "nodes.cli", *args], cwd=REPO, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
+    _STARTED.append(proc)
+    return proc
+
+
+@pytest.fixture(autouse=True)
+def _end_started() -> Iterator[None]:
+    """Every `fv` process a test started with `_start` ends with the test, passed or failed: one that a failed
+    assertion left (an `fv topic pub` that a Ctrl-C did not stop) ran on after the suite."""
+    yield
+    while _STARTED:
+        proc = _STARTED.pop()
+        proc.kill()
+        proc.communicate()
 
 
 def _finish(proc: subprocess.Popen, timeout_s: float = 15.0) -> str:
