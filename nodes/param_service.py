@@ -27,13 +27,21 @@ ANSWER_TIMEOUT_S = 3.0  # how long a client waits for a node's answer by default
 POLL_S = 0.01  # how often a client looks whether the node's request subscription has reached the bus (s)
 
 
+PARAM_SUFFIXES = ("/param/set", "/param/state")  # of every node's request and state topics
+
+
 def param_topics(node: str) -> tuple[str, str]:
     """(request topic, state topic) of the node named `node` ("slip_detector" or "/slip_detector")."""
     base = "/" + node.strip("/")
     try:
-        return validate_topic(base + "/param/set"), validate_topic(base + "/param/state")
+        return validate_topic(base + PARAM_SUFFIXES[0]), validate_topic(base + PARAM_SUFFIXES[1])
     except ValueError as exc:
         raise ValueError(f"node name {node!r} names no param topics: {exc}") from None
+
+
+def is_param_topic(topic: str) -> bool:
+    """Whether `topic` is a node's param request or state topic (`param_topics`)."""
+    return topic.endswith(PARAM_SUFFIXES)
 
 
 def current_params(params: Any) -> dict[str, Any]:

@@ -31,6 +31,7 @@ from nodes.bag.codec import LATCHED_ENTRY, LATCHED_OF_RUNNING, RECORDING_END_MET
 from nodes.bag.writer import COMPRESSIONS, DEFAULT_CHUNK_B, BagWriter
 from nodes.bus import ALL_TOPICS, SeqTracker, TopicReader
 from nodes.node import Node
+from nodes.param_service import is_param_topic
 
 DRAIN_IDLE_S = 0.1  # on stop, keep receiving until the queue stays empty this long, a message published
 DRAIN_MAX_S = 2.0   # after the stop comes (a live bus is never quiet), or this long at most
@@ -148,9 +149,16 @@ class BagRecord(Node):
                 "bus": self.address.url, "topics": self._selection(), LATCHED_ENTRY: LATCHED_OF_RUNNING}
 
     def _selected(self, topic: str) -> bool:
+        """Whether `topic` is recorded. A node's param topics (`nodes.param_service`, the bus's services) only
+        when named: `-a` and `-e` recorded every node's latched params, the player's among them, so a
+        recording of a replay held more than what was played."""
         if self._exclude is not None and self._exclude.search(topic):
             return False
-        return (self.params.all_topics or topic in self._only
+        if topic in self._only:
+            return True
+        if is_param_topic(topic):
+            return False
+        return (self.params.all_topics
                 or bool(self._include is not None and self._include.search(topic)))
 
     def _record(self, topic: str, node: str, latched: bool, frames: list[Any], log_time_ns: int,

@@ -470,6 +470,27 @@ def test_recording_stops_at_the_stop_on_a_live_bus(bus: BusAddress, tmp_path: Pa
     assert last_ns <= stop_ns, f"recorded {(last_ns - stop_ns) / 1e6:.0f} ms of messages published after the stop"
 
 
+def test_record_all_leaves_out_param_topics_unless_named(bus: BusAddress, tmp_path: Path) -> None:
+    """`-a` recorded every node's latched `/N/param/state` (the player's too: a recording of a replay held
+    more than was played); a param topic is recorded only when named."""
+    params = {"output": str(tmp_path / "all"), "all_topics": True, "topics": ["/y/param/state"],
+              "exclude_regex": "^/status$"}
+    node = BagRecord("rec", params, address=bus)
+    thread = in_thread(node)
+    pub = PublisherSocket("src", bus)
+    try:
+        wait_subscribed(pub, ["/a"])
+        for i in range(5):
+            for topic in ("/a", "/x/param/state", "/x/param/set", "/y/param/state"):
+                pub.publish(topic, SlipState(stamp_ns=i))
+            time.sleep(0.01)
+    finally:
+        pub.close()
+    node.stop()
+    thread.join(10)
+    assert {t: i.count for t, i in BagReader(tmp_path / "all").topics().items()} == {"/a": 5, "/y/param/state": 5}
+
+
 def test_record_node_selection_split_attachments(bus: BusAddress, tmp_path: Path) -> None:
     launch = tmp_path / "session.yaml"
     launch.write_text("nodes: []\n")
