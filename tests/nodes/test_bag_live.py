@@ -470,24 +470,33 @@ def test_recording_stops_at_the_stop_on_a_live_bus(bus: BusAddress, tmp_path: Pa
     assert last_ns <= stop_ns, f"recorded {(last_ns - stop_ns) / 1e6:.0f} ms of messages published after the stop"
 
 
-def test_record_all_leaves_out_param_topics_unless_named(bus: BusAddress, tmp_path: Path) -> None:
-    """`-a` recorded every node's latched `/N/param/state` (the player's too: a recording of a replay held
-    more than was played); a param topic is recorded only when named."""
-    params = {"output": str(tmp_path / "all"), "all_topics": True, "topics": ["/y/param/state"],
-              "exclude_regex": "^/status$"}
-    node = BagRecord("rec", params, address=bus)
+def _record_published(node: BagRecord, bus: BusAddress, topics: tuple[str, ...], count: int,
+                      latched: tuple[str, CameraInfo] | None = None) -> None:
+    """Run the recorder `node` while `SlipState(stamp_ns=i)` is published on every one of `topics` for i < `count`,
+    10 ms apart (after the `latched` (topic, message), if any), then stop it."""
     thread = in_thread(node)
     pub = PublisherSocket("src", bus)
     try:
-        wait_subscribed(pub, ["/a"])
-        for i in range(5):
-            for topic in ("/a", "/x/param/state", "/x/param/set", "/y/param/state"):
+        wait_subscribed(pub, [topics[0]])
+        if latched is not None:
+            pub.publish(*latched, latched=True)
+        for i in range(count):
+            for topic in topics:
                 pub.publish(topic, SlipState(stamp_ns=i))
             time.sleep(0.01)
     finally:
         pub.close()
     node.stop()
     thread.join(10)
+
+
+def test_record_all_leaves_out_param_topics_unless_named(bus: BusAddress, tmp_path: Path) -> None:
+    """`-a` recorded every node's latched `/N/param/state` (the player's too: a recording of a replay held
+    more than was played); a param topic is recorded only when named."""
+    params = {"output": str(tmp_path / "all"), "all_topics": True, "topics": ["/y/param/state"],
+              "exclude_regex": "^/status$"}
+    _record_published(BagRecord("rec", params, address=bus), bus, ("/a", "/x/param/state", "/x/param/set",
+                                                                   "/y/param/state"), 5)
     assert {t: i.count for t, i in BagReader(tmp_path / "all").topics().items()} == {"/a": 5, "/y/param/state": 5}
 
 
@@ -496,20 +505,8 @@ def test_record_node_selection_split_attachments(bus: BusAddress, tmp_path: Path
     launch.write_text("nodes: []\n")
     node = BagRecord("rec", {"output": str(tmp_path / "sel"), "regex": "^/(a|cam)", "exclude_regex": "skip",
                              "max_bag_duration_s": 0.3, "attach": [str(launch)], "compression": "lz4"}, address=bus)
-    thread = in_thread(node)
-    pub = PublisherSocket("src", bus)
-    try:
-        wait_subscribed(pub, ["/a"])
-        info = CameraInfo(width=160, height=120, K=np.eye(3) * 100.0, D=np.zeros(4))
-        pub.publish("/camera/info", info, latched=True)
-        for i in range(80):
-            for topic in ("/a", "/a/skip", "/b"):
-                pub.publish(topic, SlipState(stamp_ns=i))
-            time.sleep(0.01)
-    finally:
-        pub.close()
-    node.stop()
-    thread.join(10)
+    info = CameraInfo(width=160, height=120, K=np.eye(3) * 100.0, D=np.zeros(4))
+    _record_published(node, bus, ("/a", "/a/skip", "/b"), 80, latched=("/camera/info", info))
     bag = BagReader(tmp_path / "sel")
     assert {t: i.count for t, i in bag.topics().items()} == {"/camera/info": 1, "/a": 80}
     assert len(bag.files) >= 3 and [m.sequence for m in bag.messages(["/a"])] == list(range(80))
