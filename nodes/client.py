@@ -79,7 +79,7 @@ def expected_type(topic: str) -> type[Message]:
 class SilenceError(TimeoutError):
     """No message on `topic` for `timeout_s` s. Its text says whether the forwarder at `address` answered
     when the silence was raised (when it did not, the launch that served the bus is gone): a thread asks it
-    then (`ping`: up to 0.3 s, 2 s on TCP), so the raise a gripper acts on is never held back; reading
+    then (`ping`: up to `nodes.forwarder.ANSWER_WAIT_S`, 2 s), so the raise a gripper acts on is never held back; reading
     the text, or `bus_answers`, waits for that answer. `answers` gives it instead (a copy, an unpickled one)."""
 
     def __init__(self, topic: str, timeout_s: float, address: BusAddress, answers: bool | None = None) -> None:

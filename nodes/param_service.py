@@ -96,10 +96,12 @@ class ParamService:
 # -- clients ---------------------------------------------------------------------------
 def _silent(node: str, topic: str, timeout_s: float, address: BusAddress) -> TimeoutError:
     """The error of a node that did not answer on `topic` within `timeout_s`, saying whether the bus answers."""
-    from nodes.forwarder import ping
+    from nodes.topic_tools import require_forwarder
 
-    if ping(address) is None:
-        return TimeoutError(f"no forwarder answers on {address.url}: no launch runs on this bus (FV_BUS)")
+    try:
+        require_forwarder(address=address)
+    except RuntimeError as exc:
+        return TimeoutError(str(exc))
     return TimeoutError(f"no node {node!r} answers on {topic} within {timeout_s:g} s: is it running? "
                         "(`fv node list` shows the running nodes' names)")
 

@@ -16,11 +16,14 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
 from nodes.arg_types import non_negative_float, positive_float, positive_int
+
+if TYPE_CHECKING:
+    from nodes.endpoints import BusAddress
 
 STATUS_TOPIC = "/status"
 STALE_AFTER_S = 3.0
@@ -29,13 +32,14 @@ SMALL_ARRAY = 32
 
 
 # -- discovery -----------------------------------------------------------------------
-def require_forwarder(wait_s: float = DISCOVERY_S) -> None:
-    """RuntimeError naming the bus when no forwarder answers on it within max(``wait_s``, ANSWER_WAIT_S) s:
-    a tool would otherwise wait for messages for good, or report an empty list or a rate of 0 Hz as a finding."""
+def require_forwarder(wait_s: float = DISCOVERY_S, address: BusAddress | None = None) -> None:
+    """RuntimeError naming the bus (`address`, default `FV_BUS`'s) when no forwarder answers on it within
+    max(``wait_s``, ANSWER_WAIT_S) s: a tool would otherwise wait for messages for good, or report an empty
+    list or a rate of 0 Hz as a finding."""
     from nodes.endpoints import bus_address
     from nodes.forwarder import ANSWER_WAIT_S, ping
 
-    address = bus_address()
+    address = address or bus_address()
     if ping(address, max(wait_s, ANSWER_WAIT_S)) is None:
         raise RuntimeError(f"no forwarder answers on {address.url}: no launch runs on this bus (FV_BUS)")
 
