@@ -399,7 +399,8 @@ def reset_grasp(*, connect_timeout_s: float = 2.0, address: BusAddress | None = 
 
 def set_param(node: str, name: str, value: Any, *, timeout_s: float = ANSWER_TIMEOUT_S,
               address: BusAddress | None = None) -> Any:
-    """Set param `name` of the running node named `node` (as `fv node list` shows it) to `value` and return
+    """Set param `name` of the running node `node` (its name as `fv node list` shows it, "left_slip_detector",
+    or its ROS-style path, "/left/slip_detector": `nodes.param_service.param_topics`) to `value` and return
     it as the node now holds it, as `fv param set` does (`nodes.param_service`): from the node's next callback
     on. `ParamError` (a ValueError) with the node's reason when it refuses it (an unknown param, a wrong type,
     an invalid value, one it takes only at start); TimeoutError when it does not answer within `timeout_s` s."""
@@ -407,6 +408,6 @@ def set_param(node: str, name: str, value: Any, *, timeout_s: float = ANSWER_TIM
 
 
 def get_params(node: str, *, timeout_s: float = ANSWER_TIMEOUT_S, address: BusAddress | None = None) -> dict[str, Any]:
-    """{name: value} of the running node named `node`'s params now (`fv param get`); TimeoutError when it
-    does not answer within `timeout_s` s."""
+    """{name: value} of the running node `node`'s params now (`fv param get`; its name or path, as for
+    `set_param`); TimeoutError when it does not answer within `timeout_s` s."""
     return read_params(node, timeout_s, address).params

@@ -42,7 +42,7 @@ import yaml
 
 from fv_algos.text_file import read_utf8
 from fv_algos.yaml_loader import YamlLoader
-from nodes.bus import absolute_namespace
+from nodes.bus import absolute_namespace, namespaced_name
 from nodes.params import ParamError, build_params, parse_text
 
 TOP_KEYS = {"args", "include", "nodes"}
@@ -268,7 +268,7 @@ def _namespace(f: _File, entry: _Dict, key: str, line: int) -> str:
 def _in_namespace(spec: NodeSpec, namespace: str) -> NodeSpec:
     """`spec` included under absolute `namespace` (/left): its namespace goes after it (its
     relative topics move under /left) and its name gets the prefix left_ (nested: left_arm_)."""
-    return replace(spec, namespace=namespace + spec.namespace, name=namespace[1:].replace("/", "_") + "_" + spec.name)
+    return replace(spec, namespace=namespace + spec.namespace, name=namespaced_name(namespace, spec.name))
 
 
 def _section(f: _File, doc: _Dict, name: str) -> _List:

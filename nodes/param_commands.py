@@ -1,5 +1,6 @@
 """`fv param list | get | set`: read and change running nodes' params (`nodes.param_service`), as ROS's
-`ros2 param`. Exit 0 when answered; a refused value or a node that does not answer is an error naming it."""
+`ros2 param`; a node is named as `fv node list` shows it or by its ROS-style path (`/left/slip_detector`).
+Exit 0 when answered; a refused value or a node that does not answer is an error naming it as typed."""
 from __future__ import annotations
 
 import argparse
@@ -9,6 +10,9 @@ from typing import Any
 from msgs.param import ParamState
 from nodes.arg_types import positive_float
 from nodes.param_service import ANSWER_TIMEOUT_S
+
+NODE_HELP = ("node name as `fv node list` shows it (slip_detector, left_slip_detector) or its path as in ROS "
+             "(/left/slip_detector: the node slip_detector of a launch file included under the namespace left)")
 
 
 def _row(state: ParamState, name: str) -> str:
@@ -83,13 +87,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         return p
 
     p = verb("list", "params of every running node, or of NODE, '(live)' marking those `set` may change", _list)
-    p.add_argument("node", nargs="?", default=None, help="node name as `fv node list` shows it")
+    p.add_argument("node", nargs="?", default=None, help=NODE_HELP)
     p.add_argument("--json", action="store_true", help="machine-readable JSON output")
     p = verb("get", "a running node's params, or one of them", _get)
-    p.add_argument("node", help="node name as `fv node list` shows it, e.g. slip_detector, left_slip_detector")
+    p.add_argument("node", help=NODE_HELP)
     p.add_argument("name", nargs="?", default=None, help="param name (default: all)")
     p.add_argument("--json", action="store_true", help="machine-readable JSON output")
     p = verb("set", "set a live param of a running node: fv param set slip_detector threshold 0.7", _set)
-    p.add_argument("node", help="node name as `fv node list` shows it")
+    p.add_argument("node", help=NODE_HELP)
     p.add_argument("name", help="param name")
     p.add_argument("value", help="new value, read as YAML as on the command line (0.7, true, [1, 2])")

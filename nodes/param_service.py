@@ -1,7 +1,7 @@
 """Read and change a running node's params over the bus (`fv param`, `nodes.client.set_param`).
 
 Every node named N (the name `fv node list` shows: `left_slip_detector` for a slip detector included under
-the launch namespace `left`) reads `ParamSet` requests on `/N/param/set` and publishes its params, latched, on
+the launch namespace `left`; clients also take its ROS-style path, `/left/slip_detector`) reads `ParamSet` requests on `/N/param/set` and publishes its params, latched, on
 `/N/param/state` (`ParamState`): at start, and after each request with the request's id and the answer. A
 request is checked as the params are at start (`build_params`: known names, types, the params dataclass's own
 validation) and applied, all or none, between two callbacks, only when every param it names is one the node
@@ -16,7 +16,7 @@ import uuid
 from typing import TYPE_CHECKING, Any
 
 from msgs.param import ParamSet, ParamState
-from nodes.bus import PublisherSocket, TopicReader, validate_topic
+from nodes.bus import PublisherSocket, TopicReader, node_name, validate_topic
 from nodes.endpoints import BusAddress, bus_address
 from nodes.params import ParamError, build_params
 
@@ -31,8 +31,9 @@ PARAM_SUFFIXES = ("/param/set", "/param/state")  # of every node's request and s
 
 
 def param_topics(node: str) -> tuple[str, str]:
-    """(request topic, state topic) of the node named `node` ("slip_detector" or "/slip_detector")."""
-    base = "/" + node.strip("/")
+    """(request topic, state topic) of the node `node`: its name ("left_slip_detector") or its ROS-style path
+    ("/left/slip_detector", "left/slip_detector"; "/slip_detector" for one at the root: `nodes.bus.node_name`)."""
+    base = "/" + node_name(node)
     try:
         return validate_topic(base + PARAM_SUFFIXES[0]), validate_topic(base + PARAM_SUFFIXES[1])
     except ValueError as exc:
@@ -107,7 +108,7 @@ def _silent(node: str, topic: str, timeout_s: float, address: BusAddress) -> Tim
 
 
 def read_params(node: str, timeout_s: float = ANSWER_TIMEOUT_S, address: BusAddress | None = None) -> ParamState:
-    """The `ParamState` of the running node named `node`; TimeoutError when it does not answer in `timeout_s` s."""
+    """The `ParamState` of the running node `node` (its name or path, `param_topics`); TimeoutError when it does not answer in `timeout_s` s."""
     state = read_all_params([node], timeout_s, address)[node]
     if state is None:
         raise _silent(node, param_topics(node)[1], timeout_s, address or bus_address())
@@ -116,7 +117,8 @@ def read_params(node: str, timeout_s: float = ANSWER_TIMEOUT_S, address: BusAddr
 
 def read_all_params(nodes: list[str], timeout_s: float = ANSWER_TIMEOUT_S,
                     address: BusAddress | None = None) -> dict[str, ParamState | None]:
-    """{node: its ParamState, or None when it gave none within `timeout_s` s} of each node named in `nodes`."""
+    """{node: its ParamState, or None when it gave none within `timeout_s` s} of each node in `nodes` (names or
+    paths, `param_topics`)."""
     topics = {param_topics(n)[1]: n for n in nodes}
     found: dict[str, ParamState | None] = dict.fromkeys(nodes)
     deadline = time.monotonic() + timeout_s
@@ -130,7 +132,7 @@ def read_all_params(nodes: list[str], timeout_s: float = ANSWER_TIMEOUT_S,
 
 def set_params(node: str, values: dict[str, Any], timeout_s: float = ANSWER_TIMEOUT_S,
                address: BusAddress | None = None) -> ParamState:
-    """Ask the running node named `node` to set `values` ({name: value}) and wait for its answer: its new
+    """Ask the running node `node` (its name or path, `param_topics`) to set `values` ({name: value}) and wait for its answer: its new
     `ParamState` when accepted; ParamError with the node's reason when refused; TimeoutError when the
     node (or the bus) does not answer within `timeout_s` s."""
     address = address or bus_address()

@@ -20,7 +20,7 @@ import pytest
 
 from nodes.bag.codec import RECORDING_END_META
 from nodes.bag.reader import MCAP_MAGIC, BagReader
-from nodes.bus import TopicReader, resolve_topic
+from nodes.bus import TopicReader, node_name, resolve_topic
 from nodes.camera_sources import SourceError, SourceMissing, find_v4l2_device
 from nodes.exit_codes import CONFIG, OK, TEMPFAIL
 from nodes.forwarder import ping
@@ -142,6 +142,9 @@ def test_an_include_in_a_namespace_moves_its_nodes_topics_and_names_there(tmp_pa
         "hand_left_talker": "/hand/left", "hand_left_listener": "/hand/left/ears",
         "hand_right_talker": "/hand/right", "hand_right_listener": "/hand/right/ears", "talker": ""}
     assert resolve_topic("chatter", specs["hand_right_listener"].namespace) == "/hand/right/ears/chatter"
+    # the ROS-style path `fv param` takes: the include namespaces, then the name in its own file
+    assert [node_name(path) for path in ("/hand/left/talker", "hand/right/listener", "/talker")] == [
+        "hand_left_talker", "hand_right_listener", "talker"]
     twice = _write(tmp_path, "twice.yaml", "include:\n  - {file: inner.yaml, namespace: a}\n"
                                            "  - {file: inner.yaml, namespace: a}\n")
     with pytest.raises(LaunchError, match="'a_talker' is already used"):

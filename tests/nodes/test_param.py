@@ -1,7 +1,8 @@
 """`fv param list | get | set` and `nodes.client.set_param`: a running node's params read from the node over
 the bus; a live param (a slip detector's threshold) set without a restart, from its next decision on; every
 refusal (a param taken only at start, a wrong type, an invalid value, an unknown param or node) named, with a
-non-zero exit; a malformed request dropped and counted by a node that runs on."""
+non-zero exit; a node named by its name or its ROS-style path; a malformed request dropped and counted by a
+node that runs on."""
 from __future__ import annotations
 
 import dataclasses
@@ -76,11 +77,31 @@ def test_a_refused_value_is_named_and_leaves_the_params_unchanged(fusion, name: 
     assert fusion.params.threshold == 0.5 and fusion.params.stale_after_s == 1.0
 
 
+def test_a_node_is_also_named_by_its_ros_path(fusion) -> None:
+    """/left/slip_fusion (or left/slip_fusion) is the node slip_fusion included under the namespace left, the
+    node `fv node list` shows as left_slip_fusion: for `fv param` and the client functions alike."""
+    for path in ("/left/slip_fusion", "left/slip_fusion"):
+        got = run_fv("param", "get", path, "threshold")
+        assert got.returncode == 0 and got.stdout.strip() == "0.5", got.stderr
+    done = run_fv("param", "set", "/left/slip_fusion", "threshold", "0.8")
+    assert done.returncode == 0 and done.stdout.strip() == "/left/slip_fusion: threshold set to 0.8", done.stderr
+    assert fusion.params.threshold == 0.8
+    assert set_param("/left/slip_fusion", "threshold", 0.3, timeout_s=10.0) == 0.3
+    assert get_params("left/slip_fusion", timeout_s=10.0)["threshold"] == fusion.params.threshold == 0.3
+
+
 @pytest.mark.parametrize("verb", [("get",), ("set", "threshold", "0.7")])
-def test_a_node_that_does_not_run_is_named(bus, verb: tuple[str, ...]) -> None:
-    result = run_fv("param", verb[0], "slip_detector", *verb[1:], "--timeout", "0.5")
+@pytest.mark.parametrize("node, topic", [("slip_detector", "/slip_detector"), ("/slip_detector", "/slip_detector"),
+                                         ("/right/slip_detector", "/right_slip_detector")])
+def test_a_node_that_does_not_run_is_named_as_typed(bus, verb: tuple[str, ...], node: str, topic: str) -> None:
+    result = run_fv("param", verb[0], node, *verb[1:], "--timeout", "0.5")
     assert result.returncode != 0
-    assert "no node 'slip_detector' answers on /slip_detector/param/state within 0.5 s" in result.stderr
+    assert f"no node {node!r} answers on {topic}/param/state within 0.5 s" in result.stderr
+
+
+def test_a_path_without_a_name_is_refused(bus) -> None:
+    result = run_fv("param", "get", "/")
+    assert result.returncode == 2 and "'/' is not a node name or path" in result.stderr, result.stderr
 
 
 def test_a_malformed_request_is_counted_and_the_node_runs_on(fusion) -> None:
