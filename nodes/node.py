@@ -51,7 +51,7 @@ from nodes.bus import (ALL_TOPICS, GONE, LINGER_MS, SUB_HWM, PublisherSocket, Se
                        new_context, absolute_namespace, parse_envelope, resolve_topic, subscription_prefixes)
 from nodes.endpoints import BusAddress, bus_address
 from nodes.exit_codes import NodeFailed, on_stop_signals
-from nodes.param_service import ParamService
+from nodes.param_service import ParamService, is_param_topic
 from nodes.params import build_params
 
 STATUS_TOPIC = "/status"
@@ -61,6 +61,13 @@ LAUNCH_ENV = "FV_LAUNCH_NS"  # set by `fv launch` for its nodes: when the launch
 KEEP_ALL_CAP = 10_000
 _PAGE = os.sysconf("SC_PAGE_SIZE")
 _SEVERITY = {"ok": 0, "warn": 1, "error": 2}
+
+
+def is_plumbing_topic(topic: str) -> bool:
+    """Whether `topic` is bus plumbing the runtime gives every node beside its data topics: a node's param
+    request or state topic (`nodes.param_service.is_param_topic`: /N/param/set, /N/param/state) or the
+    `unanswered` notices of a namespace (`msgs.Unanswered`: /unanswered, /left/unanswered)."""
+    return is_param_topic(topic) or topic.rpartition("/")[2] == UNANSWERED_TOPIC
 
 
 @dataclass

@@ -28,8 +28,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = verbs.add_parser("record", help="record topics into a bag folder until Ctrl-C")
     p.add_argument("topics", nargs="*", help="topics to record")
-    p.add_argument("-a", "--all", action="store_true", help="record every topic")
-    p.add_argument("-e", "--regex", default="", help="record topics whose name contains a match")
+    p.add_argument("-a", "--all", action="store_true",
+                   help="record every topic but the bus's plumbing (param topics, unanswered notices) not named")
+    p.add_argument("-e", "--regex", default="",
+                   help="record topics whose name contains a match (the bus's plumbing only when named)")
     p.add_argument("-x", "--exclude-regex", default="", help="leave out topics whose name contains a match")
     p.add_argument("-o", "--output", default="", help="bag folder (default fv_bag_<date>-<time>)")
     p.add_argument("-b", "--max-bag-size", type=parse_size, default=0, metavar="SIZE",

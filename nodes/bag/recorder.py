@@ -30,8 +30,7 @@ from msgs import CameraInfo, MessageError
 from nodes.bag.codec import LATCHED_ENTRY, LATCHED_OF_RUNNING, RECORDING_END_META, RECORDING_META
 from nodes.bag.writer import COMPRESSIONS, DEFAULT_CHUNK_B, BagWriter
 from nodes.bus import ALL_TOPICS, SeqTracker, TopicReader
-from nodes.node import Node
-from nodes.param_service import is_param_topic
+from nodes.node import Node, is_plumbing_topic
 
 DRAIN_IDLE_S = 0.1  # on stop, keep receiving until the queue stays empty this long, a message published
 DRAIN_MAX_S = 2.0   # after the stop comes (a live bus is never quiet), or this long at most
@@ -149,14 +148,16 @@ class BagRecord(Node):
                 "bus": self.address.url, "topics": self._selection(), LATCHED_ENTRY: LATCHED_OF_RUNNING}
 
     def _selected(self, topic: str) -> bool:
-        """Whether `topic` is recorded. A node's param topics (`nodes.param_service`, the bus's services) only
-        when named: `-a` and `-e` recorded every node's latched params, the player's among them, so a
-        recording of a replay held more than what was played."""
+        """Whether `topic` is recorded. The bus's plumbing (`is_plumbing_topic`: the nodes' param topics, as
+        ROS's services, and the `unanswered` notices) only when named: `-a` and `-e` recorded every node's
+        latched params, the player's among them, so a recording of a replay held more than what was played,
+        and its pipeline's `unanswered` notices, which, played with the bag, released a `sync_topic` replay's
+        frames before the pipeline answered them."""
         if self._exclude is not None and self._exclude.search(topic):
             return False
         if topic in self._only:
             return True
-        if is_param_topic(topic):
+        if is_plumbing_topic(topic):
             return False
         return (self.params.all_topics
                 or bool(self._include is not None and self._include.search(topic)))

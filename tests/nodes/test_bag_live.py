@@ -490,14 +490,19 @@ def _record_published(node: BagRecord, bus: BusAddress, topics: tuple[str, ...],
     thread.join(10)
 
 
-def test_record_all_leaves_out_param_topics_unless_named(bus: BusAddress, tmp_path: Path) -> None:
+@pytest.mark.parametrize("selection", [{"all_topics": True}, {"regex": "^/(a|x|y|left|right|unanswered)"}])
+def test_record_all_or_regex_leaves_out_plumbing_topics_unless_named(bus: BusAddress, tmp_path: Path,
+                                                                     selection: dict) -> None:
     """`-a` recorded every node's latched `/N/param/state` (the player's too: a recording of a replay held
-    more than was played); a param topic is recorded only when named."""
-    params = {"output": str(tmp_path / "all"), "all_topics": True, "topics": ["/y/param/state"],
+    more than was played) and the pipeline's `unanswered` notices (played with the bag, they released a
+    `sync_topic` replay's frames early); either is recorded by `-a` or `-e` only when named."""
+    params = {"output": str(tmp_path / "all"), **selection, "topics": ["/y/param/state", "/right/unanswered"],
               "exclude_regex": "^/status$"}
-    _record_published(BagRecord("rec", params, address=bus), bus, ("/a", "/x/param/state", "/x/param/set",
-                                                                   "/y/param/state"), 5)
-    assert {t: i.count for t, i in BagReader(tmp_path / "all").topics().items()} == {"/a": 5, "/y/param/state": 5}
+    _record_published(BagRecord("rec", params, address=bus), bus,
+                      ("/a", "/x/param/state", "/x/param/set", "/y/param/state", "/unanswered", "/left/unanswered",
+                       "/right/unanswered"), 5)
+    assert {t: i.count for t, i in BagReader(tmp_path / "all").topics().items()} == {
+        "/a": 5, "/y/param/state": 5, "/right/unanswered": 5}
 
 
 def test_record_node_selection_split_attachments(bus: BusAddress, tmp_path: Path) -> None:
