@@ -97,23 +97,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_export)
 
 
-def _require_forwarder() -> None:
-    from nodes.endpoints import bus_address
-    from nodes.forwarder import ping
-    address = bus_address()
-    if ping(address) is None:
-        raise RuntimeError(f"no forwarder answers on {address.url}: start `fv forwarder` (or `fv launch`)")
-
-
 def _record(args: argparse.Namespace) -> int:
     from nodes.bag.recorder import BagRecord
+    from nodes.topic_tools import require_forwarder
     params = {"output": args.output, "topics": args.topics, "all_topics": args.all, "regex": args.regex,
               "exclude_regex": args.exclude_regex, "compression": args.compression,
               "chunk_size_b": args.chunk_size, "flush_period_s": args.flush_period,
               "max_bag_size_b": args.max_bag_size, "max_bag_duration_s": args.max_bag_duration,
               "attach": args.attach, "fsync": not args.no_fsync}
     node = BagRecord(args.name, params)
-    _require_forwarder()
+    require_forwarder()
     node.spin()
     return 1 if node.state == "error" else 0
 
@@ -122,6 +115,7 @@ def _play(args: argparse.Namespace) -> int:
     from nodes.bag.player import BagPlay
     from nodes.bag.reader import BagReader
     from nodes.core_commands import parse_remaps
+    from nodes.topic_tools import require_forwarder
     BagReader(args.bag)  # a bad bag is reported before the bus is checked
     params = {"path": args.bag, "rate": args.rate, "loop": args.loop, "start_offset_s": args.start_offset,
               "duration_s": args.duration, "topics": args.topics, "fast": args.fast,
@@ -129,7 +123,7 @@ def _play(args: argparse.Namespace) -> int:
               "subscriber_timeout_s": args.wait_timeout, "sync_topic": args.sync_topic, "sync_on": args.sync_on,
               "sync_window": args.sync_window, "sync_timeout_s": args.sync_timeout, "keyboard": True}
     node = BagPlay(args.name, params, remap=parse_remaps(args.remap))
-    _require_forwarder()
+    require_forwarder()
     node.spin()
     return 1 if getattr(node, "error", None) else 0
 

@@ -1,5 +1,5 @@
 """Bags without a bus: payload codec, writer and reader, recovery of cut files, info,
-export and the errors for files that are not bags."""
+export, the errors for files that are not bags, and record / play's when no forwarder serves the bus."""
 from __future__ import annotations
 
 import json
@@ -18,6 +18,7 @@ from nodes.bag.reader import BagError, BagReader, read_bag
 from nodes.bag.recover import recover, recover_in_place
 from nodes.bag.writer import BagWriter
 from nodes.cli import main
+from tests.nodes.conftest import Bus, run_fv
 
 T0_NS = 1_700_000_000_000_000_000
 
@@ -362,3 +363,15 @@ def test_export_video_png_csv_npz(bag: tuple[Path, list], tmp_path: Path) -> Non
     assert npz["field"].shape == (40, 5, 6, 3) and list(npz["seq"]) == list(range(40))
     with pytest.raises(ValueError, match="not Image"):
         export(path, "/field", tmp_path / "f.mp4")
+
+
+def test_record_and_play_without_a_bus_stop_naming_it_as_the_topic_tools(bag: tuple[Path, list], bus_env: Bus,
+                                                                         tmp_path: Path) -> None:
+    """`fv bag record / play` with no forwarder on the bus: exit 2 at once, in the words of `fv topic` (they
+    had a copy of its check, with a text of their own), and no bag written."""
+    said = f"no forwarder answers on {bus_env.address.url}: no `fv launch` or `fv forwarder` runs on this bus (FV_BUS)"
+    for command in (("bag", "record", "-a", "-o", str(tmp_path / "rec")), ("bag", "play", str(bag[0])),
+                    ("topic", "list")):
+        result = run_fv(*command, timeout_s=20)
+        assert result.returncode == 2 and said in result.stderr, (command, result.stderr)
+    assert not (tmp_path / "rec").exists()
