@@ -1,12 +1,13 @@
 """Read and change a running node's params over the bus (`fv param`, `nodes.client.set_param`).
 
 Every node named N (the name `fv node list` shows: `left_slip_detector` for a slip detector included under
-the launch namespace `left`; clients also take its ROS-style path, `/left/slip_detector`) reads `ParamSet` requests on `/N/param/set` and publishes its params, latched, on
-`/N/param/state` (`ParamState`): at start, and after each request with the request's id and the answer. A
-request is checked as the params are at start (`build_params`: known names, types, the params dataclass's own
-validation) and applied, all or none, between two callbacks, only when every param it names is one the node
-declares live (`Node.LIVE_PARAMS`); any other is refused, named, as one that needs a restart. A request that
-cannot be decoded is dropped and counted in the node's `malformed`, as on any topic.
+the launch namespace `left`; clients also take its ROS-style path, `/left/slip_detector`) reads `ParamSet`
+requests on `/N/param/set` and publishes its params, latched, on `/N/param/state` (`ParamState`): at start, and
+after each request with the request's id and the answer. A request is checked as the params are at start
+(`build_params`: known names, types, the params dataclass's own validation) and applied, all or none, between
+two callbacks, only when every param it names is one the node declares live (`Node.LIVE_PARAMS`); any other is
+refused, named, as one that needs a restart. A request that cannot be decoded is dropped and counted in the
+node's `malformed`, as on any topic.
 """
 from __future__ import annotations
 
@@ -108,7 +109,8 @@ def _silent(node: str, topic: str, timeout_s: float, address: BusAddress) -> Tim
 
 
 def read_params(node: str, timeout_s: float = ANSWER_TIMEOUT_S, address: BusAddress | None = None) -> ParamState:
-    """The `ParamState` of the running node `node` (its name or path, `param_topics`); TimeoutError when it does not answer in `timeout_s` s."""
+    """The `ParamState` of the running node `node` (its name or path, `param_topics`); TimeoutError when it
+    does not answer in `timeout_s` s."""
     state = read_all_params([node], timeout_s, address)[node]
     if state is None:
         raise _silent(node, param_topics(node)[1], timeout_s, address or bus_address())
@@ -132,9 +134,9 @@ def read_all_params(nodes: list[str], timeout_s: float = ANSWER_TIMEOUT_S,
 
 def set_params(node: str, values: dict[str, Any], timeout_s: float = ANSWER_TIMEOUT_S,
                address: BusAddress | None = None) -> ParamState:
-    """Ask the running node `node` (its name or path, `param_topics`) to set `values` ({name: value}) and wait for its answer: its new
-    `ParamState` when accepted; ParamError with the node's reason when refused; TimeoutError when the
-    node (or the bus) does not answer within `timeout_s` s."""
+    """Ask the running node `node` (its name or path, `param_topics`) to set `values` ({name: value}) and wait
+    for its answer: its new `ParamState` when accepted; ParamError with the node's reason when refused;
+    TimeoutError when the node (or the bus) does not answer within `timeout_s` s."""
     address = address or bus_address()
     set_topic, state_topic = param_topics(node)
     request_id = uuid.uuid4().hex
