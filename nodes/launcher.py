@@ -127,6 +127,7 @@ class Launch:
         self._address = None
         self._status_pub = None
         self._status_reader = None
+        self._params = None  # NoParamService: `fv param` answered for launch_<stem>
         self._started = time.monotonic()
         self._started_ns = time.time_ns()  # given to every node (LAUNCH_ENV)
         self._out_lock = threading.Lock()
@@ -247,6 +248,7 @@ class Launch:
         from nodes.bus import PublisherSocket, TopicReader
         from nodes.endpoints import bus_address
         from nodes.forwarder import ensure_forwarder, ping
+        from nodes.param_service import NoParamService
 
         self._address = address = bus_address()
         if address.is_tcp:
@@ -264,6 +266,7 @@ class Launch:
                                    "another FV_BUS or a namespace")
         self._status_pub = PublisherSocket(self.name, address)
         self._status_reader = TopicReader([STATUS_TOPIC], address)
+        self._params = NoParamService(self.name, self._status_pub, address)
         try:
             for child in self.children:
                 self._spawn(child)
@@ -327,6 +330,7 @@ class Launch:
                     self.say("all nodes have exited")
                     break
                 self._status_pub.update()  # answers the forwarder's refreshes of latched messages
+                self._params.answer()
                 if now >= next_status_s:
                     self._publish_status(now)
                     next_status_s = now + STATUS_PERIOD_S
@@ -519,10 +523,10 @@ class Launch:
                     _signal_group(child.spare, signal.SIGKILL)
                     child.spare.wait()
                 child.spare = None
-        for sock in (self._status_reader, self._status_pub):
+        for sock in (self._status_reader, self._params, self._status_pub):
             if sock is not None:
                 sock.close()
-        self._status_reader = self._status_pub = None
+        self._status_reader = self._params = self._status_pub = None
         if self._forwarder is not None:
             self._forwarder.terminate()
             try:

@@ -25,6 +25,8 @@ def _print_node(node: str, state: ParamState | None) -> None:
     if state is None:
         print("  (no params answer)")
         return
+    if not state.params:  # a launcher's status name (`launch_pipeline`)
+        print("  (no params)")
     for name in sorted(state.params):
         print(_row(state, name))
 

@@ -7,7 +7,8 @@ after each request with the request's id and the answer. A request is checked as
 (`build_params`: known names, types, the params dataclass's own validation) and applied, all or none, between
 two callbacks, only when every param it names is one the node declares live (`Node.LIVE_PARAMS`); any other is
 refused, named, as one that needs a restart. A request that cannot be decoded is dropped and counted in the
-node's `malformed`, as on any topic.
+node's `malformed`, as on any topic. The launcher's status name (`launch_<file stem>`) answers as a node
+without params (`NoParamService`).
 """
 from __future__ import annotations
 
@@ -92,6 +93,34 @@ class ParamService:
     def _publish(self, request_id: str, accepted: bool, error: str) -> None:
         state = ParamState(stamp_ns=time.time_ns(), params=current_params(self._node.params),
                            live=sorted(self._node.LIVE_PARAMS), request_id=request_id, accepted=accepted, error=error)
+        self._sock.publish(self._state_topic, state, latched=True)
+
+
+class NoParamService:
+    """The param endpoints of a process that publishes a NodeStatus as `name` but is no `Node` (the launcher's
+    `launch_<file stem>`), so that `fv param` answers for every name `fv node list` shows: its latched
+    `ParamState` lists no params, and `answer()` refuses each request, saying so. `sock`: its publisher socket
+    (its latched state is re-sent by that socket's `update()`, as all its latched messages)."""
+
+    def __init__(self, name: str, sock: PublisherSocket, address: BusAddress) -> None:
+        self._name = name
+        self._sock = sock
+        set_topic, self._state_topic = param_topics(name)
+        self._reader = TopicReader([set_topic], address)
+        self._publish("", accepted=True, error="")
+
+    def answer(self) -> None:
+        """Refuse the requests received since the last call (never waits)."""
+        while (item := self._reader.recv(0.0)) is not None:
+            if isinstance(item.msg, ParamSet):
+                self._publish(item.msg.request_id, accepted=False, error=f"node {self._name!r} has no params")
+
+    def close(self) -> None:
+        self._reader.close()
+
+    def _publish(self, request_id: str, accepted: bool, error: str) -> None:
+        state = ParamState(stamp_ns=time.time_ns(), params={}, live=[], request_id=request_id, accepted=accepted,
+                           error=error)
         self._sock.publish(self._state_topic, state, latched=True)
 
 

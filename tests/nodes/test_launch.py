@@ -333,6 +333,23 @@ def test_a_second_launch_of_the_same_nodes_on_one_bus_is_refused(bus: Bus, tmp_p
         first.stop()
 
 
+def test_fv_param_answers_for_the_launchers_own_status_name(bus: Bus, tmp_path: Path) -> None:
+    """`fv node list` shows the launcher as launch_<file stem>: `fv param list` waited its whole timeout for it
+    and printed "(no params answer)"; it has no params, said at once, and a request to it is refused."""
+    launch, _ = _launch(tmp_path, "nodes:\n  - {kind: talker, params: {rate_hz: 20}}\n")
+    launch.start()
+    try:
+        wait_status("talker", timeout_s=8.0)
+        wait_status("launch_l", timeout_s=8.0)
+        listed = run_fv("param", "list", "--timeout", "8", timeout_s=20.0)
+        assert listed.returncode == 0 and "launch_l:\n  (no params)\n" in listed.stdout, listed.stdout
+        assert "no params answer" not in listed.stdout and "  rate_hz: 20.0\n" in listed.stdout
+        refused = run_fv("param", "set", "launch_l", "rate_hz", "5", "--timeout", "8", timeout_s=20.0)
+        assert refused.returncode == 2 and "node 'launch_l' has no params" in refused.stderr, refused.stderr
+    finally:
+        launch.stop()
+
+
 def test_killed_respawn_node_is_back_within_delay_plus_1s(bus_env: Bus, tmp_path: Path) -> None:
     delay_s = 0.3
     launch, out = _launch(tmp_path, f"nodes:\n  - kind: talker\n    params: {{rate_hz: 20}}\n"
