@@ -3,8 +3,9 @@ the launcher, which respawns a node by what its code says (README, "Launch files
 that stop them.
 
 OK: done, or stopped cleanly (Ctrl-C, SIGTERM). FAILED: an unexpected failure (a traceback), a
-launch whose required node failed. CONFIG: a configuration error (a bad argument, param, launch
-file, model or video), found before or at the start, that will come again until the configuration
+launch whose required node failed, `fv topic echo --timeout` that got no message, output whose reader went
+away (a broken pipe). CONFIG: a configuration error (a bad argument, param, launch file, model or video, a
+bus another forwarder serves), found before or at the start, that will come again until the configuration
 changes. TEMPFAIL (sysexits.h's EX_TEMPFAIL): what the process needs is not there yet and may come
 without a change of configuration (a camera not plugged in, or busy); start it again later.
 CONFIG_WHILE_RUNNING (sysexits.h's EX_CONFIG): a configuration error a running node found, which a

@@ -28,7 +28,7 @@ from zmq.utils.monitor import recv_monitor_message
 
 from nodes.bus import LATCHED, LINGER_MS, connect_client, new_context
 from nodes.endpoints import BUS_ENV, BusAddress, bus_address, secure_server
-from nodes.exit_codes import FAILED, OK, on_stop_signals
+from nodes.exit_codes import OK, on_stop_signals
 from nodes.latched_cache import LatchedCache
 from nodes.parent_death import parent_env
 
@@ -240,12 +240,10 @@ def ensure_forwarder(address: BusAddress | None = None, timeout_s: float = 5.0) 
 
 
 def serve(tcp_url: str | None = None, keys: Path | None = None) -> int:
-    """Run a forwarder in this process until one of `stop_signals()`; the `fv forwarder` command."""
-    try:
-        fwd = Forwarder(tcp_url=tcp_url, keys=keys)
-    except ForwarderRunning as exc:
-        log.error("%s", exc)
-        return FAILED
+    """Run a forwarder in this process until one of `stop_signals()`; the `fv forwarder` command. Another
+    forwarder serving the bus raises ForwarderRunning, which the command line says and exits CONFIG with (as a
+    second `fv launch` of the same nodes on one bus: the setup, not this process, is wrong)."""
+    fwd = Forwarder(tcp_url=tcp_url, keys=keys)
     stop = threading.Event()
     on_stop_signals(lambda _signum: stop.set())
     log.info("forwarder on %s%s", fwd.address.url, f" and {tcp_url} (CURVE)" if tcp_url else "")

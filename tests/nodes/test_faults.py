@@ -7,6 +7,7 @@ import io
 import logging
 import os
 import signal
+import subprocess
 import threading
 import time
 from contextlib import contextmanager
@@ -22,6 +23,7 @@ import msgs
 from msgs import CameraInfo, Image, SlipState
 from nodes.bus import PublisherSocket, TopicReader, envelope
 from nodes.camera_sources import FolderSource, SourceError, VideoFileSource
+from nodes.exit_codes import CONFIG
 from nodes.forwarder import ping
 from nodes.launcher import Launch
 from nodes.node import Node
@@ -299,6 +301,15 @@ def test_forwarder_stops_cleanly_on_sigterm_and_sighup(bus_env: Bus, spawn, sig:
     wait_for(lambda: ping(bus_env.address) is not None, 10.0, "forwarder start")
     forwarder.send_signal(sig)
     assert forwarder.wait(10) == 0
+
+
+def test_a_second_forwarder_on_a_served_bus_exits_with_the_configuration_code(bus_env: Bus, spawn) -> None:
+    """It exited 1, the code of an unexpected failure; a second launch of the same nodes on one bus exits 2."""
+    spawn("forwarder")
+    wait_for(lambda: ping(bus_env.address) is not None, 10.0, "forwarder start")
+    second = spawn("forwarder", stderr=subprocess.PIPE, text=True)
+    assert second.wait(10) == CONFIG
+    assert second.stderr.read().strip() == f"fv forwarder: error: a forwarder already serves {bus_env.address.url}"
 
 
 def test_forwarder_killed_and_restarted(bus_env: Bus, spawn) -> None:
