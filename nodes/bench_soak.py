@@ -30,6 +30,7 @@ import numpy as np
 
 from nodes.arg_types import non_negative_float, positive_float, positive_int
 from nodes.bench_pipeline import pipeline_args, pipeline_launch, process_ids
+from nodes.shipped_models import model_help
 
 VICTIMS = ("tracker", "interpolator", "slip_detector")
 WARMUP_S = 60.0  # at most this much of each process series is left out as warm-up (<= 1/5 of the run)
@@ -150,7 +151,7 @@ def add_parser(kinds: argparse._SubParsersAction, name: str) -> None:
                    help="seconds between SIGKILLs of a node, in turn tracker, interpolator, slip_detector (0 = none)")
     p.add_argument("--sample", type=positive_float, default=5.0, help="seconds between memory samples (default 5)")
     p.add_argument("--threads", type=positive_int, default=1, help="torch threads of the slip detector (default 1)")
-    p.add_argument("--model", default=None, help="slip model instead of the default configuration's")
+    p.add_argument("--model", default=None, help=f"slip model instead of the default configuration's: {model_help()}")
     p.add_argument("--log", default=os.devnull, help="write the nodes' output here (default: discarded)")
     p.add_argument("--json", action="store_true", help="print the report as JSON (default: a summary)")
     p.set_defaults(func=_bench_soak)

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from nodes.arg_types import output_file, output_with_suffix, positive_float, positive_int, random_seed
+from nodes.shipped_models import model_help
 
 if TYPE_CHECKING:  # torch is imported only where a model is used
     from fv_algos.contact_motion import ContactMotionParams
@@ -46,8 +47,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     _fit_args(p, window_steps=300)
     p.add_argument("--folds", type=int, default=5, help="object folds (default 5; the number of objects, "
                    "e.g. 29, leaves one object out)")
-    p.add_argument("--init", default=None, help="with --method windows: fine-tune every fold from this checkpoint or "
-                   "shipped model name (e.g. sim); its architecture is used and --steps counts the extra steps")
+    p.add_argument("--init", default=None, help=f"with --method windows: fine-tune every fold from this model, a "
+                   f"{model_help()}; its architecture is used and --steps counts the extra steps")
     online_flags(p)
     p.add_argument("--out", type=output_file, default=None, help="also write the full report (JSON) here")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
@@ -62,7 +63,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_train)
 
     p = sub.add_parser("eval-trials", help="judge a slip model on a folder of real trials (video to decision)")
-    p.add_argument("--model", required=True, help="shipped model name (gelsight, gelsight_online, sim, ...) or checkpoint path")
+    p.add_argument("--model", required=True, help=model_help())
     p.add_argument("--trials", type=Path, required=True,
                    help="folder with labels.csv and <trial>/camera_0.avi (or .mp4, .mkv, .mov, .m4v)")
     p.add_argument("--cache", type=Path, default=None, help="reuse / write cached fields here (default: none)")
@@ -283,7 +284,7 @@ def _cv(args: argparse.Namespace) -> int:
             report["online"] = _online_report(report["running"], labels, args, fps)
     else:
         from fv_algos.trial_eval import cross_validate, trial_windows
-        from nodes.slip_detector import model_path
+        from nodes.shipped_models import model_path
         config = _fit_config(args)
         trials, fields, _ = _load(args)
         data = trial_windows(trials, fields, config.train.model.window, config.rule)
@@ -470,7 +471,7 @@ def eval_trials_command(args: argparse.Namespace) -> int:
     window_accuracy, confusion ([[TN, FP], [FN, TP]] at trial level), the timing (frames judged
     included), tracking quality and each trial's score and decision (without --json: the misjudged
     trials).
-    A trial-level model (`gelsight` is one: :func:`nodes.slip_detector.model_path`) has no windows: its window_accuracy is null; it
+    A trial-level model (`gelsight` is one: :func:`nodes.shipped_models.model_path`) has no windows: its window_accuracy is null; it
     judges every video at the model's frame rate (a faster video's frames picked at it, a video too slow
     for it refused by name: :mod:`fv_algos.frame_rate`)."""
     import cv2
@@ -479,7 +480,7 @@ def eval_trials_command(args: argparse.Namespace) -> int:
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     started = time.perf_counter()
-    from nodes.slip_detector import model_path
+    from nodes.shipped_models import model_path
     path = model_path(args.model)
     trial_model = read_trial_model(path)
     check_online(args, trial_model is not None)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from nodes.arg_types import output_file, output_folder, output_with_suffix, positive_float, positive_int, random_seed
 from nodes.real_commands import crop_flags, online_flags
+from nodes.shipped_models import model_help
 
 SPLITS = {"sequence": "sequence", "paper": "random", "object": "object"}
 """CLI split name -> fv_algos.slip.windows split kind ("paper" = the paper's random windows)."""
@@ -56,7 +57,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=output_folder, help="report folder: table1.json, variants.json, pareto.png")
     mode.add_argument("--trials", type=Path, help="folder with labels.csv (trial,object,label) and <trial>/camera_0.avi "
                    "[camera_2.avi] (or .mp4, .mkv, .mov, .m4v): judge --model on it, from video to decision")
-    p.add_argument("--model", help="with --trials or --stream: shipped model name (sim, gelsight) or checkpoint path")
+    p.add_argument("--model", help=f"with --trials or --stream: {model_help()}")
     mode.add_argument("--stream", type=positive_float, metavar="SECONDS",
                    help="judge a window --model frame by frame on SECONDS of the simulated camera's random grasps "
                         "(the main job's stream) against the simulator's truth; --fps, --seed set the camera")
@@ -86,7 +87,7 @@ def _eval_stream(args: argparse.Namespace) -> int:
     """`fv eval --stream S --model M [--fps F] [--seed N] [--json]`: :func:`fv_algos.slip.stream.judge_stream`."""
     from fv_algos.slip.classifier import SlipClassifier
     from fv_algos.slip.stream import judge_stream
-    from nodes.slip_detector import model_path
+    from nodes.shipped_models import model_path
     if not args.model:
         raise ValueError("--stream needs --model (a shipped window model such as sim_cnn_lstm, or a checkpoint)")
     started = time.perf_counter()
@@ -459,7 +460,7 @@ def add_bench_parser(kinds: argparse._SubParsersAction, name: str) -> None:
     each variant's accuracy and F1 on every window of that data set."""
     p = kinds.add_parser(name, help="slip classifier inference speed per variant (fp32, bf16, int8), and with "
                          "--data its accuracy")
-    p.add_argument("--model", default="sim", help="shipped model name or checkpoint path (default sim)")
+    p.add_argument("--model", default="sim", help=f"{model_help()} (default sim)")
     p.add_argument("--variants", default=None, help="comma-separated variants (fp32,bf16,int8,compile; default "
                    "fp32,bf16,int8 on the cpu, fp32,bf16 elsewhere: int8 runs on the cpu only)")
     p.add_argument("--threads", default="1,2", help="comma-separated torch thread counts (default 1,2)")
@@ -479,7 +480,7 @@ def _bench_slip(args: argparse.Namespace) -> int:
     from fv_algos.slip.models import count_parameters
     from fv_algos.slip.windows import load_sequences
     from nodes.plots import markdown_table
-    from nodes.slip_detector import model_path
+    from nodes.shipped_models import model_path
     model = model_from_checkpoint(load_checkpoint(model_path(args.model)))
     cfg = model.config
     window = np.zeros((1, cfg.window, cfg.grid, cfg.grid, 3), np.float32)

@@ -33,7 +33,6 @@ import collections
 import re
 import zipfile
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
@@ -42,31 +41,13 @@ from fv_algos.visualize import as_bgr
 from msgs import DisplacementField, Image, MarkerArray, SlipState
 from nodes.node import Node
 from nodes.params import build_params
+from nodes.shipped_models import model_path
 
 if TYPE_CHECKING:  # torch is imported only where a model is used
     from fv_algos.trial_net import TrialModel
 
 DEVICE_RE = re.compile(r"cpu|mps|(cuda|xpu)(:\d+)?")  # the torch devices a model can run on
 IMAGE_BUFFER = 64  # camera images kept for the fields still to come (trial models), frames
-WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "fv_algos" / "weights"
-
-
-# shipped names that stand for another shipped model: `gelsight` is the GelSight Mini model that
-# `fv eval --trials` and the slip detector both mean by it, the whole-grasp trial model
-ALIASES = {"gelsight": "gelsight_trial"}
-
-
-def model_path(name: str) -> Path:
-    """Checkpoint path of a shipped model name (or an ``ALIASES`` key), or the path itself;
-    FileNotFoundError naming the shipped models."""
-    shipped = WEIGHTS_DIR / f"slip_{ALIASES.get(name, name)}.pt"
-    if shipped.is_file():
-        return shipped
-    path = Path(name).expanduser()  # a shell leaves the ~ of model:=~/m.pt as it is
-    if path.is_file():
-        return path
-    names = sorted([*(p.stem.removeprefix("slip_") for p in WEIGHTS_DIR.glob("slip_*.pt")), *ALIASES])
-    raise FileNotFoundError(f"model {name!r} is neither a shipped model ({names}) nor a checkpoint file")
 
 
 def require_grid(msg: DisplacementField, grid: tuple[int, int]) -> None:

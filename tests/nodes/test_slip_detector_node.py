@@ -4,6 +4,7 @@ the model was not trained for; with the trial model, a replayed real grasp judge
 frame exactly as offline, and grey images refused by name."""
 from __future__ import annotations
 
+import argparse
 import contextlib
 import time
 from pathlib import Path
@@ -14,7 +15,8 @@ import pytest
 
 from msgs import DisplacementField, MarkerArray, SlipState
 from nodes.bus import PublisherSocket, TopicReader
-from nodes.slip_detector import model_path
+from nodes.cli import build_parser
+from nodes.shipped_models import model_path, shipped_models
 from tests.conftest import dots_image, write_raw_mini
 from tests.nodes.conftest import REPO, wait_status
 
@@ -38,6 +40,21 @@ def test_unknown_model_name_lists_the_shipped_ones() -> None:
     with pytest.raises(FileNotFoundError, match="gelsight") as error:
         model_path("no_such_model")
     assert "'gelsight'" in str(error.value) and "'gelsight_windows'" in str(error.value)
+
+
+@pytest.mark.parametrize("command, option", [(["eval"], "--model"), (["eval-trials"], "--model"),
+                                             (["bench", "slip"], "--model"), (["bench", "soak"], "--model"),
+                                             (["real", "cv"], "--init")])
+def test_every_model_option_lists_every_shipped_model(command: list[str], option: str) -> None:
+    """`fv eval --help` named `sim, gelsight` only, not the pipeline's default sim_cnn_lstm nor gelsight_online:
+    the names come from the weights folder, as the slip detector's."""
+    parser = build_parser()
+    for name in command:
+        parser = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[name]
+    help_text = " ".join(next(a for a in parser._actions if option in a.option_strings).help.split())
+    assert {"sim", "sim_cnn_lstm", "gelsight", "gelsight_trial", "gelsight_online"} <= set(shipped_models())
+    for name in shipped_models():
+        assert f"{name}," in help_text or f"{name})" in help_text, (name, help_text)
 
 
 def test_a_model_path_under_home_is_found(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
