@@ -212,12 +212,22 @@ class CameraNode(Node):
             return
         if frame is None:
             if getattr(self.source, "finished", False):
-                self.warn(f"{self.source.name}: end of input after {self.counters['frames']} frames")
+                self._ended()
                 self._after_end()
                 return
             self._lost(f"{self.source.name}: no frame")
             return
         self.publish_frame(frame)
+
+    def _ended(self) -> None:
+        """Say that the source has ended: a line of information at its end, a warning when a video's decoding
+        stopped before the frames its container lists (a file cut short or damaged)."""
+        said = f"{self.source.name}: end of input after {self.counters['frames']} frames"
+        missing = getattr(self.source, "missing_frames", 0)
+        if missing:
+            self.warn(f"{said}, {missing} fewer than the file lists (cut short or damaged?)")
+        else:
+            self.log.info(said)
 
     def _after_end(self) -> None:
         """Once the source has ended: stop the node `exit_after_end_s` after its last frame (when >= 0)."""

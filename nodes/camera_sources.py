@@ -71,7 +71,9 @@ class VideoFileSource:
     """Frames of a video file, optionally looping, numbered from 0 at each pass (`Frame.index`: a
     looped or reopened file starts over at frame 0). A file removed or replaced while open
     raises SourceError at the next read (one stat() per frame): the node reports it lost
-    and reopens it when it is back, as with an unplugged camera."""
+    and reopens it when it is back, as with an unplugged camera. Once `finished` (not looping),
+    `missing_frames` is how many of the frames its container lists were not decoded: 0 at a clean end,
+    more for a file cut short or damaged."""
 
     def __init__(self, path: str, loop: bool = True) -> None:
         self.path = Path(path)
@@ -81,6 +83,8 @@ class VideoFileSource:
         self._identity: tuple[int, int] | None = None  # (st_dev, st_ino) of the file opened
         self.file_fps = 0.0
         self.finished = False
+        self.missing_frames = 0
+        self._listed = 0  # frames the container lists (0 when it does not say)
         self._index = 0  # number of the next frame in the file
 
     def open(self) -> None:
@@ -94,6 +98,7 @@ class VideoFileSource:
         self._identity = identity
         self._index = 0
         self.file_fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        self._listed = max(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)), 0)
 
     def read(self) -> Frame | None:
         if self._cap is None:
@@ -108,6 +113,7 @@ class VideoFileSource:
         if not ok:
             if not self.loop:
                 self.finished = True
+                self.missing_frames = max(self._listed - self._index, 0)
                 return None
             self.close()
             self.open()  # raises SourceError when the file has gone: the node reopens with backoff

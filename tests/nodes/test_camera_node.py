@@ -233,6 +233,26 @@ def test_a_video_without_frames_is_refused_at_start(bus, tmp_path: Path) -> None
     assert f"video {video}: no frame, and playing it needs one" in result.stderr
 
 
+def test_the_end_of_a_whole_video_is_information_and_that_of_a_cut_one_a_warning(bus, tmp_path: Path) -> None:
+    """Every video played to its end warned "end of input", the GelSight Mini example as a file cut short;
+    a warning now says that decoding stopped before the frames the file lists."""
+    whole, cut = tmp_path / "whole.avi", tmp_path / "cut.avi"
+    _write_video(whole, frames=20)
+    data = whole.read_bytes()
+    cut.write_bytes(data[:len(data) // 2])  # its header still lists 20 frames
+    ends = {}
+    for video in (whole, cut):
+        result = run_fv("node", "camera", "-p", "source=video", "-p", f"path={video}", "-p", "loop=false",
+                        "-p", "fps=100", "-p", "exit_after_end_s=0", timeout_s=20)
+        assert result.returncode == 0, result.stderr
+        ends[video] = [line for line in result.stderr.splitlines() if "end of input" in line]
+    assert ends[whole] == [f"[camera] INFO: video {whole}: end of input after 20 frames"]
+    assert len(ends[cut]) == 1 and ends[cut][0].startswith(f"[camera] WARNING: video {cut}: end of input after ")
+    played = int(ends[cut][0].split("after ")[1].split()[0])
+    assert 0 < played < 20 and ends[cut][0].endswith(f"frames, {20 - played} fewer than the file lists "
+                                                      "(cut short or damaged?)")
+
+
 def test_a_video_is_cropped_frame_by_frame(bus, spawn, tmp_path: Path) -> None:
     from fv_algos.frame_crop import FrameCrop
     video = tmp_path / "clip.avi"
