@@ -40,7 +40,7 @@ import msgs
 from msgs import Image
 from nodes.bag.clock import PlayClock
 from nodes.bag.codec import LATCHED_ENTRY, RECORDING_META, split_payload
-from nodes.bag.reader import BagError, BagMessage, BagReader, bag_files, check_magic
+from nodes.bag.reader import BagError, BagMessage, BagReader
 from nodes.bus import PublisherSocket, TopicReader
 from nodes.node import UNANSWERED_TOPIC, Node
 from nodes.start_gate import StartGate
@@ -110,8 +110,12 @@ class BagPlayParams:
                              "topic, paired in order (or one sync topic and at most one sync_on)")
         if len(set(answers)) < len(answers) or len(set(waiting)) < len(waiting):
             raise ValueError(f"sync_on {waiting} and sync_topic {answers}: a topic is named twice")
-        for file in bag_files(self.path):  # a missing bag, or a file that is none, is refused by `fv launch --check`
-            check_magic(file)
+        # a missing, unfinished or damaged bag, or one without a topic to play, is refused by `fv launch --check`
+        known = BagReader(self.path).topics()  # (its summary: milliseconds)
+        missing = [t for t in dict.fromkeys(self.topics + topic_list(self.sync_on)) if t not in known]
+        if missing:
+            raise BagError(self.path, f"has no topic {', '.join(map(repr, missing))} to play; its topics: "
+                                      f"{sorted(known)}")
 
 
 def message_id(m: BagMessage) -> tuple[str, str, int, int]:
@@ -168,11 +172,8 @@ class BagPlay(Node):
     def setup(self) -> None:
         p = self.params
         self.bag = BagReader(p.path)
-        known = self.bag.topics()
+        known = self.bag.topics()  # holding every topic of `topics` and `sync_on` (the params' check)
         waiting = topic_list(p.sync_on)
-        for topic in p.topics + waiting:
-            if topic not in known:
-                raise BagError(p.path, f"has no topic {topic!r}; topics: {sorted(known)}")
         absent = [t for t in p.optional_topics if t not in known]
         if absent:
             self.log.info("not in the bag, not played: %s", ", ".join(absent))

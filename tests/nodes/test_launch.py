@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 
 from nodes.bag.codec import RECORDING_END_META
-from nodes.bag.reader import MCAP_MAGIC, BagReader
+from msgs import Image
+from nodes.bag.reader import BagReader
 from nodes.bus import TopicReader, node_name, resolve_topic
 from nodes.camera_sources import SourceError, SourceMissing, find_v4l2_device
 from nodes.exit_codes import CONFIG, OK, TEMPFAIL
@@ -27,19 +28,23 @@ from nodes.forwarder import ping
 from nodes.launch_file import LaunchError, load_launch, parse_arg_overrides
 from nodes.launcher import START_TRIES, Launch
 from tests.nodes.conftest import REPO, Bus, children_of, kill_group, pid_alive, run_fv, wait_status
+from tests.nodes.test_bag import write_bag
 
 GOOD_NODE = "  - kind: talker\n    name: t\n"
 
 
 @pytest.fixture
 def video_files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """clip.avi, a.avi and b.avi in the working folder (a video camera's params need the file), bag
-    files run1 and session (a bag player's params need an MCAP file) and bad.yaml, a scene with no steps."""
+    """clip.avi, a.avi and b.avi in the working folder (a video camera's params need the file), bags
+    (a bag player's params need the topics it plays): run1 of one camera, session of two (left and right),
+    right_only of the right one, and bad.yaml, a scene with no steps."""
     monkeypatch.chdir(tmp_path)
     for name in ("clip.avi", "a.avi", "b.avi"):
         (tmp_path / name).write_bytes(b"")
-    for name in ("run1", "session"):
-        (tmp_path / name).write_bytes(MCAP_MAGIC)
+    for name, topics in (("run1", ["/camera/image"]), ("session", ["/left/camera/image", "/right/camera/image"]),
+                         ("right_only", ["/right/camera/image"])):
+        frame = Image(stamp_ns=1, data=np.zeros((8, 8), np.uint8), encoding="mono8")
+        write_bag(tmp_path / name, [(topic, False, frame, 10**9) for topic in topics], finished=True)
     (tmp_path / "bad.yaml").write_text("object: {shape: sphere}\nfps: 30\n")  # a scene file that is no scene
 
 
@@ -237,6 +242,10 @@ def test_both_fingers_start_together_and_their_slips_are_the_fusion_inputs(name:
     ("video.yaml", {"video": "nope.avi"}, "video nope.avi: no such file"),
     ("replay.yaml", {"bag": "nope"}, "bag nope: no such file or folder"),  # the launch started, then stopped
     ("replay_pair.yaml", {"bag": "clip.avi"}, "bag clip.avi: not an MCAP file"),
+    ("replay_pair.yaml", {"bag": "right_only"},  # the launch played one finger, the other's pipeline idle
+     r"bag right_only: has no topic '/left/camera/image' to play; its topics: \['/right/camera/image'\]"),
+    ("replay_pair.yaml", {"bag": "run1"}, "bag run1: has no topic '/left/camera/image', '/right/camera/image' to play"),
+    ("replay.yaml", {"bag": "session"}, "bag session: has no topic '/camera/image' to play"),
     ("video_pair.yaml", {"left": "a.avi", "right": "b.av"}, "video b.av: no such file"),
     ("video.yaml", {"video": "clip.avi", "model": "gelsite_online"}, "model 'gelsite_online' is neither a shipped"),
     ("video.yaml", {"video": "clip.avi", "model": "a.avi"}, "a.avi is not a model file"),  # respawned for good
