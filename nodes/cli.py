@@ -92,23 +92,35 @@ def main(argv: list[str] | None = None) -> int:
     """Run the command; its exit code (`nodes.exit_codes`): a NotReadyError gives TEMPFAIL, an error
     of input or configuration (ValueError, KeyError, OSError, RuntimeError) CONFIG, each said in one line;
     Ctrl-C INTERRUPTED, SIGTERM and SIGHUP 128 + their number, after the command's clean-up, the stop signals
-    after the first ignored to the process's exit. A process started by `fv launch` (`nodes.parent_death`)
-    gets SIGTERM when its launcher dies."""
-    args = parse_args(argv)
-    steady_malloc()  # every fv process: nodes, training, benchmarks
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="[%(name)s] %(levelname)s: %(message)s", stream=sys.stderr)
+    after the first ignored to the process's exit. The stop handlers are in place before the command modules
+    are imported (0.25 s on an idle host, seconds as a launch starts its nodes on 2 cores): a SIGTERM during
+    those imports ended the process by the signal (-15) instead. A process started by `fv launch`
+    (`nodes.parent_death`) gets SIGTERM when its launcher dies."""
     in_main_thread = threading.current_thread() is threading.main_thread()  # (tests call main() in threads too)
     previous = {sig: signal.getsignal(sig) for sig in stop_signals()} if in_main_thread else {}
     if in_main_thread:
         on_stop_signals(_stop_command)
     try:
-        stop_with_parent()  # with the stop handlers in place: the launcher's death is a clean stop
-        return int(args.func(args) or OK)
+        return _run(argv)
     except Stopped as stop:
         return stop.exit_code
     except KeyboardInterrupt:
         return INTERRUPTED
+    finally:
+        if not stopping():  # once stopping, this process ignores them to its exit (`ignore_stop_signals`)
+            for sig, handler in previous.items():  # a caller's own (main() called in a test's process)
+                signal.signal(sig, handler)
+
+
+def _run(argv: list[str] | None) -> int:
+    """Parse `argv` and run its command (`main`, which handles its stop); the exit code of its errors."""
+    args = parse_args(argv)
+    steady_malloc()  # every fv process: nodes, training, benchmarks
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="[%(name)s] %(levelname)s: %(message)s", stream=sys.stderr)
+    try:
+        stop_with_parent()  # with the stop handlers in place: the launcher's death is a clean stop
+        return int(args.func(args) or OK)
     except BrokenPipeError:  # `fv bag info x | head`: the reader has gone, nothing to say to it
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
         return FAILED
@@ -123,10 +135,6 @@ def main(argv: list[str] | None = None) -> int:
         logging.getLogger("fv").debug("the error's traceback", exc_info=True)
         print(f"fv {args.command}: error: {msg}", file=sys.stderr)
         return CONFIG
-    finally:
-        if not stopping():  # once stopping, this process ignores them to its exit (`ignore_stop_signals`)
-            for sig, handler in previous.items():  # a caller's own (main() called in a test's process)
-                signal.signal(sig, handler)
 
 
 if __name__ == "__main__":

@@ -169,6 +169,28 @@ def test_a_node_whose_first_stop_was_lost_stops_as_it_spins(bus_env: Bus) -> Non
     assert "Stopped: SIGTERM" in result.stderr  # Python's "Exception ignored in: <function stop_in_a_callback ..."
 
 
+# `fv node talker` sent SIGTERM as the command line imports its command modules (to parse its arguments)
+STOPPED_AS_IT_IMPORTS = """
+import os, signal, sys
+import nodes.cli as cli
+build = cli.build_parser
+def build_stopped():
+    os.kill(os.getpid(), signal.SIGTERM)
+    return build()
+cli.build_parser = build_stopped
+sys.exit(cli.main(sys.argv[1:]))
+"""
+
+
+def test_a_command_stopped_as_it_imports_its_modules_exits_cleanly() -> None:
+    """A SIGTERM during the command modules' imports (0.25 s, seconds as a launch starts its nodes on 2 cores),
+    before the stop handlers were in place, ended the process by the signal (-15, not 143)."""
+    result = subprocess.run([sys.executable, "-c", STOPPED_AS_IT_IMPORTS, "node", "talker"], cwd=REPO,
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 128 + signal.SIGTERM, result.stderr
+    assert "Traceback" not in result.stderr
+
+
 def test_a_command_under_nohup_runs_on_after_sighup(tmp_path: Path) -> None:
     """SIGHUP stopped every command, also one that `nohup` had told to ignore it: a long run over SSH ended at
     logout."""
