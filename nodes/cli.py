@@ -13,8 +13,8 @@ import sys
 import threading
 
 from fv_algos.allocator import steady_malloc
-from nodes.exit_codes import (CONFIG, CONFIG_WHILE_RUNNING, FAILED, INTERRUPTED, OK, TEMPFAIL, NodeFailed,
-                              NotReadyError, on_stop_signals, stop_signals, stopping)
+from nodes.exit_codes import (CONFIG, CONFIG_WHILE_RUNNING, FAILED, OK, TEMPFAIL, NodeFailed, NotReadyError,
+                              interrupt, interrupted_code, on_stop_signals, stop_signals, stopping)
 from nodes.parent_death import stop_with_parent
 
 COMMAND_MODULES = [
@@ -53,16 +53,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
-class Stopped(KeyboardInterrupt):
-    """SIGTERM or SIGHUP (`kill`, systemd, `timeout`, a closed terminal), raised where the command runs, so
-    that it stops as on Ctrl-C: its clean-up runs (a partial output folder is removed) and it exits 128 +
-    the signal's number. Before, it died at once, leaving a half-written `fv sim --out` folder behind."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signal.Signals(signum).name)
-        self.exit_code = 128 + signum
-
-
 def _stop_command(signum: int) -> None:
     """A command's stop on the first of `stop_signals()` (`on_stop_signals`; nodes, launches and the forwarder
     put their own in its place): the worker processes of the command's process pools are terminated (a
@@ -76,7 +66,7 @@ def _stop_command(signum: int) -> None:
     for child in multiprocessing.active_children():
         if "PoolWorker" not in child.name:  # a multiprocessing.Pool's: its exit ends them (it replaced those ended here)
             child.terminate()
-    raise KeyboardInterrupt if signum == signal.SIGINT else Stopped(signum)
+    raise interrupt(signum)
 
 
 def _quiet_pool_threads(args: threading.ExceptHookArgs) -> None:
@@ -102,10 +92,8 @@ def main(argv: list[str] | None = None) -> int:
         on_stop_signals(_stop_command)
     try:
         return _run(argv)
-    except Stopped as stop:
-        return stop.exit_code
-    except KeyboardInterrupt:
-        return INTERRUPTED
+    except KeyboardInterrupt as stop:  # Ctrl-C, or `Stopped`
+        return interrupted_code(stop)
     finally:
         if not stopping():  # once stopping, this process ignores them to its exit (`ignore_stop_signals`)
             for sig, handler in previous.items():  # a caller's own (main() called in a test's process)

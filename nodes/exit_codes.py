@@ -11,7 +11,7 @@ without a change of configuration (a camera not plugged in, or busy); start it a
 CONFIG_WHILE_RUNNING (sysexits.h's EX_CONFIG): a configuration error a running node found, which a
 restart would meet again (a simulated scene whose next frame cannot be played: `NodeFailed`).
 INTERRUPTED: Ctrl-C outside a node's own handler (128 + SIGINT); SIGTERM and SIGHUP give 128 + their
-number in the same way (`nodes.cli.Stopped`).
+number in the same way (`Stopped`).
 """
 from __future__ import annotations
 
@@ -116,6 +116,28 @@ def _stop_by_default(signum: int, frame: FrameType | None) -> None:
     remove_partial_files()
     signal.signal(signum, signal.SIG_DFL)
     os.kill(os.getpid(), signum)
+
+
+class Stopped(KeyboardInterrupt):
+    """SIGTERM or SIGHUP (`kill`, systemd, `timeout`, a closed terminal), raised where the command runs, so
+    that it stops as on Ctrl-C: its clean-up runs (a partial output folder is removed) and it exits 128 +
+    the signal's number. Before, it died at once, leaving a half-written `fv sim --out` folder behind."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.exit_code = 128 + signum
+
+
+def interrupt(signum: int) -> KeyboardInterrupt:
+    """What a stop by `signum` raises where the process runs: KeyboardInterrupt for SIGINT (Ctrl-C), else
+    `Stopped`."""
+    return KeyboardInterrupt() if signum == signal.SIGINT else Stopped(signum)
+
+
+def interrupted_code(stop: KeyboardInterrupt) -> int:
+    """The exit code of a process that `stop` (`interrupt`) ended: INTERRUPTED for Ctrl-C, 128 + the signal's
+    number for `Stopped`."""
+    return stop.exit_code if isinstance(stop, Stopped) else INTERRUPTED
 
 
 class NodeFailed(RuntimeError):
