@@ -7,6 +7,10 @@ import logging
 import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING, NoReturn
+
+if TYPE_CHECKING:
+    from nodes.node import Node
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -51,9 +55,7 @@ def parse_remaps(items: list[str]) -> dict[str, str]:
 
 
 def _node(args: argparse.Namespace) -> int:
-    from nodes.bus import LINGER_MS, stop_handshake_watchers
-    from nodes.exit_codes import OK
-    from nodes.parent_death import end_own_group
+    from nodes.exit_codes import OK, interrupted_code
     from nodes.params import parse_assignments
     from nodes.registry import NODES, node_class
     if args.kind == "kinds":
@@ -64,22 +66,35 @@ def _node(args: argparse.Namespace) -> int:
         return node_list(args)
     params = _json_params(args.params_json)
     params.update(parse_assignments(args.param))
-    cls = node_class(args.kind)
-    if args.standby and not _wait_for_takeover(cls, params):
-        return OK
-    node = cls(args.name or args.kind, params, namespace=args.ns, remap=parse_remaps(args.remap))
-    node.spin()
-    # The node has stopped cleanly. Python's own teardown of torch and numpy took the slip detector past
-    # the launcher's grace time when a whole launch stopped at once on 2 cores (it was killed on every
-    # Ctrl-C): send what ZeroMQ still queues (its last frames and status, within the sockets' linger),
-    # flush, and leave without it (its children, which that teardown would have ended, with it).
+    node = None
+    try:
+        cls = node_class(args.kind)
+        if not args.standby or _wait_for_takeover(cls, params):
+            node = cls(args.name or args.kind, params, namespace=args.ns, remap=parse_remaps(args.remap))
+            node.spin()
+        code = OK
+    except KeyboardInterrupt as stop:  # stopped as it imported or set up (`Node.spin`), a spare as it preloaded
+        code = interrupted_code(stop)
+    _leave(node, code)
+
+
+def _leave(node: Node | None, code: int) -> NoReturn:
+    """End this node's process (`node`: the Node, None for a spare that did not take over) with exit `code`,
+    once it has stopped. Python's own teardown of torch and numpy took the slip detector past the launcher's
+    grace time when a whole launch stopped at once on 2 cores (it was killed on every Ctrl-C), and a spare
+    0.4 to 1.0 s (the slip detector's, killed 1 run in 6): send what ZeroMQ still queues (the node's last
+    frames and status, within the sockets' linger), flush, and leave without it (its children, which that
+    teardown would have ended, with it)."""
+    from nodes.bus import LINGER_MS, stop_handshake_watchers
+    from nodes.parent_death import end_own_group
     stop_handshake_watchers()
-    node.ctx.destroy(linger=LINGER_MS)
+    if node is not None:
+        node.ctx.destroy(linger=LINGER_MS)
     logging.shutdown()
     sys.stdout.flush()
     sys.stderr.flush()
     end_own_group()
-    os._exit(OK)
+    os._exit(code)
 
 
 _JSON_KINDS = {list: "a list", str: "a string", bool: "a boolean", int: "a number", float: "a number",

@@ -50,7 +50,7 @@ from msgs import Message, MessageError, NodeStatus, Unanswered
 from nodes.bus import (ALL_TOPICS, GONE, LINGER_MS, SUB_HWM, PublisherSocket, SeqTracker, connect_client,
                        new_context, absolute_namespace, parse_envelope, resolve_topic, subscription_prefixes)
 from nodes.endpoints import BusAddress, bus_address
-from nodes.exit_codes import NodeFailed, on_stop_signals
+from nodes.exit_codes import NodeFailed, interrupt, on_stop_signals
 from nodes.param_service import ParamService, is_param_topic
 from nodes.params import build_params
 
@@ -213,6 +213,7 @@ class Node:
         self._failing: dict[str, tuple[int, str]] = {}  # callback label -> (calls in a row that raised, the last error)
         self._no_forwarder_since_s: float | None = None  # monotonic start of a wait for a forwarder never seen
         self._failure: str | None = None  # the error fail() stopped the node with
+        self._set_up = False  # setup() has returned (`_on_stop_signal`)
         self._ctl_addr = f"inproc://fv-node-{next(_CONTROL_IDS)}"
         self._ctl_out = self.ctx.socket(zmq.PAIR)
         self._ctl_out.bind(self._ctl_addr)
@@ -321,18 +322,20 @@ class Node:
 
     def spin(self, install_signals: bool = True) -> None:
         """Run setup, then callbacks and timers until stop() or one of `stop_signals()`; NodeFailed after
-        fail()."""
-        if install_signals and threading.current_thread() is threading.main_thread():
-            on_stop_signals(lambda _signum: self.stop())
-        self._receiver = threading.Thread(target=self._receive_loop, name=f"{self.name}-rx", daemon=True)
-        self._receiver.start()
-        started_s = time.monotonic()
-        if not self._pub_sock.wait_connected(self.CONNECT_WAIT_S):
-            self._no_forwarder_since_s = started_s
-            self.log.warning("no forwarder answers on %s; start one with `fv forwarder` or `fv launch` "
-                             "(waiting for it)", self.address.url)
+        fail(). With `install_signals` (in the main thread), a stop signal that comes before setup has
+        returned raises `interrupt(signum)` (`_on_stop_signal`)."""
         try:
+            if install_signals and threading.current_thread() is threading.main_thread():
+                on_stop_signals(self._on_stop_signal)
+            self._receiver = threading.Thread(target=self._receive_loop, name=f"{self.name}-rx", daemon=True)
+            self._receiver.start()
+            started_s = time.monotonic()
+            if not self._pub_sock.wait_connected(self.CONNECT_WAIT_S):
+                self._no_forwarder_since_s = started_s
+                self.log.warning("no forwarder answers on %s; start one with `fv forwarder` or `fv launch` "
+                                 "(waiting for it)", self.address.url)
             self.setup()
+            self._set_up = True
             self._watcher = threading.Thread(target=self._watch_loop, name=f"{self.name}-status", daemon=True)
             self._watcher.start()
             self._executor_loop()
@@ -340,6 +343,16 @@ class Node:
             self.close()
         if self._failure is not None:
             raise NodeFailed(self._failure)
+
+    def _on_stop_signal(self, signum: int) -> None:
+        """The node's stop on one of `stop_signals()`. Before its setup has returned (the forwarder's wait,
+        torch's import, a model's load and first pass) it is cut short there by `interrupt(signum)`, raised
+        where it runs: the slip detector's setup ran to its end first (1 to 4 s on 2 cores), past the
+        launcher's grace time, which then killed it (2 of 5 launches stopped 3 s after their start). The node is stopped first, should that exception be lost
+        (raised where Python ignores exceptions), so that it stops once its setup is done."""
+        self.stop()
+        if not self._set_up:
+            raise interrupt(signum)
 
     def close(self) -> None:
         self._stop.set()

@@ -118,6 +118,8 @@ STOP_AT = {  # (the point of the first SIGTERM, the exit code that the README gi
             "s.write_image = lambda *a: (write(*a), n.append(0), len(n) == 3 and stop())[0]", 128 + signal.SIGTERM),
 }
 
+ENDED_BY_THE_COMMAND = {"node", "standby"}  # `fv node` ends its process itself, stopped: its `main` does not return
+
 
 @pytest.mark.parametrize("command", list(STOP_AT))
 def test_a_stop_signal_once_main_has_returned_is_ignored(bus_env: Bus, tmp_path: Path, command: str) -> None:
@@ -133,7 +135,8 @@ def test_a_stop_signal_once_main_has_returned_is_ignored(bus_env: Bus, tmp_path:
     first, code = STOP_AT[command]
     result = subprocess.run([sys.executable, "-c", STOPPED_AGAIN_ONCE_MAIN_HAS_RETURNED.replace("FIRST", first),
                              *args[command]], cwd=REPO, capture_output=True, text=True, timeout=120)
-    assert result.returncode == code and result.stdout.endswith(f"main returned {code}\n"), result.stderr
+    assert result.returncode == code, result.stderr
+    assert result.stdout.endswith(f"main returned {code}\n") or command in ENDED_BY_THE_COMMAND, result.stdout
     assert "Traceback" not in result.stderr, result.stderr
     assert not (tmp_path / "seq").exists() and not list(tmp_path.glob("seq.partial-*"))
 
@@ -162,10 +165,10 @@ sys.exit(main(sys.argv[1:]))
 def test_a_node_whose_first_stop_was_lost_stops_as_it_spins(bus_env: Bus) -> None:
     """The command line's `Stopped`, raised in a node still importing, was lost in a weakref callback of the import
     system (1 run in 10 of two SIGTERMs 50 ms apart as `fv node talker` started); the node then ran on as if it
-    had not been stopped."""
+    had not been stopped. It stops before its setup, as a node stopped while it starts: 143."""
     result = subprocess.run([sys.executable, "-c", STOP_LOST_IN_A_CALLBACK, "node", "talker"], cwd=REPO,
                             capture_output=True, text=True, timeout=60)
-    assert result.returncode == OK, result.stderr
+    assert result.returncode == 128 + signal.SIGTERM, result.stderr
     assert "Stopped: SIGTERM" in result.stderr  # Python's "Exception ignored in: <function stop_in_a_callback ..."
 
 
@@ -189,6 +192,34 @@ def test_a_command_stopped_as_it_imports_its_modules_exits_cleanly() -> None:
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 128 + signal.SIGTERM, result.stderr
     assert "Traceback" not in result.stderr
+
+
+# `fv node talker` whose setup takes long, as the slip detector's does (torch's import, its model's load and first pass)
+SLOW_SETUP = """
+import sys, time
+from nodes.demo import Talker
+def slow_setup(self):
+    print("setting up", flush=True)
+    time.sleep(120)
+Talker.setup = slow_setup
+from nodes.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_a_node_stopped_in_its_setup_stops_there(bus: Bus) -> None:
+    """A node stopped during its setup ran the setup to its end first: the slip detector 1 to 4 s on 2 cores, past
+    the launcher's grace time (killed, 2 runs of 5 of `fv launch launch/pipeline.yaml` stopped 3 s after its
+    start). It stops there, with the code of a node stopped while it starts (143)."""
+    proc = subprocess.Popen([sys.executable, "-c", SLOW_SETUP, "node", "talker"], cwd=REPO, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline() == "setting up\n"
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == 128 + signal.SIGTERM, proc.stderr.read()
+    finally:
+        proc.kill()
+        proc.communicate()
 
 
 def test_a_command_under_nohup_runs_on_after_sighup(tmp_path: Path) -> None:
