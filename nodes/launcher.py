@@ -46,6 +46,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from nodes import launch_checks
+from nodes.endpoints import BusAddress
 from nodes.exit_codes import CONFIG, CONFIG_WHILE_RUNNING, FAILED, OK, TEMPFAIL, on_stop_signals
 from nodes.launch_file import NodeSpec, load_launch, parse_arg_overrides
 from nodes.node import LAUNCH_ENV, STANDBY_READY
@@ -244,18 +245,48 @@ class Launch:
 
     def start(self) -> None:
         """Start the forwarder (when none answers) and every node; supervise in a thread. Call it from a
-        thread that lives as long as the launch: what it starts gets SIGTERM when it ends (`nodes.parent_death`)."""
+        thread that lives as long as the launch: what it starts gets SIGTERM when it ends (`nodes.parent_death`).
+        Once the launch is stopped (`run`'s stop signal), the nodes not yet started are not: Ctrl-C as a launch
+        started had each node started, to be stopped at once, as its interpreter started (killed by the
+        SIGTERM, -15)."""
         from nodes.bus import PublisherSocket, TopicReader
         from nodes.endpoints import bus_address
-        from nodes.forwarder import ensure_forwarder, ping
         from nodes.param_service import NoParamService
 
         self._address = address = bus_address()
+        if not self._stop.is_set():
+            self._start_forwarder(address)
+        self._status_pub = PublisherSocket(self.name, address)
+        self._status_reader = TopicReader([STATUS_TOPIC], address)
+        self._params = NoParamService(self.name, self._status_pub, address)
+        try:
+            for child in self.children:
+                if self._stop.is_set():
+                    break
+                self._spawn(child)
+        except BaseException:
+            self._shutdown()
+            raise
+        self._supervisor = threading.Thread(target=self._supervise, name="launch-supervisor", daemon=True)
+        self._supervisor.start()
+
+    def _start_forwarder(self, address: BusAddress) -> None:
+        """Start a forwarder on `address` when none answers, unless it is a TCP bus, whose forwarder must run
+        already; RuntimeError when none serves it (but for one stopped as it started, with the launch: Ctrl-C
+        reaches both, and the launch then said "forwarder ... exited with code 130 at start" and exited 2), or
+        when this launch's nodes run on it already."""
+        from nodes.forwarder import ensure_forwarder, ping
+
         if address.is_tcp:
             if ping(address, 1.0) is None:
                 raise RuntimeError(f"no forwarder answers at {address.url}; start `fv forwarder --tcp ...` there")
         else:
-            self._forwarder = ensure_forwarder(address)
+            try:
+                self._forwarder = ensure_forwarder(address)
+            except RuntimeError:
+                if self._stop.is_set():
+                    return
+                raise
             if self._forwarder is not None:
                 self.say(f"started forwarder on {address.url} pid {self._forwarder.pid}")
         if self._forwarder is None:  # a forwarder serves this bus already: another launch may be on it
@@ -264,17 +295,6 @@ class Launch:
                 raise RuntimeError(f"nodes named {', '.join(running)} already run on {address.url} (another launch?): "
                                    "two pipelines on one bus mix their topics; stop that launch, or give this one "
                                    "another FV_BUS or a namespace")
-        self._status_pub = PublisherSocket(self.name, address)
-        self._status_reader = TopicReader([STATUS_TOPIC], address)
-        self._params = NoParamService(self.name, self._status_pub, address)
-        try:
-            for child in self.children:
-                self._spawn(child)
-        except BaseException:
-            self._shutdown()
-            raise
-        self._supervisor = threading.Thread(target=self._supervise, name="launch-supervisor", daemon=True)
-        self._supervisor.start()
 
     def _namesakes_running(self) -> list[str]:
         """The names of this launch's nodes that a running node on the bus has already: its NodeStatus
