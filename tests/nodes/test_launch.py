@@ -359,6 +359,23 @@ def test_fv_param_answers_for_the_launchers_own_status_name(bus: Bus, tmp_path: 
         launch.stop()
 
 
+def test_a_launch_stopped_as_its_forwarder_starts_starts_nothing_more_and_says_no_error(
+        bus_env: Bus, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ctrl-C reaches the launcher and the forwarder it is starting (one process group): the launch said "forwarder
+    ... exited with code 130 at start" and exited 2, and, stopped later in its start, it started every node, to stop
+    each at once as its interpreter started (-15)."""
+    launch, out = _launch(tmp_path, "nodes:\n  - {kind: talker}\n")
+
+    def stopped_as_it_starts(_address: object) -> None:
+        launch.stop()
+        raise RuntimeError(f"forwarder for {bus_env.address.url} exited with code 130 at start")
+
+    monkeypatch.setattr("nodes.forwarder.ensure_forwarder", stopped_as_it_starts)
+    launch.start()
+    assert launch.wait(10.0) and launch.stop() == OK
+    assert "started" not in out.getvalue(), out.getvalue()
+
+
 def test_killed_respawn_node_is_back_within_delay_plus_1s(bus_env: Bus, tmp_path: Path) -> None:
     delay_s = 0.3
     launch, out = _launch(tmp_path, f"nodes:\n  - kind: talker\n    params: {{rate_hz: 20}}\n"
