@@ -213,7 +213,7 @@ class Node:
         self._failing: dict[str, tuple[int, str]] = {}  # callback label -> (calls in a row that raised, the last error)
         self._no_forwarder_since_s: float | None = None  # monotonic start of a wait for a forwarder never seen
         self._failure: str | None = None  # the error fail() stopped the node with
-        self._set_up = False  # setup() has returned (`_on_stop_signal`)
+        self._starting = True  # spin() has not yet run setup to its end: a stop signal raises (`_on_stop_signal`)
         self._ctl_addr = f"inproc://fv-node-{next(_CONTROL_IDS)}"
         self._ctl_out = self.ctx.socket(zmq.PAIR)
         self._ctl_out.bind(self._ctl_addr)
@@ -335,11 +335,12 @@ class Node:
                 self.log.warning("no forwarder answers on %s; start one with `fv forwarder` or `fv launch` "
                                  "(waiting for it)", self.address.url)
             self.setup()
-            self._set_up = True
+            self._starting = False
             self._watcher = threading.Thread(target=self._watch_loop, name=f"{self.name}-status", daemon=True)
             self._watcher.start()
             self._executor_loop()
         finally:
+            self._starting = False  # (a setup that raised: its teardown is not cut short)
             self.close()
         if self._failure is not None:
             raise NodeFailed(self._failure)
@@ -348,10 +349,11 @@ class Node:
         """The node's stop on one of `stop_signals()`. Before its setup has returned (the forwarder's wait,
         torch's import, a model's load and first pass) it is cut short there by `interrupt(signum)`, raised
         where it runs: the slip detector's setup ran to its end first (1 to 4 s on 2 cores), past the
-        launcher's grace time, which then killed it (2 of 5 launches stopped 3 s after their start). The node is stopped first, should that exception be lost
-        (raised where Python ignores exceptions), so that it stops once its setup is done."""
+        launcher's grace time, which then killed it (2 of 5 launches stopped 3 s after their start). The node
+        is stopped first, should that exception be lost (raised where Python ignores exceptions), so that it
+        stops once its setup is done."""
         self.stop()
-        if not self._set_up:
+        if self._starting:
             raise interrupt(signum)
 
     def close(self) -> None:
