@@ -60,6 +60,7 @@ FORWARDER_CHECK_S = 1.0  # period of the pings to a forwarder this launch shares
 SPARE_RETRY_S = 1.0  # at least this long before replacing a spare that died (a spare that cannot start loops slowly)
 SPARE_RETRY_MAX_S = 60.0  # the longest wait, doubled from SPARE_RETRY_S for each spare in a row that never got ready
 POLL_S = 0.05
+READY_POLL_S = 0.01  # how often a stop looks whether a process still starting takes SIGTERM
 STATUS_PERIOD_S = 1.0  # the launcher's own NodeStatus period
 SILENT_AFTER_S = 3.0  # a running node whose NodeStatus stopped this long is reported (nodes send one per second)
 START_TRIES = 3  # starts in a row that end in a configuration error before the launch stops (a file still being
@@ -517,32 +518,23 @@ class Launch:
         self._stop.set()
 
     def _shutdown(self) -> None:
-        for child in self.children:
-            if child.spare is not None:
-                _signal_group(child.spare, signal.SIGTERM)
+        """Stop the nodes and their spares: SIGTERM to each process group once its process can take it
+        (`_terminate_when_ready`), SIGKILL to those still running `GRACE_S` after the stop; then the forwarder."""
+        spares = [c for c in self.children if c.spare is not None]
         running = [c for c in self.children if c.proc is not None]
-        for child in running:
-            _signal_group(child.proc, signal.SIGTERM)
         deadline = time.monotonic() + GRACE_S
+        _terminate_when_ready([c.spare for c in spares] + [c.proc for c in running], deadline)
         for child in running:
-            try:
-                child.proc.wait(max(0.0, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                self.say(f"{child.spec.name} did not stop within {GRACE_S} s: killed")
-                _signal_group(child.proc, signal.SIGKILL)
-                child.proc.wait()
+            self._end(child.proc, child.spec.name, deadline)
+            child.exit_code = child.proc.returncode
             if child.reader is not None:
                 child.reader.join(1.0)
             child.proc = None
         for child in self.children:
             child.restart_at = child.spare_at = None
-            if child.spare is not None:
-                try:
-                    child.spare.wait(max(0.0, deadline - time.monotonic()))
-                except subprocess.TimeoutExpired:
-                    _signal_group(child.spare, signal.SIGKILL)
-                    child.spare.wait()
-                child.spare = None
+        for child in spares:
+            self._end(child.spare, f"spare {child.spec.name}", deadline)
+            child.spare = None
         for sock in (self._status_reader, self._params, self._status_pub):
             if sock is not None:
                 sock.close()
@@ -555,6 +547,16 @@ class Launch:
                 self._forwarder.kill()
                 self._forwarder.wait()
             self._forwarder = None
+
+    def _end(self, proc: subprocess.Popen, who: str, deadline: float) -> None:
+        """Wait until `deadline` for `proc` (`who`: a node or spare), sent SIGTERM, to exit, then kill its
+        process group."""
+        try:
+            proc.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            self.say(f"{who} did not stop within {GRACE_S} s: killed")
+            _signal_group(proc, signal.SIGKILL)
+            proc.wait()
 
 
 def _cannot(child: Child) -> str:
@@ -584,6 +586,34 @@ def _process_state(pid: int) -> str:
             return f.read().rpartition(")")[2].split()[0]
     except (OSError, IndexError):
         return ""
+
+
+def _terminate_when_ready(procs: list[subprocess.Popen], deadline: float) -> None:
+    """Send SIGTERM to the process group of each of `procs` as soon as its process catches or ignores it
+    (`_takes_sigterm`) or has exited, the rest at `deadline`. A node started in the last 0.1 to 0.4 s before a
+    stop (a first start, a respawn, a spare) had not yet installed the handlers of `fv` (Python still loading
+    `nodes.cli`): the signal ended it (-15) instead of stopping it cleanly. A process that takes SIGTERM is sent
+    it at once: a normal stop waits for nothing."""
+    pending = list(procs)
+    while pending:
+        late = time.monotonic() >= deadline
+        for proc in [p for p in pending if late or p.poll() is not None or _takes_sigterm(p.pid)]:
+            _signal_group(proc, signal.SIGTERM)
+            pending.remove(proc)
+        if pending:
+            time.sleep(READY_POLL_S)
+
+
+def _takes_sigterm(pid: int) -> bool:
+    """Whether process `pid` catches SIGTERM (a handler installed) or ignores it, by /proc/PID/status
+    (SigCgt, SigIgn: hexadecimal masks, bit n - 1 for signal n); True where that cannot be read (no /proc;
+    the process gone), so that it is sent at once, as before."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            masks = dict(line.split(":", 1) for line in f if line.startswith(("SigCgt:", "SigIgn:")))
+        return bool((int(masks["SigCgt"], 16) | int(masks["SigIgn"], 16)) >> (signal.SIGTERM - 1) & 1)
+    except (OSError, KeyError, ValueError):
+        return True
 
 
 def _signal_group(proc: subprocess.Popen, sig: int) -> None:

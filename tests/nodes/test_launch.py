@@ -9,6 +9,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -760,6 +761,33 @@ def test_the_children_of_a_killed_node_are_stopped(bus_env: Bus, tmp_path: Path,
     finally:
         launch.stop()
         _kill(sleeps)
+
+
+# a talker whose python loads nodes.cli (and installs its stop handlers) only once the file $1 exists
+WAITS_FOR_FILE = ("exec \"$PY\" -c 'import os, sys, time\nwhile not os.path.exists(sys.argv[1]): time.sleep(0.01)\n"
+                  "from nodes.cli import main; sys.exit(main(sys.argv[4:]))' {go} \"$@\"")
+
+
+def test_a_node_stopped_before_it_takes_sigterm_is_sent_it_once_it_does(bus_env: Bus, tmp_path: Path,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A node started just before a stop (a first start, a respawn, a spare), Python still loading nodes.cli, was
+    ended by the launcher's SIGTERM (-15): the launcher now sends it once the node has its stop handler
+    (here: once the file `go` exists), and the node stops cleanly."""
+    go = tmp_path / "go"
+    _talker_wrapped(tmp_path, monkeypatch, WAITS_FOR_FILE.format(go=go))
+    monkeypatch.setattr("nodes.launcher.GRACE_S", 60.0)  # no kill before the handler, however loaded the host
+    launch, out = _launch(tmp_path, "nodes:\n  - {kind: talker}\n")
+    launch.start()
+    talker = launch.children[0].proc
+    stopper = threading.Thread(target=launch.stop)
+    stopper.start()
+    try:
+        stopper.join(0.5)
+        assert stopper.is_alive() and talker.poll() is None, (talker.returncode, out.getvalue())
+    finally:
+        go.touch()
+        stopper.join(60.0)
+    assert talker.returncode in (OK, 128 + signal.SIGTERM), (talker.returncode, out.getvalue())
 
 
 @pytest.mark.parametrize("delay_s", [0, 3])
