@@ -34,6 +34,7 @@ respawned as usual.
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import re
 import signal
@@ -67,6 +68,8 @@ START_TRIES = 3  # starts in a row that end in a configuration error before the 
 # written may pass the next time; a bad param never does)
 LINES_KEPT = 20  # a process's last output lines kept: its error, the lines a waiting node does not repeat
 STATUS_TOPIC = "/status"
+
+_log = logging.getLogger("launch")
 
 
 @dataclass
@@ -519,7 +522,8 @@ class Launch:
 
     def _shutdown(self) -> None:
         """Stop the nodes and their spares: SIGTERM to each process group once its process can take it
-        (`_terminate_when_ready`), SIGKILL to those still running `GRACE_S` after the stop; then the forwarder."""
+        (`_terminate_when_ready`), SIGKILL to those still running `GRACE_S` after the stop; then the forwarder.
+        Each exit code is said with `-v` (debug); one ended by a signal, or killed, at any level."""
         spares = [c for c in self.children if c.spare is not None]
         running = [c for c in self.children if c.proc is not None]
         deadline = time.monotonic() + GRACE_S
@@ -543,20 +547,33 @@ class Launch:
             self._forwarder.terminate()
             try:
                 self._forwarder.wait(FORWARDER_GRACE_S)
+                self._say_exit(self._forwarder, "forwarder")
             except subprocess.TimeoutExpired:
+                self.say(f"forwarder did not stop within {FORWARDER_GRACE_S} s: killed")
                 self._forwarder.kill()
                 self._forwarder.wait()
             self._forwarder = None
 
     def _end(self, proc: subprocess.Popen, who: str, deadline: float) -> None:
         """Wait until `deadline` for `proc` (`who`: a node or spare), sent SIGTERM, to exit, then kill its
-        process group."""
+        process group (said); `_say_exit` otherwise."""
         try:
             proc.wait(max(0.0, deadline - time.monotonic()))
         except subprocess.TimeoutExpired:
             self.say(f"{who} did not stop within {GRACE_S} s: killed")
             _signal_group(proc, signal.SIGKILL)
             proc.wait()
+            return
+        self._say_exit(proc, who)
+
+    def _say_exit(self, proc: subprocess.Popen, who: str) -> None:
+        """Say how `proc` (`who`) that the shutdown stopped ended: its exit code with `-v` (debug), at any level
+        when a signal ended it (a stop it could not take)."""
+        if proc.returncode < 0:
+            self.say(f"{who} pid {proc.pid} was ended by a signal: {signal.strsignal(-proc.returncode)} "
+                     f"(exit {proc.returncode})")
+        elif _log.isEnabledFor(logging.DEBUG):
+            self.say(f"{who} pid {proc.pid} exited with code {proc.returncode}")
 
 
 def _cannot(child: Child) -> str:

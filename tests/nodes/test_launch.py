@@ -4,6 +4,7 @@ launch), required nodes, and a clean stop on Ctrl-C."""
 from __future__ import annotations
 
 import io
+import logging
 import re
 import os
 import signal
@@ -788,6 +789,31 @@ def test_a_node_stopped_before_it_takes_sigterm_is_sent_it_once_it_does(bus_env:
         go.touch()
         stopper.join(60.0)
     assert talker.returncode in (OK, 128 + signal.SIGTERM), (talker.returncode, out.getvalue())
+
+
+# a "talker" that a SIGTERM ends by the signal
+ENDED_BY_SIGTERM = ("exec \"$PY\" -c 'import os, signal, time\nsignal.signal(signal.SIGTERM, lambda *_: "
+                    "(signal.signal(signal.SIGTERM, signal.SIG_DFL), os.kill(os.getpid(), signal.SIGTERM)))\n"
+                    "time.sleep(60)'")
+
+
+@pytest.mark.parametrize("debug", [False, True])
+def test_the_stop_says_how_each_node_ended(bus_env: Bus, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                           caplog: pytest.LogCaptureFixture, debug: bool) -> None:
+    """At its stop the launcher says each node's exit code with `-v` (debug), and one ended by a signal at any
+    level (as one killed after the grace time). Before, it said nothing of how they ended."""
+    _talker_wrapped(tmp_path, monkeypatch, ENDED_BY_SIGTERM)
+    caplog.set_level(logging.DEBUG if debug else logging.INFO, logger="launch")
+    launch, out = _launch(tmp_path, "nodes:\n  - {kind: talker}\n  - {kind: listener}\n")
+    launch.start()
+    try:
+        wait_status("listener", timeout_s=20.0)
+        talker, listener = launch.pid("talker"), launch.pid("listener")
+    finally:
+        launch.stop()
+    text = out.getvalue()
+    assert f"[launch] talker pid {talker} was ended by a signal: Terminated (exit -15)" in text, text
+    assert (f"[launch] listener pid {listener} exited with code 0" in text) == debug, text
 
 
 @pytest.mark.parametrize("delay_s", [0, 3])
