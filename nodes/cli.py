@@ -30,6 +30,9 @@ COMMAND_MODULES = [
     "nodes.view_commands",
 ]
 
+STOP_ENDS_WELL = ("launch", "forwarder")  # commands that run until stopped: a stop is their clean end (exit OK),
+# also one that came as the command line imported its modules (README: `fv launch` stopped by Ctrl-C exits 0)
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fv", description="FingerVision tactile sensing tools")
@@ -81,7 +84,8 @@ def _quiet_pool_threads(args: threading.ExceptHookArgs) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Run the command; its exit code (`nodes.exit_codes`): a NotReadyError gives TEMPFAIL, an error
     of input or configuration (ValueError, KeyError, OSError, RuntimeError) CONFIG, each said in one line;
-    Ctrl-C INTERRUPTED, SIGTERM and SIGHUP 128 + their number, after the command's clean-up, the stop signals
+    Ctrl-C INTERRUPTED, SIGTERM and SIGHUP 128 + their number (OK for the commands of `STOP_ENDS_WELL`: a launch
+    stopped as it imported exited 130), after the command's clean-up, the stop signals
     after the first ignored to the process's exit. The stop handlers are in place before the command modules
     are imported (0.25 s on an idle host, seconds as a launch starts its nodes on 2 cores): a SIGTERM during
     those imports ended the process by the signal (-15) instead. A process started by `fv launch`
@@ -93,11 +97,18 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _run(argv)
     except KeyboardInterrupt as stop:  # Ctrl-C, or `Stopped`
-        return interrupted_code(stop)
+        command = _command_word(sys.argv[1:] if argv is None else argv)
+        return OK if command in STOP_ENDS_WELL else interrupted_code(stop)
     finally:
         if not stopping():  # once stopping, this process ignores them to its exit (`ignore_stop_signals`)
             for sig, handler in previous.items():  # a caller's own (main() called in a test's process)
                 signal.signal(sig, handler)
+
+
+def _command_word(argv: list[str]) -> str | None:
+    """The command `argv` names (its first word that is not an option; `fv` has no option taking a value),
+    known before the command modules are imported: None when it names none."""
+    return next((word for word in argv if not word.startswith("-")), None)
 
 
 def _run(argv: list[str] | None) -> int:
