@@ -219,12 +219,19 @@ def ping(address: BusAddress | None = None, timeout_s: float = ANSWER_WAIT_S) ->
         sock.close(linger=0)
 
 
-def ensure_forwarder(address: BusAddress | None = None, timeout_s: float = 5.0) -> subprocess.Popen | None:
+def ensure_forwarder(address: BusAddress | None = None, timeout_s: float = 5.0,
+                     stop: threading.Event | None = None) -> subprocess.Popen | None:
     """Start a forwarder process unless one answers; returns it (the caller stops it; it also stops
-    when the caller dies: `nodes.parent_death`) or None when one was already running."""
+    when the caller dies: `nodes.parent_death`) or None when one was already running. Once `stop` is set, none
+    is started and the one started is no longer waited for (it is terminated): RuntimeError, as when it cannot
+    start. A launch stopped as it looked for a forwarder started one, waited for its answer, then stopped it:
+    0.5 to 0.7 s before its stop began."""
     address = address or bus_address()
+    stop = stop or threading.Event()
     if ping(address, 0.3) is not None:  # a quick look: the restart of a killed forwarder, whose socket file
         return None                     # is left, should not wait ANSWER_WAIT_S for an answer that cannot come
+    if stop.is_set():
+        raise RuntimeError(f"stopped before a forwarder for {address.url} was started")
     env = dict(os.environ, **{BUS_ENV: address.url}, **parent_env())
     proc = subprocess.Popen([sys.executable, "-m", "nodes.cli", "forwarder"], env=env,
                             start_new_session=False)
@@ -234,7 +241,9 @@ def ensure_forwarder(address: BusAddress | None = None, timeout_s: float = 5.0) 
             return proc
         if proc.poll() is not None:
             raise RuntimeError(f"forwarder for {address.url} exited with code {proc.returncode} at start")
-        time.sleep(0.05)
+        if stop.wait(0.05):
+            proc.terminate()
+            raise RuntimeError(f"stopped before the forwarder for {address.url} answered")
     proc.terminate()
     raise RuntimeError(f"forwarder for {address.url} did not answer within {timeout_s} s")
 

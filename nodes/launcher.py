@@ -277,7 +277,8 @@ class Launch:
     def _start_forwarder(self, address: BusAddress) -> None:
         """Start a forwarder on `address` when none answers, unless it is a TCP bus, whose forwarder must run
         already; RuntimeError when none serves it (but for one stopped as it started, with the launch: Ctrl-C
-        reaches both, and the launch then said "forwarder ... exited with code 130 at start" and exited 2), or
+        reaches both, and the launch then said "forwarder ... exited with code 130 at start" and exited 2; or stopped
+        before it answered: `ensure_forwarder`'s `stop`), or
         when this launch's nodes run on it already."""
         from nodes.forwarder import ensure_forwarder, ping
 
@@ -286,7 +287,7 @@ class Launch:
                 raise RuntimeError(f"no forwarder answers at {address.url}; start `fv forwarder --tcp ...` there")
         else:
             try:
-                self._forwarder = ensure_forwarder(address)
+                self._forwarder = ensure_forwarder(address, stop=self._stop)
             except RuntimeError:
                 if self._stop.is_set():
                     return

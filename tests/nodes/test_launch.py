@@ -368,11 +368,29 @@ def test_a_launch_stopped_as_its_forwarder_starts_starts_nothing_more_and_says_n
     each at once as its interpreter started (-15)."""
     launch, out = _launch(tmp_path, "nodes:\n  - {kind: talker}\n")
 
-    def stopped_as_it_starts(_address: object) -> None:
+    def stopped_as_it_starts(_address: object, **_options: object) -> None:
         launch.stop()
         raise RuntimeError(f"forwarder for {bus_env.address.url} exited with code 130 at start")
 
     monkeypatch.setattr("nodes.forwarder.ensure_forwarder", stopped_as_it_starts)
+    launch.start()
+    assert launch.wait(10.0) and launch.stop() == OK
+    assert "started" not in out.getvalue(), out.getvalue()
+
+
+def test_a_launch_stopped_as_it_looks_for_a_forwarder_starts_none(
+        bus_env: Bus, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A stop during the launch's quick look for a running forwarder (up to 0.3 s) started a forwarder anyway,
+    waited for its answer, then stopped it: the launch's stop began 0.5 to 0.7 s late."""
+    import nodes.forwarder
+    launch, out = _launch(tmp_path, "nodes:\n  - {kind: talker}\n")
+    looked = ping
+
+    def stopped_as_it_looks(address: object, timeout_s: float = 0.3) -> dict | None:
+        launch.stop()
+        return looked(address, timeout_s)
+
+    monkeypatch.setattr(nodes.forwarder, "ping", stopped_as_it_looks)
     launch.start()
     assert launch.wait(10.0) and launch.stop() == OK
     assert "started" not in out.getvalue(), out.getvalue()
