@@ -60,8 +60,8 @@ def _stop_command(signum: int) -> None:
     """A command's stop on the first of `stop_signals()` (`on_stop_signals`; nodes, launches and the forwarder
     put their own in its place): the worker processes of the command's process pools are terminated (a
     `kill` of this process did not reach them: a benchmark's worker ran on for 80 s; SIGINT, as Ctrl-C gives
-    them, only ended the task it was on, and the pool waited for the worker), then KeyboardInterrupt (Ctrl-C)
-    or `Stopped` is raised. The pools' threads then find their workers gone, which they are not told of
+    them, only ended the task it was on, and the pool waited for the worker), then `Stopped` (a
+    KeyboardInterrupt) is raised. The pools' threads then find their workers gone, which they are not told of
     (`_quiet_pool_threads`). A multiprocessing.Pool's workers are left to its exit. The stop signals that
     come after it are ignored (`ignore_stop_signals`): one during the clean-up cut it short, also after Ctrl-C
     (`fv sim --out` left its partial folder of PNGs behind)."""

@@ -119,9 +119,13 @@ def _stop_by_default(signum: int, frame: FrameType | None) -> None:
 
 
 class Stopped(KeyboardInterrupt):
-    """SIGTERM or SIGHUP (`kill`, systemd, `timeout`, a closed terminal), raised where the command runs, so
-    that it stops as on Ctrl-C: its clean-up runs (a partial output folder is removed) and it exits 128 +
-    the signal's number. Before, it died at once, leaving a half-written `fv sim --out` folder behind."""
+    """A stop signal (Ctrl-C's SIGINT; SIGTERM or SIGHUP: `kill`, systemd, `timeout`, a closed terminal), raised
+    where the command runs, so that it stops as on Ctrl-C: its clean-up runs (a partial output folder is removed)
+    and it exits 128 + the signal's number. Before, SIGTERM ended it at once, leaving a half-written `fv sim
+    --out` folder behind. A subclass for SIGINT too: CPython notes a KeyboardInterrupt itself (not a subclass)
+    that leaves Python code run by a C extension (PyRun_String: pybind11's exec), and a process run as `python
+    -m` then kills itself by SIGINT at its exit whatever it caught and returned (a launch or node stopped by
+    Ctrl-C as it imported exited -2, with no word)."""
 
     def __init__(self, signum: int) -> None:
         super().__init__(signal.Signals(signum).name)
@@ -129,14 +133,13 @@ class Stopped(KeyboardInterrupt):
 
 
 def interrupt(signum: int) -> KeyboardInterrupt:
-    """What a stop by `signum` raises where the process runs: KeyboardInterrupt for SIGINT (Ctrl-C), else
-    `Stopped`."""
-    return KeyboardInterrupt() if signum == signal.SIGINT else Stopped(signum)
+    """What a stop by `signum` raises where the process runs: `Stopped`, a KeyboardInterrupt."""
+    return Stopped(signum)
 
 
 def interrupted_code(stop: KeyboardInterrupt) -> int:
-    """The exit code of a process that `stop` (`interrupt`) ended: INTERRUPTED for Ctrl-C, 128 + the signal's
-    number for `Stopped`."""
+    """The exit code of a process that `stop` ended: 128 + the signal's number for `Stopped` (`interrupt`),
+    INTERRUPTED for a KeyboardInterrupt of Python's own SIGINT handler (before `fv`'s are in place)."""
     return stop.exit_code if isinstance(stop, Stopped) else INTERRUPTED
 
 

@@ -198,6 +198,35 @@ def test_a_command_stopped_as_it_imports_its_modules_exits_cleanly(sig: str, com
     assert "Traceback" not in result.stderr
 
 
+# `python -m` of the command line (as the launcher runs its nodes and forwarder) sent SIGINT as its command modules
+# are imported, in Python code that a C extension runs (PyRun_String, as pybind11's exec does)
+STOPPED_IN_EMBEDDED_CODE = """
+import ctypes, sys
+import nodes.cli as cli
+build = cli.build_parser
+def build_stopped():
+    run = ctypes.pythonapi.PyRun_String
+    run.argtypes, run.restype = [ctypes.c_char_p, ctypes.c_int, ctypes.py_object, ctypes.py_object], ctypes.py_object
+    run(b"import os, signal, time\\nos.kill(os.getpid(), signal.SIGINT)\\nfor _ in range(6000): time.sleep(0.01)\\n",
+        257, {}, {})  # 257: Py_file_input
+    return build()
+cli.build_parser = build_stopped
+sys.exit(cli.main(sys.argv[1:]))
+"""
+
+
+@pytest.mark.parametrize("command, code", [(["node", "talker"], 128 + signal.SIGINT), (["launch", "l.yaml"], OK)])
+def test_ctrl_c_in_python_code_a_c_extension_runs_gives_the_exit_code(tmp_path: Path, command: list[str],
+                                                                      code: int) -> None:
+    """CPython notes a KeyboardInterrupt itself that leaves code run by PyRun_String, and a `python -m` process then
+    kills itself by SIGINT at its exit, whatever it caught and returned: -2, with no word. A stop raises `Stopped`."""
+    (tmp_path / "stopped_in_embedded_code.py").write_text(STOPPED_IN_EMBEDDED_CODE)
+    result = subprocess.run([sys.executable, "-m", "stopped_in_embedded_code", *command], cwd=tmp_path,
+                            env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True, timeout=60)
+    assert result.returncode == code, result.stderr
+    assert "Traceback" not in result.stderr
+
+
 # `fv node talker` whose setup takes long, as the slip detector's does (torch's import, its model's load and first pass)
 SLOW_SETUP = """
 import sys, time
