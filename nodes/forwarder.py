@@ -178,6 +178,8 @@ class Forwarder:
                 up.send(event)
 
     def close(self) -> None:
+        """Close the sockets, and remove the IPC socket files this forwarder made (the lock held): left, each
+        later `ensure_forwarder` on the bus waited 0.3 s for an answer from them, a launch's start as its stop."""
         for (xsub, _, _), monitor in zip(self.sides, self.monitors):
             xsub.disable_monitor()
             monitor.close(linger=0)
@@ -188,6 +190,9 @@ class Forwarder:
             self.auth.stop()
         self.ctx.term()
         if self._lock_file is not None:
+            if self.sides:  # its IPC side was bound (the first)
+                for endpoint in (self.address.pub, self.address.sub, self.address.ctl):
+                    Path(endpoint[len("ipc://"):]).unlink(missing_ok=True)
             self._lock_file.close()
 
 

@@ -187,6 +187,15 @@ def test_what_a_publisher_sent_before_it_left_is_gone_with_it(bus_env: Bus) -> N
         forwarder.close()
 
 
+def test_a_closed_forwarder_leaves_no_socket_files(bus_env: Bus) -> None:
+    """A forwarder stopped cleanly left its IPC socket files: the next launch on the bus waited 0.3 s for an answer
+    from them (`ensure_forwarder`'s quick look) before starting its own. Now a look there answers at once."""
+    forwarder = Forwarder(bus_env.address)
+    forwarder.close()
+    left = [p.name for p in bus_env.folder.iterdir() if p.is_socket()]
+    assert not left, left
+
+
 def test_a_latched_message_published_before_any_forwarder_is_delivered(bus_env: Bus) -> None:
     """Only a reconnect re-sent latched messages: one published before the first forwarder answered (a
     camera's CameraInfo, when the camera started first) was dropped and never delivered."""
