@@ -62,6 +62,7 @@ SPARE_RETRY_S = 1.0  # at least this long before replacing a spare that died (a 
 SPARE_RETRY_MAX_S = 60.0  # the longest wait, doubled from SPARE_RETRY_S for each spare in a row that never got ready
 POLL_S = 0.05
 READY_POLL_S = 0.01  # how often a stop looks whether a process still starting takes SIGTERM
+TERM_WAIT_S = 0.3  # of GRACE_S, left to a process sent SIGTERM without its handler yet, before it is killed
 STATUS_PERIOD_S = 1.0  # the launcher's own NodeStatus period
 SILENT_AFTER_S = 3.0  # a running node whose NodeStatus stopped this long is reported (nodes send one per second)
 START_TRIES = 3  # starts in a row that end in a configuration error before the launch stops (a file still being
@@ -523,12 +524,14 @@ class Launch:
 
     def _shutdown(self) -> None:
         """Stop the nodes and their spares: SIGTERM to each process group once its process can take it
-        (`_terminate_when_ready`), SIGKILL to those still running `GRACE_S` after the stop; then the forwarder.
+        (`_terminate_when_ready`; to the rest `TERM_WAIT_S` before the grace time ends: sent at its end, each was
+        killed at once, said as one that did not stop), SIGKILL to those still running `GRACE_S` after the stop;
+        then the forwarder.
         Each exit code is said with `-v` (debug); one ended by a signal, or killed, at any level."""
         spares = [c for c in self.children if c.spare is not None]
         running = [c for c in self.children if c.proc is not None]
         deadline = time.monotonic() + GRACE_S
-        _terminate_when_ready([c.spare for c in spares] + [c.proc for c in running], deadline)
+        _terminate_when_ready([c.spare for c in spares] + [c.proc for c in running], deadline - TERM_WAIT_S)
         for child in running:
             self._end(child.proc, child.spec.name, deadline)
             child.exit_code = child.proc.returncode

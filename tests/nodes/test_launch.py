@@ -809,6 +809,20 @@ def test_a_node_stopped_before_it_takes_sigterm_is_sent_it_once_it_does(bus_env:
     assert talker.returncode in (OK, 128 + signal.SIGTERM), (talker.returncode, out.getvalue())
 
 
+def test_a_node_that_never_takes_sigterm_is_sent_it_before_the_grace_ends_not_killed(
+        bus_env: Bus, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A node without its stop handler all through the grace time (its Python never loads nodes.cli here) is sent
+    SIGTERM `TERM_WAIT_S` before the grace time ends, which ends it: sent at the end, it was killed at once and said
+    as one that "did not stop"."""
+    _talker_wrapped(tmp_path, monkeypatch, WAITS_FOR_FILE.format(go=tmp_path / "never"))
+    launch, out = _launch(tmp_path, "nodes:\n  - {kind: talker}\n")
+    launch.start()
+    talker = launch.children[0].proc
+    launch.stop()
+    assert talker.returncode == -signal.SIGTERM, (talker.returncode, out.getvalue())
+    assert "killed" not in out.getvalue() and "was ended by a signal: Terminated" in out.getvalue(), out.getvalue()
+
+
 # a "talker" that a SIGTERM ends by the signal
 ENDED_BY_SIGTERM = ("exec \"$PY\" -c 'import os, signal, time\nsignal.signal(signal.SIGTERM, lambda *_: "
                     "(signal.signal(signal.SIGTERM, signal.SIG_DFL), os.kill(os.getpid(), signal.SIGTERM)))\n"
