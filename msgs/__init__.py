@@ -7,9 +7,8 @@ from msgs.status import NodeStatus
 from msgs.tactile import ContactSummary, DisplacementField, MarkerArray, SlipState
 from msgs.wire import decode, decode_header, encode, known_types, message_type, register
 
-for _cls in (Image, CameraInfo, MarkerArray, DisplacementField, ContactSummary, SlipState, NodeStatus, Unanswered):
-    register(_cls)
-for _cls in (ParamSet, ParamState):  # nodes.param_service
+for _cls in (Image, CameraInfo, MarkerArray, DisplacementField, ContactSummary, SlipState, NodeStatus, Unanswered,
+             ParamSet, ParamState):
     register(_cls)
 
 __all__ = [

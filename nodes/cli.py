@@ -14,7 +14,7 @@ import threading
 
 from fv_algos.allocator import steady_malloc
 from nodes.exit_codes import (CONFIG, CONFIG_WHILE_RUNNING, FAILED, OK, TEMPFAIL, NodeFailed, NotReadyError,
-                              interrupt, interrupted_code, on_stop_signals, stop_signals, stopping)
+                              Stopped, interrupted_code, on_stop_signals, stop_signals, stopping)
 from nodes.parent_death import stop_with_parent
 
 COMMAND_MODULES = [
@@ -69,7 +69,7 @@ def _stop_command(signum: int) -> None:
     for child in multiprocessing.active_children():
         if "PoolWorker" not in child.name:  # a multiprocessing.Pool's: its exit ends them (it replaced those ended here)
             child.terminate()
-    raise interrupt(signum)
+    raise Stopped(signum)
 
 
 def _quiet_pool_threads(args: threading.ExceptHookArgs) -> None:

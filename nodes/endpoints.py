@@ -48,6 +48,11 @@ class BusAddress:
         """Folder holding the IPC socket files (None for TCP)."""
         return Path(self.url[len("ipc://"):]).parent if self.url.startswith("ipc://") else None
 
+    @property
+    def ipc_files(self) -> tuple[Path, ...]:
+        """The IPC socket files of the pub, sub and ctl endpoints (none for TCP)."""
+        return () if self.is_tcp else tuple(Path(e[len("ipc://"):]) for e in (self.pub, self.sub, self.ctl))
+
 
 def bus_address(url: str | None = None) -> BusAddress:
     """Endpoints for `url` (default: `FV_BUS`, else the per-user IPC path)."""

@@ -132,13 +132,8 @@ class Stopped(KeyboardInterrupt):
         self.exit_code = 128 + signum
 
 
-def interrupt(signum: int) -> KeyboardInterrupt:
-    """What a stop by `signum` raises where the process runs: `Stopped`, a KeyboardInterrupt."""
-    return Stopped(signum)
-
-
 def interrupted_code(stop: KeyboardInterrupt) -> int:
-    """The exit code of a process that `stop` ended: 128 + the signal's number for `Stopped` (`interrupt`),
+    """The exit code of a process that `stop` ended: 128 + the signal's number for `Stopped`,
     INTERRUPTED for a KeyboardInterrupt of Python's own SIGINT handler (before `fv`'s are in place)."""
     return stop.exit_code if isinstance(stop, Stopped) else INTERRUPTED
 

@@ -191,8 +191,8 @@ class Forwarder:
         self.ctx.term()
         if self._lock_file is not None:
             if self.sides:  # its IPC side was bound (the first)
-                for endpoint in (self.address.pub, self.address.sub, self.address.ctl):
-                    Path(endpoint[len("ipc://"):]).unlink(missing_ok=True)
+                for path in self.address.ipc_files:
+                    path.unlink(missing_ok=True)
             self._lock_file.close()
 
 
@@ -209,7 +209,7 @@ def ping(address: BusAddress | None = None, timeout_s: float = ANSWER_WAIT_S) ->
     address = address or bus_address()
     if address.is_tcp:
         timeout_s = max(timeout_s, ANSWER_WAIT_S)
-    if address.ipc_dir is not None and not Path(address.ctl[len("ipc://"):]).exists():
+    if address.ipc_files and not address.ipc_files[-1].exists():  # no ctl socket file
         return None
     ctx = new_context()
     sock = ctx.socket(zmq.REQ)

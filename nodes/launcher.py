@@ -534,7 +534,6 @@ class Launch:
         _terminate_when_ready([c.spare for c in spares] + [c.proc for c in running], deadline - TERM_WAIT_S)
         for child in running:
             self._end(child.proc, child.spec.name, deadline)
-            child.exit_code = child.proc.returncode
             if child.reader is not None:
                 child.reader.join(1.0)
             child.proc = None

@@ -50,7 +50,7 @@ from msgs import Message, MessageError, NodeStatus, Unanswered
 from nodes.bus import (ALL_TOPICS, GONE, LINGER_MS, SUB_HWM, PublisherSocket, SeqTracker, connect_client,
                        new_context, absolute_namespace, parse_envelope, resolve_topic, subscription_prefixes)
 from nodes.endpoints import BusAddress, bus_address
-from nodes.exit_codes import NodeFailed, interrupt, on_stop_signals
+from nodes.exit_codes import NodeFailed, Stopped, on_stop_signals
 from nodes.param_service import ParamService, is_param_topic
 from nodes.params import build_params
 
@@ -323,7 +323,7 @@ class Node:
     def spin(self, install_signals: bool = True) -> None:
         """Run setup, then callbacks and timers until stop() or one of `stop_signals()`; NodeFailed after
         fail(). With `install_signals` (in the main thread), a stop signal that comes before setup has
-        returned raises `interrupt(signum)` (`_on_stop_signal`)."""
+        returned raises `Stopped(signum)` (`_on_stop_signal`)."""
         try:
             if install_signals and threading.current_thread() is threading.main_thread():
                 on_stop_signals(self._on_stop_signal)
@@ -347,14 +347,14 @@ class Node:
 
     def _on_stop_signal(self, signum: int) -> None:
         """The node's stop on one of `stop_signals()`. Before its setup has returned (the forwarder's wait,
-        torch's import, a model's load and first pass) it is cut short there by `interrupt(signum)`, raised
+        torch's import, a model's load and first pass) it is cut short there by `Stopped(signum)`, raised
         where it runs: the slip detector's setup ran to its end first (1 to 4 s on 2 cores), past the
         launcher's grace time, which then killed it (2 of 5 launches stopped 3 s after their start). The node
         is stopped first, should that exception be lost (raised where Python ignores exceptions), so that it
         stops once its setup is done."""
         self.stop()
         if self._starting:
-            raise interrupt(signum)
+            raise Stopped(signum)
 
     def close(self) -> None:
         self._stop.set()

@@ -91,9 +91,8 @@ class ParamService:
         self._publish(msg.request_id, accepted=True, error="")
 
     def _publish(self, request_id: str, accepted: bool, error: str) -> None:
-        state = ParamState(stamp_ns=time.time_ns(), params=current_params(self._node.params),
-                           live=sorted(self._node.LIVE_PARAMS), request_id=request_id, accepted=accepted, error=error)
-        self._sock.publish(self._state_topic, state, latched=True)
+        _publish_state(self._sock, self._state_topic, current_params(self._node.params), sorted(self._node.LIVE_PARAMS),
+                       request_id, accepted, error)
 
 
 class NoParamService:
@@ -119,9 +118,14 @@ class NoParamService:
         self._reader.close()
 
     def _publish(self, request_id: str, accepted: bool, error: str) -> None:
-        state = ParamState(stamp_ns=time.time_ns(), params={}, live=[], request_id=request_id, accepted=accepted,
-                           error=error)
-        self._sock.publish(self._state_topic, state, latched=True)
+        _publish_state(self._sock, self._state_topic, {}, [], request_id, accepted, error)
+
+
+def _publish_state(sock: PublisherSocket, topic: str, params: dict[str, Any], live: list[str], request_id: str,
+                   accepted: bool, error: str) -> None:
+    """Publish a node's `ParamState` (its `params` and `live` names, the answer to `request_id`), latched."""
+    sock.publish(topic, ParamState(stamp_ns=time.time_ns(), params=params, live=live, request_id=request_id,
+                                   accepted=accepted, error=error), latched=True)
 
 
 # -- clients ---------------------------------------------------------------------------
