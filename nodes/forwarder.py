@@ -15,6 +15,7 @@ from __future__ import annotations
 import fcntl
 import logging
 import os
+import socket
 import subprocess
 import sys
 import threading
@@ -178,8 +179,9 @@ class Forwarder:
                 up.send(event)
 
     def close(self) -> None:
-        """Close the sockets, and remove the IPC socket files this forwarder made (the lock held): left, each
-        later `ensure_forwarder` on the bus waited 0.3 s for an answer from them, a launch's start as its stop."""
+        """Close the sockets, and remove the IPC socket files this forwarder made (the lock held), which one
+        killed with SIGKILL leaves: `ping` tells those from a serving forwarder's by a refused connect, and the
+        next forwarder's bind replaces them."""
         for (xsub, _, _), monitor in zip(self.sides, self.monitors):
             xsub.disable_monitor()
             monitor.close(linger=0)
@@ -201,15 +203,31 @@ def _names(messages: dict[bytes, list]) -> list[str]:
     return sorted(env.decode(errors="replace") for env in messages)
 
 
+def _nobody_listens(path: Path) -> bool:
+    """True when no process listens on the IPC socket file `path`: it is absent, or a connect to it is refused
+    (the file a killed forwarder left). A forwarder that listens sees a peer that leaves before its handshake."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+        probe.setblocking(False)  # a listener whose backlog is full: BlockingIOError, not a wait
+        try:
+            probe.connect(str(path))
+        except (FileNotFoundError, ConnectionRefusedError):
+            return True
+        except OSError:  # not ours to judge (e.g. no permission): the ping says
+            return False
+    return False
+
+
 def ping(address: BusAddress | None = None, timeout_s: float = ANSWER_WAIT_S) -> dict | None:
     """The forwarder's info, or None when no forwarder answers within `timeout_s` (on TCP at least
-    `ANSWER_WAIT_S`: the CURVE handshake comes first); at once when the bus's IPC socket file is absent. On
-    a loaded 2-core host 0.3 s missed a forwarder that was serving (`fv topic hz` over TCP 2 times in 16,
-    `fv topic echo` over IPC 1 in 16: "no launch runs on this bus"); a shorter `timeout_s` is a quick look."""
+    `ANSWER_WAIT_S`: the CURVE handshake comes first); at once when nothing listens on the bus's IPC control
+    socket file (absent, or left by a forwarder killed with SIGKILL: each ping waited its whole `timeout_s`
+    for an answer that could not come). On a loaded 2-core host 0.3 s missed a forwarder that was serving
+    (`fv topic hz` over TCP 2 times in 16, `fv topic echo` over IPC 1 in 16: "no launch runs on this bus");
+    a shorter `timeout_s` is a quick look."""
     address = address or bus_address()
     if address.is_tcp:
         timeout_s = max(timeout_s, ANSWER_WAIT_S)
-    if address.ipc_files and not address.ipc_files[-1].exists():  # no ctl socket file
+    elif _nobody_listens(address.ipc_files[-1]):  # the ctl socket file
         return None
     ctx = new_context()
     sock = ctx.socket(zmq.REQ)
@@ -233,8 +251,8 @@ def ensure_forwarder(address: BusAddress | None = None, timeout_s: float = 5.0,
     0.5 to 0.7 s before its stop began."""
     address = address or bus_address()
     stop = stop or threading.Event()
-    if ping(address, 0.3) is not None:  # a quick look: the restart of a killed forwarder, whose socket file
-        return None                     # is left, should not wait ANSWER_WAIT_S for an answer that cannot come
+    if ping(address, 0.3) is not None:  # a quick look (a killed forwarder's socket file is told at once)
+        return None
     if stop.is_set():
         raise RuntimeError(f"stopped before a forwarder for {address.url} was started")
     env = dict(os.environ, **{BUS_ENV: address.url}, **parent_env())

@@ -18,7 +18,7 @@ import msgs
 from msgs import CameraInfo, NodeStatus, SlipState
 from nodes.bus import PublisherSocket, SeqTracker, TopicReader, envelope, parse_envelope
 from nodes.endpoints import BUS_ENV, CURVE_ENV, bus_address, make_keys, secure_server
-from nodes.forwarder import Forwarder, ping
+from nodes.forwarder import Forwarder, ensure_forwarder, ping
 from tests.nodes.conftest import REPO, Bus, run_fv
 
 
@@ -194,6 +194,35 @@ def test_a_closed_forwarder_leaves_no_socket_files(bus_env: Bus) -> None:
     forwarder.close()
     left = [p.name for p in bus_env.folder.iterdir() if p.is_socket()]
     assert not left, left
+
+
+def test_a_killed_forwarder_s_socket_files_are_told_from_a_serving_one_at_once(bus_env: Bus, spawn) -> None:
+    """A forwarder killed with SIGKILL leaves its IPC socket files, and each ping waited its whole timeout for an
+    answer that could not come (`fv topic list` 2.5 s after a crash). A connect to them is refused: a ping says
+    None at once. A serving forwarder takes such a look as a peer that leaves (it says nothing and answers the
+    next ping), and the next forwarder's bind replaces the files."""
+    address = bus_env.address
+    forwarder = spawn("forwarder", stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 10.0
+    while ping(address, 0.2) is None:
+        assert time.monotonic() < deadline and forwarder.poll() is None, "the forwarder did not start"
+    for _ in range(20):  # the look a ping takes first
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as look:
+            look.connect(str(address.ipc_files[-1]))
+    assert ping(address, 2.0)["pid"] == forwarder.pid
+    forwarder.kill()
+    forwarder.wait(5.0)
+    assert forwarder.stderr.read().splitlines() == [f"[fv.forwarder] INFO: forwarder on {address.url}"]
+    assert all(path.is_socket() for path in address.ipc_files), "a killed forwarder leaves its socket files"
+    start = time.monotonic()
+    assert ping(address, 5.0) is None
+    assert time.monotonic() - start < 1.0, "a ping waited for an answer from a killed forwarder's socket file"
+    restarted = ensure_forwarder(address)
+    try:
+        assert ping(address, 2.0)["pid"] == restarted.pid
+    finally:
+        restarted.terminate()
+        restarted.wait(5.0)
 
 
 def test_a_latched_message_published_before_any_forwarder_is_delivered(bus_env: Bus) -> None:
