@@ -248,10 +248,12 @@ def ensure_forwarder(address: BusAddress | None = None, timeout_s: float = 5.0,
     when the caller dies: `nodes.parent_death`) or None when one was already running. Once `stop` is set, none
     is started and the one started is no longer waited for (it is terminated): RuntimeError, as when it cannot
     start. A launch stopped as it looked for a forwarder started one, waited for its answer, then stopped it:
-    0.5 to 0.7 s before its stop began."""
+    0.5 to 0.7 s before its stop began. A forwarder that listens on the bus is waited for as long as `ping`
+    waits (a killed one's socket file is told at once): a quick look of 0.3 s missed a serving one on a loaded
+    host, and the forwarder started then could not take the bus's lock ("exited with code 2 at start")."""
     address = address or bus_address()
     stop = stop or threading.Event()
-    if ping(address, 0.3) is not None:  # a quick look (a killed forwarder's socket file is told at once)
+    if ping(address) is not None:
         return None
     if stop.is_set():
         raise RuntimeError(f"stopped before a forwarder for {address.url} was started")

@@ -225,6 +225,20 @@ def test_a_killed_forwarder_s_socket_files_are_told_from_a_serving_one_at_once(b
         restarted.wait(5.0)
 
 
+def test_a_launch_waits_for_a_slow_answer_from_a_serving_forwarder(bus: Bus, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`ensure_forwarder` looked 0.3 s for an answer, lest it wait for one from a killed forwarder's socket file
+    (now told at once): a serving forwarder slow to answer on a loaded host was missed, and the second forwarder
+    it started could not take the bus's lock ("exited with code 2 at start"). It waits as a ping does."""
+    info = bus.forwarder.info
+
+    def slow_info() -> dict:
+        time.sleep(0.8)
+        return info()
+
+    monkeypatch.setattr(bus.forwarder, "info", slow_info)
+    assert ensure_forwarder(bus.address) is None
+
+
 def test_a_latched_message_published_before_any_forwarder_is_delivered(bus_env: Bus) -> None:
     """Only a reconnect re-sent latched messages: one published before the first forwarder answered (a
     camera's CameraInfo, when the camera started first) was dropped and never delivered."""

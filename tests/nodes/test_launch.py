@@ -380,15 +380,15 @@ def test_a_launch_stopped_as_its_forwarder_starts_starts_nothing_more_and_says_n
 
 def test_a_launch_stopped_as_it_looks_for_a_forwarder_starts_none(
         bus_env: Bus, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A stop during the launch's quick look for a running forwarder (up to 0.3 s) started a forwarder anyway,
-    waited for its answer, then stopped it: the launch's stop began 0.5 to 0.7 s late."""
+    """A stop during the launch's look for a running forwarder (then a quick look, up to 0.3 s) started a forwarder
+    anyway, waited for its answer, then stopped it: the launch's stop began 0.5 to 0.7 s late."""
     import nodes.forwarder
     launch, out = _launch(tmp_path, "nodes:\n  - {kind: talker}\n")
     looked = ping
 
-    def stopped_as_it_looks(address: object, timeout_s: float = 0.3) -> dict | None:
+    def stopped_as_it_looks(address: object, *timeout_s: float) -> dict | None:
         launch.stop()
-        return looked(address, timeout_s)
+        return looked(address, *timeout_s)
 
     monkeypatch.setattr(nodes.forwarder, "ping", stopped_as_it_looks)
     launch.start()
