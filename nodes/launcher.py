@@ -277,14 +277,13 @@ class Launch:
 
     def _start_forwarder(self, address: BusAddress) -> None:
         """Start a forwarder on `address` when none answers, unless it is a TCP bus, whose forwarder must run
-        already; RuntimeError when none serves it (but for one stopped as it started, with the launch: Ctrl-C
-        reaches both, and the launch then said "forwarder ... exited with code 130 at start" and exited 2; or stopped
-        before it answered: `ensure_forwarder`'s `stop`), or
-        when this launch's nodes run on it already."""
+        already. RuntimeError when none serves it, or when this launch's nodes run on it already; not once the
+        launch is stopped (`ensure_forwarder`'s `stop`): a forwarder stopped with it as it started (Ctrl-C reaches
+        both) made the launch say "forwarder ... exited with code 130 at start" and exit 2."""
         from nodes.forwarder import ensure_forwarder, ping
 
         if address.is_tcp:
-            if ping(address, 1.0) is None:
+            if ping(address) is None:  # (over TCP a ping waits at least ANSWER_WAIT_S)
                 raise RuntimeError(f"no forwarder answers at {address.url}; start `fv forwarder --tcp ...` there")
         else:
             try:

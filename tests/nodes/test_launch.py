@@ -199,7 +199,7 @@ def test_the_live_gelsight_mini_launch_gives_the_default_model_frames_as_it_was_
     rate, in colour, with the tracker's reference at the model's reference frame."""
     from nodes.camera import CameraParams
     from fv_algos.frame_crop import FrameCrop
-    from nodes.slip_detector import model_path
+    from nodes.shipped_models import model_path
     from fv_algos.trial_net import load_trial_model
     specs = {s.name: s for s in load_launch(REPO / "launch" / "gelsight_mini.yaml", {})}
     camera = CameraParams(**specs["camera"].params)
