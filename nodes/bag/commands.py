@@ -113,17 +113,15 @@ def _record(args: argparse.Namespace) -> int:
 
 def _play(args: argparse.Namespace) -> int:
     from nodes.bag.player import BagPlay
-    from nodes.bag.reader import BagReader
     from nodes.core_commands import parse_remaps
     from nodes.topic_tools import require_forwarder
-    BagReader(args.bag)  # a bad bag is reported before the bus is checked
     params = {"path": args.bag, "rate": args.rate, "loop": args.loop, "start_offset_s": args.start_offset,
               "duration_s": args.duration, "topics": args.topics, "fast": args.fast,
               "start_paused": args.start_paused, "wait_for_subscribers": not args.no_wait_for_subscribers,
               "subscriber_timeout_s": args.wait_timeout, "sync_topic": args.sync_topic, "sync_on": args.sync_on,
               "sync_window": args.sync_window, "sync_timeout_s": args.sync_timeout, "keyboard": True}
-    node = BagPlay(args.name, params, remap=parse_remaps(args.remap))
-    require_forwarder()
+    node = BagPlay(args.name, params, remap=parse_remaps(args.remap))  # its params' check opens the bag (once):
+    require_forwarder()  # a bad one is reported before the bus is checked
     node.spin()
     return 1 if getattr(node, "error", None) else 0
 

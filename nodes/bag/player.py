@@ -35,6 +35,7 @@ import threading
 import time
 import tty
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import msgs
 from msgs import Image
@@ -111,11 +112,17 @@ class BagPlayParams:
         if len(set(answers)) < len(answers) or len(set(waiting)) < len(waiting):
             raise ValueError(f"sync_on {waiting} and sync_topic {answers}: a topic is named twice")
         # a missing, unfinished or damaged bag, or one without a topic to play, is refused by `fv launch --check`
-        known = BagReader(self.path).topics()  # (its summary: milliseconds)
+        known = self.bag.topics()
         missing = [t for t in dict.fromkeys(self.topics + topic_list(self.sync_on)) if t not in known]
         if missing:
             raise BagError(self.path, f"has no topic {', '.join(map(repr, missing))} to play; its topics: "
                                       f"{sorted(known)}")
+
+    @cached_property
+    def bag(self) -> BagReader:
+        """The bag at `path`, opened once for the check of these params and the play: its files' summaries are
+        read as it opens (tens of ms each for a recording of an hour)."""
+        return BagReader(self.path)
 
 
 def message_id(m: BagMessage) -> tuple[str, str, int, int]:
@@ -171,7 +178,7 @@ class BagPlay(Node):
 
     def setup(self) -> None:
         p = self.params
-        self.bag = BagReader(p.path)
+        self.bag = p.bag
         known = self.bag.topics()  # holding every topic of `topics` and `sync_on` (the params' check)
         waiting = topic_list(p.sync_on)
         absent = [t for t in p.optional_topics if t not in known]

@@ -15,7 +15,7 @@ import struct
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Any, Iterator
+from typing import IO, Any, Iterator
 
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader, make_reader
@@ -124,8 +124,21 @@ def check_magic(path: Path) -> None:
         raise BagError(path, f"not an MCAP file (starts with {head[:8]!r})")
 
 
+class _SummarisedReader(SeekingReader):
+    """A SeekingReader of a file whose summary was read as it was opened (`_File`): the messages, metadata and
+    attachments are found through that summary, not a fresh read of it (tens of ms for a recording of an hour,
+    its thousands of chunks indexed)."""
+
+    def __init__(self, stream: IO[bytes], summary: Summary, validate_crcs: bool = False) -> None:
+        super().__init__(stream, validate_crcs=validate_crcs)
+        self._read_summary = summary
+
+    def get_summary(self) -> Summary:
+        return self._read_summary
+
+
 class _File:
-    """One MCAP file of a bag with its summary (channels, schemas, statistics, indexes)."""
+    """One MCAP file of a bag with its summary (channels, schemas, statistics, indexes), read once."""
 
     def __init__(self, path: Path) -> None:
         check_magic(path)
@@ -145,10 +158,14 @@ class _File:
                 raise BagError(path, f"topic {channel.topic!r} has message encoding {channel.message_encoding!r}, "
                                      f"not {MESSAGE_ENCODING!r} (not recorded by `fv bag record`)")
 
+    def reader(self, stream: IO[bytes], validate_crcs: bool = False) -> SeekingReader:
+        """A reader of `stream`, this file opened, through its summary."""
+        return _SummarisedReader(stream, self.summary, validate_crcs)
+
     def messages(self, topics: list[str] | None, start_ns: int | None, end_ns: int | None) -> Iterator[BagMessage]:
         with open(self.path, "rb") as f:
-            reader = SeekingReader(f, validate_crcs=True)
-            it = reader.iter_messages(topics=topics, starting_at=start_ns, ending_before=end_ns, log_time_order=True)
+            it = self.reader(f, validate_crcs=True).iter_messages(topics=topics, starting_at=start_ns,
+                                                                  ending_before=end_ns, log_time_order=True)
             while True:
                 try:
                     _schema, channel, rec = next(it)
@@ -240,7 +257,7 @@ class BagReader:
         out = []
         for f in self._files:
             with open(f.path, "rb") as stream:
-                for att in make_reader(stream).iter_attachments():
+                for att in f.reader(stream).iter_attachments():
                     out.append(Attachment(att.name, att.media_type, att.data, att.log_time, f.path))
         return out
 
@@ -249,7 +266,7 @@ class BagReader:
         out: dict[str, dict[str, str]] = {}
         for f in self._files:
             with open(f.path, "rb") as stream:
-                for rec in make_reader(stream).iter_metadata():
+                for rec in f.reader(stream).iter_metadata():
                     out.setdefault(rec.name, {}).update(rec.metadata)
         return out
 

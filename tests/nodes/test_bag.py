@@ -231,12 +231,13 @@ def test_bad_files_give_one_line_errors(tmp_path: Path, content: bytes, capsys: 
     with pytest.raises(BagError, match=f"bag {path}: "):
         BagReader(path)
     export_argv = ["bag", "export", str(path), "--topic", "/x", "-o", str(tmp_path / "o.csv")]
-    for argv in (["bag", "info", str(path)], export_argv):
+    for argv in (["bag", "info", str(path)], export_argv, ["bag", "play", str(path)]):  # play: before the bus's check
         assert main(argv) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and str(path) in err and "Traceback" not in err
-    assert main(["bag", "info", str(tmp_path / "missing")]) == 2
-    assert "no such file" in capsys.readouterr().err
+    for verb in ("info", "play"):
+        assert main(["bag", verb, str(tmp_path / "missing")]) == 2
+        assert f"bag {tmp_path / 'missing'}: no such file" in capsys.readouterr().err
 
 
 def test_export_keeps_a_file_that_exists_and_refuses_rates_that_mean_nothing(

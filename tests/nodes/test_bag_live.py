@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import re
 import shutil
@@ -20,6 +21,7 @@ import time
 from pathlib import Path
 from typing import Callable, Iterator
 
+import mcap.reader
 import numpy as np
 import pytest
 import yaml
@@ -34,6 +36,7 @@ from nodes.bag.recover import recover
 from nodes.bag.writer import BagWriter
 from nodes.bag.bench import stop_process
 from nodes.bus import PublisherSocket, TopicReader
+from nodes.cli import main
 from nodes.endpoints import BUS_ENV, BusAddress, bus_address
 from nodes.forwarder import ensure_forwarder
 from nodes.launch_file import load_launch
@@ -345,6 +348,29 @@ def test_play_offset_duration_topics_remap_and_latched_first(bus: BusAddress, tm
             if start + 0.2e9 <= lt < start + 0.3e9]
     assert got == [("/camera/info", 0, True)] + [("/cam2", i, False) for i in want]
     assert len(want) == 10 and node.counters["played"] == 11
+
+
+def test_a_play_reads_each_files_summary_once(bus: BusAddress, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                             caplog: pytest.LogCaptureFixture) -> None:
+    """`fv bag play` read a bag's summaries (tens of ms a file for a recording of an hour) in the command, the
+    params' check and the node's setup, and again for its metadata and each pass over its messages (28 reads of
+    this bag's 3 files): now once a file, as the bag opens. A split bag whose metadata makes the player look for
+    gone publishers' latched messages, played from an offset (the latched messages before it are read first)."""
+    write_bag(tmp_path / "b", sample_messages(40, np.random.default_rng(2)), chunk_size_b=4_000, max_bag_size_b=20_000)
+    files = sorted(map(str, BagReader(tmp_path / "b").files))
+    reads: list[str] = []
+    read_summary = mcap.reader.SeekingReader.get_summary
+
+    def counted(reader: mcap.reader.SeekingReader) -> object:
+        reads.append(reader._stream.name)
+        return read_summary(reader)
+
+    monkeypatch.setattr(mcap.reader.SeekingReader, "get_summary", counted)
+    caplog.set_level(logging.INFO)
+    assert main(["bag", "play", str(tmp_path / "b"), "--fast", "--start-offset", "0.2",
+                 "--no-wait-for-subscribers"]) == 0
+    assert "played 64 messages" in caplog.text  # the camera info, then 21 frames each with a field and slip state
+    assert len(files) > 1 and sorted(reads) == files
 
 
 def test_a_duration_under_a_nanosecond_plays_the_first_message(bus: BusAddress, tmp_path: Path) -> None:
