@@ -31,7 +31,8 @@ COMMAND_MODULES = [
 ]
 
 STOP_ENDS_WELL = ("launch", "forwarder")  # commands that run until stopped: a stop is their clean end (exit OK),
-# also one that came as the command line imported its modules (README: `fv launch` stopped by Ctrl-C exits 0)
+# also one that came as the command line imported its modules (README: `fv launch` stopped by Ctrl-C exits 0); named
+# here, by the command word, not where the commands are registered: such a stop comes before their modules are imported
 
 
 def build_parser() -> argparse.ArgumentParser:
