@@ -77,18 +77,17 @@ def absolute_namespace(namespace: str) -> str:
 
 
 def namespaced_name(namespace: str, name: str) -> str:
-    """The name of the node `name` that a launch file includes under `namespace`: the namespace's parts,
-    each followed by _, before it ("/left", "slip_detector" -> "left_slip_detector"; "/hand/left" ->
-    "hand_left_slip_detector"; no namespace, "": `name`)."""
+    """The name of the node `name` that a launch file puts in `namespace` (its own or its includes'): the
+    namespace's parts, each followed by _, before it ("/left", "slip_detector" -> "left_slip_detector";
+    "/hand/left" -> "hand_left_slip_detector"; no namespace, "": `name`)."""
     return "_".join([*absolute_namespace(namespace).split("/")[1:], name])
 
 
 def node_name(path: str) -> str:
-    """The name (as `fv node list` shows it) of the node at the ROS-style `path`: the namespaces its launch
-    includes it under, then its name in its own launch file ("/left/slip_detector" and "left/slip_detector"
-    -> "left_slip_detector", `namespaced_name`); "/slip_detector" and a name ("left_slip_detector") are
-    that name. A namespace a node gives itself (`namespace:` on its entry) is not part of its name or path.
-    ValueError when `path` holds no name ("", "/")."""
+    """The name (as `fv node list` shows it) of the node at the ROS-style `path`: its namespace in the launch
+    (its includes' and its own), then its name in its own launch file ("/left/slip_detector" and
+    "left/slip_detector" -> "left_slip_detector", `namespaced_name`); "/slip_detector" and a name
+    ("left_slip_detector") are that name. ValueError when `path` holds no name ("", "/")."""
     namespace, _, name = path.strip("/").rpartition("/")
     if not name:
         raise ValueError(f"{path!r} is not a node name or path (slip_detector, /left/slip_detector)")

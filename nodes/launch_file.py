@@ -14,8 +14,8 @@ Format (every key but `nodes[].kind` optional)::
         namespace: left          # its nodes' relative topics under /left, their names left_<name>
     nodes:
       - kind: talker             # a kind known to `nodes/registry.py`
-        name: talker             # default: the kind; unique in the launch
-        namespace: /left         # for relative topic names (`chatter` -> /left/chatter)
+        name: talker             # default: the kind; unique in the launch (with its namespace: left_talker)
+        namespace: left          # its relative topics (`chatter` -> /left/chatter) and name (left_talker) under /left
         params: {rate_hz: $(arg rate_hz)}
         remap: {/chatter: /left/chatter}
         env: {OMP_NUM_THREADS: 1}
@@ -27,6 +27,10 @@ Format (every key but `nodes[].kind` optional)::
 
 ``$(arg name)`` is replaced by the argument's value: a whole-string substitution keeps the
 value's YAML type (``rate_hz: $(arg rate_hz)`` stays a float), an embedded one is text.
+A namespace, on a node or an include, works as in ROS: a relative one (``left``) goes under the
+namespaces of the includes around it (an include under ``arm``: /arm/left), an absolute one (``/left``)
+stands as written. A node in the namespace /arm/left is named ``arm_left_<name>``, its ROS-style path
+(`fv param`) /arm/left/<name>.
 Every error is a `LaunchError` naming the file, the line and the key.
 """
 from __future__ import annotations
@@ -34,7 +38,7 @@ from __future__ import annotations
 import json
 import math
 import re
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -106,6 +110,9 @@ _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_SEQUENCE_TAG, _constr
 class NodeSpec:
     """One node of a launch, validated: what `fv node` needs plus the supervision policy.
 
+    name: as `fv node list` shows it, its namespace's parts before its name in its launch file
+    (left_camera). path: its ROS-style name (/left/camera). namespace: where its relative topics
+    go (/left; "" for none).
     respawn_delay_s: seconds between an exit and the restart. max_retries: restarts
     allowed (None = no limit). standby: a respawning node keeps a spare process that has
     done its imports and takes over at once when the node exits. source: "file:line" of
@@ -114,6 +121,7 @@ class NodeSpec:
 
     kind: str
     name: str
+    path: str
     params: dict[str, Any] = field(default_factory=dict)
     remap: dict[str, str] = field(default_factory=dict)
     namespace: str = ""
@@ -210,8 +218,10 @@ def typed_arg(text: CommandLineText, default: Any) -> Any:
     return parse_text(text)
 
 
-def load_launch(path: Path | str, args: dict[str, Any] | None = None, _stack: tuple[Path, ...] = ()) -> list[NodeSpec]:
-    """Validated node specs of launch file `path` (includes expanded) with `args` given.
+def load_launch(path: Path | str, args: dict[str, Any] | None = None, _stack: tuple[Path, ...] = (),
+                _namespace: str = "") -> list[NodeSpec]:
+    """Validated node specs of launch file `path` (includes expanded) with `args` given, included under the
+    absolute `_namespace` ("" for none).
 
     Checks everything a node would check at start (kinds, param names and types, arg
     references), so a bad file fails before any process starts.
@@ -244,31 +254,26 @@ def load_launch(path: Path | str, args: dict[str, Any] | None = None, _stack: tu
         f.expect(inc_args, dict, _line(inc, "args", line), f"{key}.args", "a mapping of argument values")
         if not target.is_file():
             raise f.error(inc.lines["file"], f"{key}.file", f"{target} does not exist")
-        included = load_launch(target, inc_args, _stack + (path,))
-        namespace = _namespace(f, inc, f"{key}.namespace", line)
-        specs += [_in_namespace(spec, namespace) for spec in included] if namespace else included
+        namespace = _entry_namespace(f, inc, f"{key}.namespace", line, _namespace)
+        specs += load_launch(target, inc_args, _stack + (path,), namespace)
     for i, entry in enumerate(_section(f, doc, "nodes")):
         key = f"nodes[{i}]"
         line = _line(doc["nodes"], i, 1)
         entry = _substitute(f, f.expect(entry, _Dict, line, key, "a mapping with at least `kind`"), values, key)
-        specs.append(_node_spec(f, entry, line, key, node_class))
+        specs.append(_node_spec(f, entry, line, key, node_class, _namespace))
     _check_unique(specs)
     return specs
 
 
-def _namespace(f: _File, entry: _Dict, key: str, line: int) -> str:
-    """The `namespace` of a node or include entry, absolute ("left" -> "/left"; "" when none)."""
+def _entry_namespace(f: _File, entry: _Dict, key: str, line: int, outer: str) -> str:
+    """The absolute namespace a node or include entry puts its nodes in, as ROS resolves it: a relative
+    `namespace` goes under `outer`, the namespace its file is included under ("left" in "/arm" ->
+    "/arm/left"); an absolute one stands ("/left" -> "/left"); none is `outer`."""
     value = f.expect(entry.get("namespace", ""), str, entry.lines.get("namespace", line), key, "a namespace")
     if value and not _NAMESPACE_RE.fullmatch(value):
         raise f.error(entry.lines.get("namespace", line), key,
                       f"{value!r} is not a namespace (names of letters, digits and _ joined by /)")
-    return absolute_namespace(value)
-
-
-def _in_namespace(spec: NodeSpec, namespace: str) -> NodeSpec:
-    """`spec` included under absolute `namespace` (/left): its namespace goes after it (its
-    relative topics move under /left) and its name gets the prefix left_ (nested: left_arm_)."""
-    return replace(spec, namespace=namespace + spec.namespace, name=namespaced_name(namespace, spec.name))
+    return absolute_namespace(value) if value.startswith("/") else outer + absolute_namespace(value)
 
 
 def _section(f: _File, doc: _Dict, name: str) -> _List:
@@ -328,7 +333,8 @@ def _substitute(f: _File, value: Any, args: dict[str, Any], key: str, line: int 
     return out_text
 
 
-def _node_spec(f: _File, entry: _Dict, line: int, key: str, node_class: Any) -> NodeSpec:
+def _node_spec(f: _File, entry: _Dict, line: int, key: str, node_class: Any, outer: str) -> NodeSpec:
+    """The node of `entry`, in its file included under the absolute namespace `outer`."""
     f.check_keys(entry, NODE_KEYS, key)
     lines = entry.lines
     if "kind" not in entry:
@@ -375,9 +381,10 @@ def _node_spec(f: _File, entry: _Dict, line: int, key: str, node_class: Any) -> 
                        "true or false")
     if standby and not respawn:
         raise f.error(lines["standby"], f"{key}.standby", "a standby process needs respawn: true")
+    namespace = _entry_namespace(f, entry, f"{key}.namespace", line, outer)
     return NodeSpec(
-        kind=kind, name=name, params=dict(params), remap=dict(remap),
-        namespace=_namespace(f, entry, f"{key}.namespace", line),
+        kind=kind, name=namespaced_name(namespace, name), path=f"{namespace}/{name}", params=dict(params),
+        remap=dict(remap), namespace=namespace,
         env={var: str(val) for var, val in env.items()},
         respawn=respawn, respawn_delay_s=float(delay), max_retries=retries, standby=standby,
         required=f.expect(entry.get("required", False), bool, lines.get("required", line), f"{key}.required",
@@ -386,8 +393,12 @@ def _node_spec(f: _File, entry: _Dict, line: int, key: str, node_class: Any) -> 
 
 
 def _check_unique(specs: list[NodeSpec]) -> None:
-    seen: dict[str, str] = {}
+    """LaunchError naming both entries where two nodes get one name (/left/camera and /left_camera are
+    both left_camera)."""
+    seen: dict[str, NodeSpec] = {}
     for spec in specs:
         if spec.name in seen:
-            raise LaunchError(f"{spec.source}: name: node name {spec.name!r} is already used at {seen[spec.name]}")
-        seen[spec.name] = spec.source
+            first = seen[spec.name]
+            raise LaunchError(f"{spec.source}: name: node name {spec.name!r} ({spec.path}) is already used at "
+                              f"{first.source} ({first.path})")
+        seen[spec.name] = spec

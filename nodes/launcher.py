@@ -657,6 +657,7 @@ def _launch(args: argparse.Namespace) -> int:
         for spec in launch.specs:
             where = (f" namespace={spec.namespace}" if spec.namespace else "") + (
                 f" remap={spec.remap}" if spec.remap else "")
-            print(f"{spec.name}: {spec.kind}{where} params={spec.params} ({spec.source})")
+            path = f" ({spec.path})" if spec.namespace else ""  # the name `fv param` also takes
+            print(f"{spec.name}{path}: {spec.kind}{where} params={spec.params} ({spec.source})")
         return OK
     return launch.run()

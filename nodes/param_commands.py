@@ -12,7 +12,7 @@ from nodes.arg_types import positive_float
 from nodes.param_service import ANSWER_TIMEOUT_S
 
 NODE_HELP = ("node name as `fv node list` shows it (slip_detector, left_slip_detector) or its path as in ROS "
-             "(/left/slip_detector: the node slip_detector of a launch file included under the namespace left)")
+             "(/left/slip_detector: the node slip_detector a launch puts in the namespace left)")
 
 
 def _row(state: ParamState, name: str) -> str:

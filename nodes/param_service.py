@@ -1,7 +1,7 @@
 """Read and change a running node's params over the bus (`fv param`, `nodes.client.set_param`).
 
-Every node named N (the name `fv node list` shows: `left_slip_detector` for a slip detector included under
-the launch namespace `left`; clients also take its ROS-style path, `/left/slip_detector`) reads `ParamSet`
+Every node named N (the name `fv node list` shows: `left_slip_detector` for a slip detector a launch puts in
+the namespace `left`; clients also take its ROS-style path, `/left/slip_detector`) reads `ParamSet`
 requests on `/N/param/set` and publishes its params, latched, on `/N/param/state` (`ParamState`): at start, and
 after each request with the request's id and the answer. A request is checked as the params are at start
 (`build_params`: known names, types, the params dataclass's own validation) and applied, all or none, between

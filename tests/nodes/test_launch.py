@@ -109,12 +109,12 @@ def test_args_includes_and_overrides(tmp_path: Path) -> None:
                    "nodes:\n  - kind: listener\n    env: {OMP_NUM_THREADS: 1}\n    respawn: true\n"
                    "    max_retries: 2\n    required: true\n")
     specs = {s.name: s for s in load_launch(outer, {"rate": 7.5})}
-    talker, listener = specs["inner_talker"], specs["listener"]
+    talker, listener = specs["left_inner_talker"], specs["listener"]
     assert talker.params == {"rate_hz": 7.5} and talker.namespace == "/left"
     assert talker.remap == {"/chatter": "/left/chat"}
     assert listener.env == {"OMP_NUM_THREADS": "1"} and listener.respawn and listener.max_retries == 2
     assert listener.required and listener.respawn_delay_s == 1.0
-    assert talker.argv()[:4] == ["node", "talker", "--name", "inner_talker"]
+    assert talker.argv()[:4] == ["node", "talker", "--name", "left_inner_talker"]
     with pytest.raises(LaunchError, match="'speed' given but not declared"):
         load_launch(outer, {"speed": 1})
 
@@ -138,7 +138,8 @@ def test_command_line_arguments_are_text_where_the_argument_is(tmp_path: Path) -
 
 def test_an_include_in_a_namespace_moves_its_nodes_topics_and_names_there(tmp_path: Path) -> None:
     """`namespace: left` on an include: each node's namespace gets /left before it (nested includes
-    compose), its name the prefix left_; names must stay unique, and a bad namespace names its line."""
+    compose, and a node's own namespace goes after them), its name the prefix left_; names must stay unique,
+    and a bad namespace names its line."""
     _write(tmp_path, "inner.yaml", "nodes:\n  - kind: talker\n  - kind: listener\n    namespace: ears\n")
     _write(tmp_path, "finger.yaml", "args: {side: left}\ninclude:\n  - file: inner.yaml\n    namespace: $(arg side)\n")
     outer = _write(tmp_path, "hand.yaml", "include:\n  - {file: finger.yaml, namespace: /hand, args: {side: left}}\n"
@@ -146,19 +147,84 @@ def test_an_include_in_a_namespace_moves_its_nodes_topics_and_names_there(tmp_pa
                                           "nodes:\n  - kind: talker\n")
     specs = {s.name: s for s in load_launch(outer)}
     assert {name: s.namespace for name, s in specs.items()} == {
-        "hand_left_talker": "/hand/left", "hand_left_listener": "/hand/left/ears",
-        "hand_right_talker": "/hand/right", "hand_right_listener": "/hand/right/ears", "talker": ""}
-    assert resolve_topic("chatter", specs["hand_right_listener"].namespace) == "/hand/right/ears/chatter"
-    # the ROS-style path `fv param` takes: the include namespaces, then the name in its own file
-    assert [node_name(path) for path in ("/hand/left/talker", "hand/right/listener", "/talker")] == [
-        "hand_left_talker", "hand_right_listener", "talker"]
+        "hand_left_talker": "/hand/left", "hand_left_ears_listener": "/hand/left/ears",
+        "hand_right_talker": "/hand/right", "hand_right_ears_listener": "/hand/right/ears", "talker": ""}
+    assert resolve_topic("chatter", specs["hand_right_ears_listener"].namespace) == "/hand/right/ears/chatter"
+    # the ROS-style path `fv param` takes: the node's namespace, then the name in its own file
+    assert [node_name(path) for path in ("/hand/left/talker", "hand/right/ears/listener", "/talker")] == [
+        "hand_left_talker", "hand_right_ears_listener", "talker"]
     twice = _write(tmp_path, "twice.yaml", "include:\n  - {file: inner.yaml, namespace: a}\n"
                                            "  - {file: inner.yaml, namespace: a}\n")
-    with pytest.raises(LaunchError, match="'a_talker' is already used"):
+    with pytest.raises(LaunchError, match=r"'a_talker' \(/a/talker\) is already used"):
         load_launch(twice)
     bad = _write(tmp_path, "bad.yaml", "include:\n  - file: inner.yaml\n    namespace: left/\n")
     with pytest.raises(LaunchError, match=rf"{bad}:3: include\[0\].namespace: 'left/' is not a namespace"):
         load_launch(bad)
+
+
+def test_a_node_entrys_own_namespace_is_part_of_its_name_and_path(tmp_path: Path) -> None:
+    """`namespace: left` on a node entry moves its name and its ROS-style path as an include's does: two
+    cameras named `camera` in left and right are left_camera (/left/camera) and right_camera (they were
+    refused, both named camera); under an include's namespace arm, arm_left_camera (/arm/left/camera)."""
+    finger = _write(tmp_path, "fingers.yaml", "nodes:\n  - {kind: camera, name: camera, namespace: left}\n"
+                                              "  - {kind: camera, name: camera, namespace: right}\n")
+    specs = load_launch(finger)
+    assert [(s.name, s.path, s.namespace) for s in specs] == [
+        ("left_camera", "/left/camera", "/left"), ("right_camera", "/right/camera", "/right")]
+    assert specs[0].argv()[:4] == ["node", "camera", "--name", "left_camera"]
+    arm = _write(tmp_path, "arm.yaml", "include:\n  - {file: fingers.yaml, namespace: arm}\n")
+    specs = load_launch(arm)
+    assert [(s.name, s.path, s.namespace) for s in specs] == [
+        ("arm_left_camera", "/arm/left/camera", "/arm/left"), ("arm_right_camera", "/arm/right/camera", "/arm/right")]
+    assert resolve_topic("camera/image", specs[0].namespace) == "/arm/left/camera/image"
+    assert all(node_name(s.path) == s.name for s in specs)  # `fv param get /arm/left/camera` finds it
+
+
+def test_an_absolute_namespace_stands_under_an_include_namespace(tmp_path: Path) -> None:
+    """As in ROS, `/left` on a node or an include is not moved by the namespace of an include around it
+    (its topics, name and path); `left` is. A file with `/left` included twice gives both copies one name."""
+    _write(tmp_path, "inner.yaml", "nodes:\n  - {kind: talker, namespace: /left}\n"
+                                   "  - {kind: listener, namespace: ears}\n")
+    arm = _write(tmp_path, "arm.yaml", "include:\n  - {file: inner.yaml, namespace: arm}\n")
+    assert [(s.name, s.path, s.namespace) for s in load_launch(arm)] == [
+        ("left_talker", "/left/talker", "/left"), ("arm_ears_listener", "/arm/ears/listener", "/arm/ears")]
+    _write(tmp_path, "hand.yaml", "include:\n  - {file: inner.yaml, namespace: /hand}\n")
+    arm_hand = _write(tmp_path, "arm_hand.yaml", "include:\n  - {file: hand.yaml, namespace: arm}\n")
+    assert [(s.name, s.path, s.namespace) for s in load_launch(arm_hand)] == [
+        ("left_talker", "/left/talker", "/left"), ("hand_ears_listener", "/hand/ears/listener", "/hand/ears")]
+    twice = _write(tmp_path, "twice.yaml", "include:\n  - {file: inner.yaml, namespace: a}\n"
+                                           "  - {file: inner.yaml, namespace: b}\n")
+    with pytest.raises(LaunchError, match=r"'left_talker' \(/left/talker\) is already used"):
+        load_launch(twice)
+
+
+def test_a_name_made_twice_by_namespaces_names_both_entries(tmp_path: Path) -> None:
+    """Two nodes that end with one name are refused with both entries' lines and paths: `left_camera` at the
+    root and `camera` in the namespace left, or `camera` in left in two files."""
+    clash = _write(tmp_path, "clash.yaml", "nodes:\n  - {kind: camera, name: left_camera}\n"
+                                           "  - {kind: talker, name: camera, namespace: left}\n")
+    with pytest.raises(LaunchError) as err:
+        load_launch(clash)
+    assert str(err.value) == (f"{clash}:3: name: node name 'left_camera' (/left/camera) is already used at "
+                              f"{clash}:2 (/left_camera)")
+    _write(tmp_path, "finger.yaml", "nodes:\n  - {kind: camera, name: camera, namespace: left}\n")
+    twice = _write(tmp_path, "twice.yaml", "include:\n  - {file: finger.yaml}\n"
+                                           "nodes:\n  - {kind: talker, name: camera, namespace: left}\n")
+    with pytest.raises(LaunchError) as err:
+        load_launch(twice)
+    assert str(err.value) == (f"{twice}:4: name: node name 'left_camera' (/left/camera) is already used at "
+                              f"{tmp_path / 'finger.yaml'}:2 (/left/camera)")
+
+
+def test_check_shows_each_node_name_with_its_path(tmp_path: Path) -> None:
+    """`fv launch --check` lists a node in a namespace by its name and its ROS-style path."""
+    path = _write(tmp_path, "pair.yaml", "nodes:\n  - {kind: talker, name: talker, namespace: left}\n"
+                                         "  - {kind: listener}\n")
+    result = run_fv("launch", "--check", str(path))
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.splitlines() == [
+        f"left_talker (/left/talker): talker namespace=/left params={{}} ({path}:2)",
+        f"listener: listener params={{}} ({path}:3)"]
 
 
 def test_demo_launch_file_is_valid() -> None:
@@ -230,6 +296,7 @@ def test_both_fingers_start_together_and_their_slips_are_the_fusion_inputs(name:
             source = specs[f"{side}_camera"]
             image = topic(f"{side}_camera", "camera/image")
             assert set(source.params["start_after"]) == waited and source.params["path"] == args[side]
+            assert source.path == f"/{side}/camera"  # gelsight_finger.yaml names it camera, in its side's namespace
         assert image == topic(f"{side}_tracker", "camera/image") == topic(f"{side}_slip_detector", "camera/image") \
             == f"/{side}/camera/image"
         assert topic(f"{side}_tracker", "markers") == topic(f"{side}_interpolator", "markers") == f"/{side}/markers"

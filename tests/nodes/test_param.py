@@ -22,7 +22,7 @@ from nodes.slip_fusion import SlipFusion
 from tests.nodes.conftest import run_fv, spinning, wait_status
 from tests.nodes.test_slip_detector_node import _field, _reference
 
-FUSION = "left_slip_fusion"  # as `fv launch` names a node included under the namespace `left`
+FUSION = "left_slip_fusion"  # as `fv launch` names the node slip_fusion in the namespace `left`
 
 
 @pytest.fixture
@@ -78,7 +78,7 @@ def test_a_refused_value_is_named_and_leaves_the_params_unchanged(fusion, name: 
 
 
 def test_a_node_is_also_named_by_its_ros_path(fusion) -> None:
-    """/left/slip_fusion (or left/slip_fusion) is the node slip_fusion included under the namespace left, the
+    """/left/slip_fusion (or left/slip_fusion) is the node slip_fusion in the namespace left, the
     node `fv node list` shows as left_slip_fusion: for `fv param` and the client functions alike."""
     for path in ("/left/slip_fusion", "left/slip_fusion"):
         got = run_fv("param", "get", path, "threshold")
@@ -88,6 +88,21 @@ def test_a_node_is_also_named_by_its_ros_path(fusion) -> None:
     assert fusion.params.threshold == 0.8
     assert set_param("/left/slip_fusion", "threshold", 0.3, timeout_s=10.0) == 0.3
     assert get_params("left/slip_fusion", timeout_s=10.0)["threshold"] == fusion.params.threshold == 0.3
+
+
+def test_a_launched_node_in_its_own_namespace_is_reached_by_its_path(bus, spawn, tmp_path) -> None:
+    """Two launch entries `{name: fusion, namespace: left}` and `{..., namespace: right}` (refused before, both
+    named fusion) are the nodes left_fusion and right_fusion, /left/fusion and /right/fusion to `fv param`."""
+    launch = tmp_path / "pair.yaml"
+    entry = "  - {{kind: slip_fusion, name: fusion, namespace: {}, params: {{inputs: [a, b], output: slip}}}}\n"
+    launch.write_text("nodes:\n" + entry.format("left") + entry.format("right"))
+    spawn("launch", str(launch))
+    for path in ("/left/fusion", "right/fusion"):
+        assert get_params(path, timeout_s=20.0)["threshold"] == 0.5
+    done = run_fv("param", "set", "/right/fusion", "threshold", "0.7")
+    assert done.returncode == 0 and done.stdout.strip() == "/right/fusion: threshold set to 0.7", done.stderr
+    assert run_fv("param", "get", "right_fusion", "threshold").stdout.strip() == "0.7"
+    assert run_fv("param", "get", "/left/fusion", "threshold").stdout.strip() == "0.5"
 
 
 @pytest.mark.parametrize("verb", [("get",), ("set", "threshold", "0.7")])
