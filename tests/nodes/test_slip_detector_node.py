@@ -433,13 +433,16 @@ def test_both_fingers_voted_on_slip_give_the_trial_score_of_fv_eval(bus_env, spa
     assert camera_vote([a[-1] for a in alone]) == pytest.approx(trial_score, abs=1e-6)
     n = sum(len(a) for a in alone)
     last: dict[str, SlipState] = {}
-    with TopicReader(["/slip", "/left/slip", "/right/slip"]) as reader:
+    counts = dict.fromkeys(["/left/slip", "/right/slip", "/slip"], 0)
+    with TopicReader(list(counts)) as reader:  # at half the videos' rate: a frame dropped by a tracker
+        # that fell behind (2 of 224 states never came with two busy loops on 2 cores) judges another grasp
         spawn("launch", str(REPO / "launch" / "video_pair.yaml"), f"left:={videos[0]}", f"right:={videos[1]}",
-              "standby:=false")  # as _launched_running_p_slip
+              "standby:=false", "fps:=12.5")  # standby as _launched_running_p_slip
         for k in range(2 * n):
             item = reader.recv(90.0 if k == 0 else 10.0)
-            assert item is not None, f"{k} of {2 * n} states"
+            assert item is not None, f"{k} of {2 * n} states: {counts} (of {len(alone[0])}, {len(alone[1])}, {n})"
             last[item.topic] = item.msg
+            counts[item.topic] += 1
     assert last["/left/slip"].probability == pytest.approx(alone[0][-1], abs=1e-4)
     assert last["/right/slip"].probability == pytest.approx(alone[1][-1], abs=1e-4)
     assert last["/slip"].probability == pytest.approx(trial_score, abs=1e-4) and last["/slip"].slip
