@@ -1,6 +1,7 @@
 """Bus fixtures: an isolated bus per test (its own FV_BUS under a short /tmp folder and a
 forwarder in a thread), helpers that start `fv` subprocesses in their own process
-groups and always kill them, and a reader for the nodes' `NodeStatus`."""
+groups and always kill them, a reader for the nodes' `NodeStatus`, and `wait_for`, the one poll of a
+condition until a deadline."""
 from __future__ import annotations
 
 import os
@@ -122,6 +123,20 @@ def run_fv(*args: str, timeout_s: float = 10.0) -> subprocess.CompletedProcess:
     """Run `fv *args` to completion on the current FV_BUS; output as text."""
     return subprocess.run([sys.executable, "-m", "nodes.cli", *args], cwd=REPO, capture_output=True, text=True,
                           timeout=timeout_s)
+
+
+def wait_for(predicate: Callable[[], object], timeout_s: float, what: str, period_s: float = 0.01,
+             between: Callable[[], object] | None = None) -> float:
+    """Call `predicate` every `period_s` until it returns a true value; the seconds that took. After each
+    false answer `between` is called, if given (a message published until it is heard). AssertionError
+    "`what`: not within `timeout_s` s" when `timeout_s` has passed without."""
+    t0 = time.monotonic()
+    while not predicate():
+        assert time.monotonic() - t0 < timeout_s, f"{what}: not within {timeout_s} s"
+        if between is not None:
+            between()
+        time.sleep(period_s)
+    return time.monotonic() - t0
 
 
 def wait_status(node: str, predicate: Callable[[NodeStatus], bool] = lambda st: True,

@@ -42,7 +42,7 @@ from nodes.forwarder import ensure_forwarder
 from nodes.launch_file import load_launch
 from nodes.node import Node
 from nodes.params import ParamError
-from tests.nodes.conftest import wait_status
+from tests.nodes.conftest import wait_for, wait_status
 from tests.nodes.test_bag import T0_NS, frames_of, sample_messages, write_bag
 
 REPO = Path(__file__).resolve().parents[2]
@@ -84,10 +84,8 @@ def spawn(bus: BusAddress) -> Iterator[Spawn]:
 
 def wait_subscribed(pub: PublisherSocket, topics: list[str], timeout_s: float = 20.0) -> None:
     pub.wait_connected(timeout_s)
-    deadline = time.monotonic() + timeout_s
-    while not all(pub.has_subscribers(t) for t in topics):
-        assert time.monotonic() < deadline, f"nobody subscribed to {topics}"
-        time.sleep(0.02)
+    wait_for(lambda: all(pub.has_subscribers(t) for t in topics), timeout_s, f"subscribers to {topics}",
+             period_s=0.02)
 
 
 def in_thread(node) -> threading.Thread:
@@ -460,10 +458,8 @@ def test_a_paused_player_keeps_its_latched_messages(bus: BusAddress, spawn: Spaw
                  "--no-wait-for-subscribers")
     while "paused" not in play.stderr.readline():
         assert play.poll() is None
-    deadline = time.monotonic() + 10.0
-    while "L/camera/info\0cam" not in ping(bus)["latched"]:  # sent before the first message it pauses at
-        assert time.monotonic() < deadline
-        time.sleep(0.05)
+    wait_for(lambda: "L/camera/info\0cam" in ping(bus)["latched"], 10.0,  # sent before the first message it pauses at
+             "the latched /camera/info at the forwarder", period_s=0.05)
     other = PublisherSocket("other", bus)
     assert other.wait_connected(2.0)
     other.close()  # the forwarder asks every publisher left to send its latched messages again

@@ -19,7 +19,7 @@ from msgs import CameraInfo, NodeStatus, SlipState
 from nodes.bus import PublisherSocket, SeqTracker, TopicReader, envelope, parse_envelope
 from nodes.endpoints import BUS_ENV, CURVE_ENV, bus_address, make_keys, secure_server
 from nodes.forwarder import Forwarder, ensure_forwarder, ping
-from tests.nodes.conftest import REPO, Bus, run_fv
+from tests.nodes.conftest import REPO, Bus, run_fv, wait_for
 
 
 def _publish_until(stop: threading.Event, sock: PublisherSocket, items: list[tuple[str, object]],
@@ -203,9 +203,9 @@ def test_a_killed_forwarder_s_socket_files_are_told_from_a_serving_one_at_once(b
     next ping), and the next forwarder's bind replaces the files."""
     address = bus_env.address
     forwarder = spawn("forwarder", stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 10.0
-    while ping(address, 0.2) is None:
-        assert time.monotonic() < deadline and forwarder.poll() is None, "the forwarder did not start"
+    wait_for(lambda: ping(address, 0.2) is not None or forwarder.poll() is not None, 10.0, "the forwarder's start",
+             period_s=0.0)
+    assert forwarder.poll() is None, "the forwarder did not start"
     for _ in range(20):  # the look a ping takes first
         with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as look:
             look.connect(str(address.ipc_files[-1]))
@@ -671,25 +671,19 @@ def test_silence_says_whether_the_bus_still_answers_and_reaches_a_listener(bus: 
     got: list[SlipState] = []
     with listen("/slip", got.append, timeout_s=0.3, on_timeout=silences.append) as listener:
         for burst in (1, 2):
-            deadline = time.monotonic() + 5.0
-            while len(silences) < burst:  # the listener reports each silence once...
-                assert time.monotonic() < deadline, f"silence {burst} not reported"
-                time.sleep(0.05)
+            # the listener reports each silence once...
+            waited_s = wait_for(lambda: len(silences) >= burst, 5.0, f"silence {burst} reported", period_s=0.05)
             time.sleep(0.5)
             assert len(silences) == burst and listener.timeouts == burst  # ...not on every poll
-            while len(got) < burst:  # messages end the silence
-                pub.publish("/slip", SlipState())
-                assert time.monotonic() < deadline + 5.0, "no message reached the listener"
-                time.sleep(0.05)
+            # messages end the silence: within 10 s of the silence's wait
+            wait_for(lambda: len(got) >= burst, 10.0 - waited_s - 0.5, "a message reaching the listener",
+                     period_s=0.05, between=lambda: pub.publish("/slip", SlipState()))
     pub.close()
     assert f"no message on /slip within 0.3 s (the forwarder at {bus.address.url} still answers)" in str(silences[0])
     bus.stop_forwarder()  # (stopped first: the bus is asked as the silence is raised)
     gone: list[TimeoutError] = []
     with listen("/slip", got.append, timeout_s=0.3, on_timeout=gone.append):
-        deadline = time.monotonic() + 5.0
-        while not gone:
-            assert time.monotonic() < deadline, "the launch gone was not reported"
-            time.sleep(0.05)
+        wait_for(lambda: gone, 5.0, "the launch gone reported", period_s=0.05)
     assert f"no forwarder answers on {bus.address.url}: the launch is gone" in str(gone[0])
     with pytest.raises(TimeoutError, match="no forwarder answers on ipc://"):
         wait_for_message("/slip", timeout_s=0.2)
@@ -782,11 +776,8 @@ def test_closing_a_listener_whose_callback_still_runs_says_so(bus: Bus, caplog: 
     assert pub.wait_connected(2.0)
     listener = listen("/slip", slow)
     try:
-        deadline = time.monotonic() + 5.0
-        while not entered.is_set():
-            pub.publish("/slip", SlipState())
-            assert time.monotonic() < deadline, "the callback was never called"
-            time.sleep(0.05)
+        wait_for(entered.is_set, 5.0, "the callback called", period_s=0.05,
+                 between=lambda: pub.publish("/slip", SlipState()))
         listener.close(timeout_s=0.1)
         assert "listener for /slip closed while its callback still runs after 0.1 s" in caplog.text
     finally:
@@ -813,11 +804,8 @@ def test_a_listener_closed_from_its_own_callback_stops_after_it(bus: Bus) -> Non
     assert pub.wait_connected(2.0)
     listener = listen("/slip", once)
     try:
-        deadline = time.monotonic() + 5.0
-        while not calls:
-            pub.publish("/slip", SlipState())
-            assert time.monotonic() < deadline, "the callback was never called"
-            time.sleep(0.05)
+        wait_for(lambda: calls, 5.0, "the callback called", period_s=0.05,
+                 between=lambda: pub.publish("/slip", SlipState()))
         for _ in range(5):  # more messages, which no call follows
             pub.publish("/slip", SlipState())
             time.sleep(0.05)

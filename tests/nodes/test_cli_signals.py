@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from nodes.exit_codes import OK
-from tests.nodes.conftest import Bus
+from tests.nodes.conftest import Bus, wait_for
 
 REPO = Path(__file__).resolve().parents[2]
 LONG_SCENE = """object: {shape: sphere, radius_mm: 10, mu: 0.8}
@@ -31,18 +31,11 @@ def _fv(*args: str, nohup: bool = False) -> subprocess.Popen:
                             stderr=subprocess.PIPE, text=True, preexec_fn=ignore_hangup)
 
 
-def _wait_for(condition, timeout_s: float = 60.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        assert time.monotonic() < deadline, "timed out"
-        time.sleep(0.1)
-
-
 def test_sigterm_leaves_no_half_written_sequence(tmp_path: Path) -> None:
     """`fv sim --out` killed with SIGTERM left its partial folder of PNGs without their truth."""
     (tmp_path / "long.yaml").write_text(LONG_SCENE)
     proc = _fv("sim", "--scene", str(tmp_path / "long.yaml"), "--out", str(tmp_path / "seq"), "--frames", "1000")
-    _wait_for(lambda: any(tmp_path.glob("seq.partial-*/frame_00003.png")))
+    wait_for(lambda: any(tmp_path.glob("seq.partial-*/frame_00003.png")), 60.0, "the fourth frame written", period_s=0.1)
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(30) == 128 + signal.SIGTERM, proc.stderr.read()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["long.yaml"]
@@ -261,7 +254,7 @@ def test_a_command_under_nohup_runs_on_after_sighup(tmp_path: Path) -> None:
     (tmp_path / "long.yaml").write_text(LONG_SCENE)
     proc = _fv("sim", "--scene", str(tmp_path / "long.yaml"), "--out", str(tmp_path / "seq"), "--frames", "1000",
                nohup=True)
-    _wait_for(lambda: any(tmp_path.glob("seq.partial-*/frame_00003.png")))
+    wait_for(lambda: any(tmp_path.glob("seq.partial-*/frame_00003.png")), 60.0, "the fourth frame written", period_s=0.1)
     proc.send_signal(signal.SIGHUP)
     time.sleep(1.0)
     assert proc.poll() is None, proc.stderr.read()
@@ -279,12 +272,12 @@ def _stop_with_its_workers(proc: subprocess.Popen, workers: int) -> str:
         pids[:] = children.read_text().split()
         return len(pids) >= workers
 
-    _wait_for(started)
+    wait_for(started, 60.0, f"{workers} workers", period_s=0.1)
     time.sleep(1.0)  # at work
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(30) == 128 + signal.SIGTERM, proc.stderr.read()
-    _wait_for(lambda: not any(os.path.exists(f"/proc/{pid}/cmdline") and Path(f"/proc/{pid}/cmdline").read_bytes()
-                              for pid in pids), timeout_s=5.0)
+    wait_for(lambda: not any(os.path.exists(f"/proc/{pid}/cmdline") and Path(f"/proc/{pid}/cmdline").read_bytes()
+                             for pid in pids), 5.0, "the workers' exit", period_s=0.1)
     err = proc.stderr.read()
     assert "Traceback" not in err, err
     return err

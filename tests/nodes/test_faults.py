@@ -12,7 +12,7 @@ import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Iterator
 
 import cv2
 import numpy as np
@@ -27,7 +27,7 @@ from nodes.exit_codes import CONFIG
 from nodes.forwarder import ping
 from nodes.launcher import Launch
 from nodes.node import Node
-from tests.nodes.conftest import Bus, pid_alive, spinning, wait_status
+from tests.nodes.conftest import Bus, pid_alive, spinning, wait_for, wait_status
 
 RECOVERY_S = 2.0  # a killed node's output is back within this, on an idle machine
 IDLE_COLD_START_S = 0.9  # the tracker's cold start (Python, imports, setup) on an idle 2-core machine
@@ -56,15 +56,6 @@ def publishing(topic: str, period_s: float = 0.05) -> Iterator[threading.Event]:
         done.set()
         thread.join()
         sock.close()
-
-
-def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str) -> float:
-    """Poll `predicate` until true; returns the seconds it took (AssertionError on timeout)."""
-    t0 = time.monotonic()
-    while not predicate():
-        assert time.monotonic() - t0 < timeout_s, f"{what}: not within {timeout_s} s"
-        time.sleep(0.01)
-    return time.monotonic() - t0
 
 
 def first_after(topic: str, since_ns: int, timeout_s: float, reader: TopicReader | None = None) -> float:
@@ -538,12 +529,12 @@ def test_a_malformed_message_is_logged_naming_its_publisher(bus: Bus, caplog: py
     bad_header = [envelope("/poke", "bad_script", False), b"\x93not a header"]
     bad_array = [envelope("/poke", "bad_script", False), good[0]]  # its array frame left out
     with spinning(Poked("poked")) as node:
-        deadline = time.monotonic() + 10.0
-        while node._totals["malformed"] < 2:
+        def send_both() -> None:
             for frames in (bad_header, bad_array):
                 raw.send_multipart(frames)
-            assert time.monotonic() < deadline, "the malformed messages never came"
-            time.sleep(0.1)
+
+        wait_for(lambda: node._totals["malformed"] >= 2, 10.0, "the malformed messages", period_s=0.1,
+                 between=send_both)
     raw.close()
     dropped = [r.getMessage() for r in caplog.records if "dropped malformed message" in r.getMessage()]
     assert len(dropped) >= 2 and all(m.startswith("dropped malformed message from node 'bad_script': ")

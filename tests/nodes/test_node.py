@@ -7,7 +7,6 @@ import gc
 import random
 import threading
 import time
-from typing import Callable
 
 import msgpack
 import numpy as np
@@ -18,7 +17,7 @@ import msgs
 from msgs import DisplacementField, Image, MarkerArray, SlipState
 from nodes.bus import PublisherSocket, TopicReader, envelope
 from nodes.node import Node
-from tests.nodes.conftest import Bus, run_fv, spinning, wait_status
+from tests.nodes.conftest import Bus, run_fv, spinning, wait_for, wait_status
 
 N_MALFORMED = 10_000
 
@@ -144,13 +143,6 @@ class Recorder(Node):
         self.handled.append((topic, msg.stamp_ns))
 
 
-def _until(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        assert time.monotonic() < deadline, what
-        time.sleep(0.01)
-
-
 def test_messages_of_different_topics_are_handled_in_the_order_they_arrived(bus: Bus) -> None:
     """A node behind (its callback busy) handles what queued up in arrival order, whatever the topic: a
     tracker's new reference before the field of that frame (taken in turns by topic, the field could come
@@ -161,17 +153,15 @@ def test_messages_of_different_topics_are_handled_in_the_order_they_arrived(bus:
         wait_status("recorder", timeout_s=5.0)
         pub = PublisherSocket("sender")
         assert pub.wait_connected(5.0)
-        deadline = time.monotonic() + 5.0
-        while not node.subs["/a"].received:  # stamp 0 until the subscription is through: its callback then waits
-            assert time.monotonic() < deadline, "no /a reached the node"
-            pub.publish("/a", SlipState())
-            time.sleep(0.05)
+        # stamp 0 until the subscription is through: its callback then waits
+        wait_for(lambda: node.subs["/a"].received, 5.0, "an /a reaching the node", period_s=0.05,
+                 between=lambda: pub.publish("/a", SlipState()))
         for topic, stamp in sent:
             pub.publish(topic, SlipState(stamp_ns=stamp))
         # one publisher's messages arrive in order: with the last /b, all are queued
-        _until(lambda: node.subs["/b"].received == 4, 5.0, "the messages did not reach the node")
+        wait_for(lambda: node.subs["/b"].received == 4, 5.0, "the messages reaching the node")
         node.gate.set()
-        _until(lambda: len(node.handled) == node.subs["/a"].received + 4, 5.0, "the node did not handle them")
+        wait_for(lambda: len(node.handled) == node.subs["/a"].received + 4, 5.0, "the node handling them")
         pub.close()
     assert [h for h in node.handled if h[1]] == sent
 
@@ -202,8 +192,8 @@ def test_a_message_a_stage_leaves_unanswered_is_said_on_unanswered(bus: Bus) -> 
         wait_status("stage", timeout_s=5.0)
         pub = PublisherSocket("sender")
         assert pub.wait_connected(5.0)
-        _until(lambda: pub.has_subscribers("/left/in") and pub.has_subscribers("/left/other"), 5.0,
-               "the stage did not subscribe")
+        wait_for(lambda: pub.has_subscribers("/left/in") and pub.has_subscribers("/left/other"), 5.0,
+                 "the stage subscribing")
         pub.publish("/left/other", SlipState(stamp_ns=100))
         for stamp in range(1, 7):
             pub.publish("/left/in", SlipState(stamp_ns=stamp))

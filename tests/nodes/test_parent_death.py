@@ -8,13 +8,12 @@ import select
 import signal
 import subprocess
 import sys
-import time
 
 import pytest
 
 from nodes.exit_codes import OK
 from nodes.parent_death import PARENT_PID_ENV
-from tests.nodes.conftest import REPO, Bus, pid_alive
+from tests.nodes.conftest import REPO, Bus, pid_alive, wait_for
 
 # a parent that starts a child (argv[1]) tied to its life, and sleeps; the child, once it has asked (HOW: by
 # the kernel, or the watcher where there is none), says its pid (on the parent's stdout) and sleeps
@@ -36,10 +35,7 @@ def test_a_process_stops_when_its_parent_is_killed(how: str) -> None:
         assert pid_alive(child)
         parent.kill()
         parent.wait(5.0)
-        deadline = time.monotonic() + 10.0
-        while pid_alive(child) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert not pid_alive(child), f"the child ({how}) outlived its parent"
+        wait_for(lambda: not pid_alive(child), 10.0, f"the child ({how}) ending with its parent", period_s=0.05)
     finally:
         try:
             os.killpg(parent.pid, signal.SIGKILL)  # the parent and the child, whatever failed

@@ -16,7 +16,7 @@ import msgs
 from msgs import NodeStatus, SlipState
 from nodes.bus import PublisherSocket, TopicReader
 from nodes.topic_tools import build_message
-from tests.nodes.conftest import REPO, Bus, run_fv, wait_status
+from tests.nodes.conftest import REPO, Bus, run_fv, wait_for, wait_status
 
 
 _STARTED: list[subprocess.Popen] = []  # `_start`'s processes, killed as their test ends (`_end_started`)
@@ -263,10 +263,9 @@ def _hz_lines_around_a_burst(pub: PublisherSocket, done: Callable[[list[str]], b
     `done(lines)`, or 12 lines."""
     proc = _start("topic", "hz", "/burst", *args)
     try:
-        deadline = time.monotonic() + 10.0
-        while not pub.has_subscribers("/burst"):
-            assert time.monotonic() < deadline and proc.poll() is None, "hz never subscribed"
-            time.sleep(0.05)
+        wait_for(lambda: pub.has_subscribers("/burst") or proc.poll() is not None, 10.0, "hz subscribing",
+                 period_s=0.05)
+        assert proc.poll() is None, "hz never subscribed"
         for _ in range(40):
             pub.publish("/burst", SlipState())
             time.sleep(0.05)
@@ -314,10 +313,9 @@ def test_echo_names_the_malformed_messages_it_skips(bus: Bus) -> None:
     assert pub.wait_connected(2.0)
     proc = _start("topic", "echo", "/x", "--timeout", "10", "--count", "1")
     try:
-        deadline = time.monotonic() + 10.0
-        while not pub.has_subscribers("/x"):  # the echo's subscription has reached this publisher
-            assert time.monotonic() < deadline and proc.poll() is None, "the echo never subscribed"
-            time.sleep(0.05)
+        wait_for(lambda: pub.has_subscribers("/x") or proc.poll() is not None, 10.0,  # the echo's subscription
+                 "the echo subscribing", period_s=0.05)  # has reached this publisher
+        assert proc.poll() is None, "the echo never subscribed"
         bad = msgs.encode(SlipState())
         bad[0] = bad[0].replace(b"probability", b"probabilitx")
         pub.publish_raw("/x", "bad_node", False, bad)

@@ -24,7 +24,7 @@ from msgs import ContactSummary, DisplacementField, Image, MarkerArray, Message,
 from nodes.bus import PublisherSocket
 from nodes.launch_file import load_launch
 from nodes.viewer import ViewerNode, ViewerParams
-from tests.nodes.conftest import REPO, Bus
+from tests.nodes.conftest import REPO, Bus, wait_for
 from tests.nodes.headless_browser import HeadlessChromium
 
 T0_NS = 1_700_000_000_000_000_000
@@ -66,10 +66,8 @@ def viewer(bus: Bus) -> Iterator[ViewerNode]:
     node = ViewerNode("viewer", {"port": 0, "rate_hz": 20.0, "history_s": 600.0})
     thread = threading.Thread(target=node.spin, kwargs={"install_signals": False}, daemon=True)
     thread.start()
-    deadline = time.monotonic() + 5.0
-    while not getattr(node, "port", 0):
-        assert time.monotonic() < deadline and thread.is_alive(), "viewer did not start"
-        time.sleep(0.02)
+    wait_for(lambda: getattr(node, "port", 0) or not thread.is_alive(), 5.0, "the viewer's start", period_s=0.02)
+    assert getattr(node, "port", 0), "viewer did not start"
     yield node
     node.stop()
     thread.join(5.0)
@@ -82,10 +80,8 @@ def pipeline(bus: Bus, viewer: ViewerNode) -> Iterator[PublisherSocket]:
     subscriptions reached it (no message lost to the slow joiner)."""
     pub = PublisherSocket("fake_pipeline", bus.address)
     assert pub.wait_connected(2.0)
-    deadline = time.monotonic() + 5.0
-    while not all(pub.has_subscribers(t) for t in ("/camera/image", "/markers", "/field", "/slip")):
-        assert time.monotonic() < deadline, "viewer subscriptions never arrived"
-        time.sleep(0.02)
+    wait_for(lambda: all(pub.has_subscribers(t) for t in ("/camera/image", "/markers", "/field", "/slip")), 5.0,
+             "the viewer's subscriptions", period_s=0.02)
     yield pub
     pub.close()
 
