@@ -20,6 +20,11 @@ from nodes.shipped_models import model_path, shipped_models
 from tests.conftest import dots_image, write_raw_mini
 from tests.nodes.conftest import REPO, wait_status
 
+# The launches that compare every frame's P(slip) with `fv eval` play the videos at half their 25 fps: each
+# node keeps only its latest frame, so a tracker that fell behind on a loaded 2-core machine drops a frame, and
+# every later P(slip) of the grasp differs. At a rate slower than the model's, every frame is judged as offline.
+EVERY_FRAME_FPS = 12.5
+
 
 def _field(stamp_ns: int, value: float, grid: int = 30) -> DisplacementField:
     field = np.zeros((grid, grid, 3), np.float32)
@@ -371,10 +376,11 @@ def _offline_running_p_slip(video: Path, name: str, start: int) -> list[float]:
 
 
 def _launched_running_p_slip(spawn, n: int, *launch_args: str) -> list[SlipState]:
-    """The first `n` SlipStates of `fv launch launch/video.yaml ARGS...`, without standby spares (their
-    imports at start, beside the nodes', could make a loaded 2-core machine drop a frame)."""
+    """The first `n` SlipStates of `fv launch launch/video.yaml ARGS...` at EVERY_FRAME_FPS, without standby
+    spares (their imports at start, beside the nodes', could make a loaded 2-core machine drop a frame)."""
     with TopicReader(["/slip"]) as reader:
-        spawn("launch", str(REPO / "launch" / "video.yaml"), *launch_args, "standby:=false")
+        spawn("launch", str(REPO / "launch" / "video.yaml"), *launch_args, f"fps:={EVERY_FRAME_FPS}",
+              "standby:=false")
         states = [reader.recv(60.0 if k == 0 else 10.0) for k in range(n)]
     assert all(s is not None for s in states), f"{sum(s is not None for s in states)} of {n} decisions"
     return [s.msg for s in states]
@@ -437,7 +443,7 @@ def test_both_fingers_voted_on_slip_give_the_trial_score_of_fv_eval(bus_env, spa
     with TopicReader(list(counts)) as reader:  # at half the videos' rate: a frame dropped by a tracker
         # that fell behind (2 of 224 states never came with two busy loops on 2 cores) judges another grasp
         spawn("launch", str(REPO / "launch" / "video_pair.yaml"), f"left:={videos[0]}", f"right:={videos[1]}",
-              "standby:=false", "fps:=12.5")  # standby as _launched_running_p_slip
+              "standby:=false", f"fps:={EVERY_FRAME_FPS}")  # standby as _launched_running_p_slip
         for k in range(2 * n):
             item = reader.recv(90.0 if k == 0 else 10.0)
             assert item is not None, f"{k} of {2 * n} states: {counts} (of {len(alone[0])}, {len(alone[1])}, {n})"
@@ -510,8 +516,8 @@ def test_each_pass_of_a_looped_video_is_judged_as_the_first(bus_env, spawn, tmp_
     _write_stale_start_clip(video, frames)
     per_pass = frames - 1  # frame 0 is not tracked (reference_frame 1)
     with TopicReader(["/slip"]) as reader:  # at half the clip's rate: a loaded machine drops no frame
-        spawn("launch", str(REPO / "launch" / "video.yaml"), f"video:={video}", "loop:=true", "fps:=12.5",
-              "standby:=false")
+        spawn("launch", str(REPO / "launch" / "video.yaml"), f"video:={video}", "loop:=true",
+              f"fps:={EVERY_FRAME_FPS}", "standby:=false")
         states = [reader.recv(60.0 if k == 0 else 10.0) for k in range(2 * per_pass + 1)]
     assert all(s is not None for s in states), f"{sum(s is not None for s in states)} of {2 * per_pass + 1} states"
     states = [s.msg for s in states]
