@@ -87,6 +87,13 @@ def kill_group(proc: subprocess.Popen, grace_s: float = 1.0) -> None:
             continue
 
 
+def hangup_as_from_a_terminal() -> None:
+    """`preexec_fn` of a spawned `fv`: SIGHUP at its default, as a process started from a terminal has it. Tests
+    run under `nohup` would leave it ignored in every child, which then (as `nohup` asks) runs on after a
+    hangup, and a test of the stop on SIGHUP would fail."""
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)
+
+
 @pytest.fixture
 def spawn(bus_env: Bus) -> Iterator[Callable[..., subprocess.Popen]]:
     """spawn(*fv_args, stdout=PIPE...) -> Popen of `python -m nodes.cli *fv_args` on the
@@ -96,6 +103,7 @@ def spawn(bus_env: Bus) -> Iterator[Callable[..., subprocess.Popen]]:
     def start(*args: str, **kwargs: object) -> subprocess.Popen:
         kwargs.setdefault("stdout", subprocess.DEVNULL)
         kwargs.setdefault("stderr", subprocess.DEVNULL)
+        kwargs.setdefault("preexec_fn", hangup_as_from_a_terminal)
         proc = subprocess.Popen([sys.executable, "-m", "nodes.cli", *args], cwd=REPO, start_new_session=True,
                                 env=dict(os.environ, PYTHONUNBUFFERED="1"), **kwargs)
         procs.append(proc)

@@ -42,7 +42,7 @@ from nodes.forwarder import ensure_forwarder
 from nodes.launch_file import load_launch
 from nodes.node import Node
 from nodes.params import ParamError
-from tests.nodes.conftest import wait_for, wait_status
+from tests.nodes.conftest import hangup_as_from_a_terminal, wait_for, wait_status
 from tests.nodes.test_bag import T0_NS, frames_of, sample_messages, write_bag
 
 REPO = Path(__file__).resolve().parents[2]
@@ -71,7 +71,8 @@ def spawn(bus: BusAddress) -> Iterator[Spawn]:
     procs: list[subprocess.Popen] = []
 
     def start(*args: str, **popen_kwargs: object) -> subprocess.Popen:
-        streams = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, **popen_kwargs}
+        streams = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "preexec_fn": hangup_as_from_a_terminal,
+                   **popen_kwargs}
         proc = subprocess.Popen([sys.executable, "-m", "nodes.cli", *args], cwd=REPO, stdin=subprocess.DEVNULL,
                                 text=True, **streams)
         procs.append(proc)

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from nodes.exit_codes import OK
-from tests.nodes.conftest import Bus, wait_for
+from tests.nodes.conftest import Bus, hangup_as_from_a_terminal, wait_for
 
 REPO = Path(__file__).resolve().parents[2]
 LONG_SCENE = """object: {shape: sphere, radius_mm: 10, mu: 0.8}
@@ -25,8 +25,8 @@ steps:
 
 
 def _fv(*args: str, nohup: bool = False) -> subprocess.Popen:
-    """`fv *args` in a process; with `nohup`, SIGHUP ignored as `nohup` leaves it."""
-    ignore_hangup = (lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN)) if nohup else None
+    """`fv *args` in a process; with `nohup`, SIGHUP ignored as `nohup` leaves it, else at its default."""
+    ignore_hangup = (lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN)) if nohup else hangup_as_from_a_terminal
     return subprocess.Popen([sys.executable, "-m", "nodes.cli", *args], cwd=REPO, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True, preexec_fn=ignore_hangup)
 
