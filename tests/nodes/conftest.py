@@ -87,6 +87,13 @@ def kill_group(proc: subprocess.Popen, grace_s: float = 1.0) -> None:
             continue
 
 
+# The launches whose states are compared frame by frame (with `fv eval`, or a replay with the live run) play
+# videos at half their 25 fps: each node keeps only its latest frame, so a tracker that fell behind on a loaded
+# 2-core machine drops a frame, and every later P(slip) of the grasp differs. At a rate slower than the
+# model's, every frame is judged as offline.
+EVERY_FRAME_FPS = 12.5
+
+
 def hangup_as_from_a_terminal() -> None:
     """`preexec_fn` of a spawned `fv`: SIGHUP at its default, as a process started from a terminal has it. Tests
     run under `nohup` would leave it ignored in every child, which then (as `nohup` asks) runs on after a

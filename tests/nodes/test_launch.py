@@ -56,6 +56,13 @@ def _write(folder: Path, name: str, text: str) -> Path:
     return path
 
 
+def _refusal(path: Path) -> str:
+    """The message of the LaunchError that loading the launch file `path` raises."""
+    with pytest.raises(LaunchError) as err:
+        load_launch(path)
+    return str(err.value)
+
+
 @pytest.mark.parametrize("text, line, key", [
     ("nodes:\n  - kind: talkr\n", 2, "nodes[0].kind"),
     ("nodes:\n  - kind: talker\n    params:\n      rate_hz: 5\n      speed: 3\n", 5, "params.speed"),
@@ -76,9 +83,7 @@ def _write(folder: Path, name: str, text: str) -> Path:
 ])
 def test_bad_launch_file_names_file_line_and_key(tmp_path: Path, text: str, line: int, key: str) -> None:
     path = _write(tmp_path, "bad.yaml", text)
-    with pytest.raises(LaunchError) as err:
-        load_launch(path)
-    message = str(err.value)
+    message = _refusal(path)
     assert f"{path}:{line}:" in message and key in message, message
 
 
@@ -94,9 +99,8 @@ def test_error_in_included_file_names_that_file(tmp_path: Path) -> None:
     inner = _write(tmp_path, "inner.yaml", "args: {rate: 1.0}\nnodes:\n  - kind: talker\n    params:\n"
                                            "      rate_hz: $(arg rate)\n")
     outer = _write(tmp_path, "outer.yaml", "include:\n  - file: inner.yaml\n    args: {rate: slow}\n")
-    with pytest.raises(LaunchError) as err:
-        load_launch(outer)
-    assert f"{inner}:5:" in str(err.value) and "rate_hz" in str(err.value)
+    message = _refusal(outer)
+    assert f"{inner}:5:" in message and "rate_hz" in message
 
 
 def test_args_includes_and_overrides(tmp_path: Path) -> None:
@@ -203,16 +207,12 @@ def test_a_name_made_twice_by_namespaces_names_both_entries(tmp_path: Path) -> N
     root and `camera` in the namespace left, or `camera` in left in two files."""
     clash = _write(tmp_path, "clash.yaml", "nodes:\n  - {kind: camera, name: left_camera}\n"
                                            "  - {kind: talker, name: camera, namespace: left}\n")
-    with pytest.raises(LaunchError) as err:
-        load_launch(clash)
-    assert str(err.value) == (f"{clash}:3: name: node name 'left_camera' (/left/camera) is already used at "
+    assert _refusal(clash) == (f"{clash}:3: name: node name 'left_camera' (/left/camera) is already used at "
                               f"{clash}:2 (/left_camera)")
     _write(tmp_path, "finger.yaml", "nodes:\n  - {kind: camera, name: camera, namespace: left}\n")
     twice = _write(tmp_path, "twice.yaml", "include:\n  - {file: finger.yaml}\n"
                                            "nodes:\n  - {kind: talker, name: camera, namespace: left}\n")
-    with pytest.raises(LaunchError) as err:
-        load_launch(twice)
-    assert str(err.value) == (f"{twice}:4: name: node name 'left_camera' (/left/camera) is already used at "
+    assert _refusal(twice) == (f"{twice}:4: name: node name 'left_camera' (/left/camera) is already used at "
                               f"{tmp_path / 'finger.yaml'}:2 (/left/camera)")
 
 

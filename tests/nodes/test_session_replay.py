@@ -21,13 +21,12 @@ from nodes.bag.bench import stop_process
 from nodes.bag.reader import read_bag
 from fv_algos.camera_vote import camera_vote
 from nodes.bus import PublisherSocket, TopicReader
-from tests.nodes.conftest import REPO, Bus, wait_status
+from tests.nodes.conftest import EVERY_FRAME_FPS, REPO, Bus, wait_status
 
 GRASP = Path("train") / "bag_of_peanuts" / "exp_num_8"  # a slip, 57 frames per camera
-# The live runs play the videos at half their 25 fps: at full speed, beside other tests on a loaded 2-core
+# The live runs play the videos at EVERY_FRAME_FPS: at full speed, beside other tests on a loaded 2-core
 # machine, a live run dropped 2 frames of 72. A live run that drops frames is recorded again, LIVE_RUNS runs
 # at most: beside two busy processes on this 2-core machine, 4 live runs of 19 dropped 1 to 3 frames.
-LIVE_FPS = 12.5
 LIVE_RUNS = 3
 REFERENCE_FRAME = 1  # the launch files' reference_frame: each pass's frames before it are left unanswered
 
@@ -111,7 +110,7 @@ def test_one_camera_session_with_a_reset_replays_as_live(bus, spawn, isd_data: P
     video = isd_data / GRASP / "camera_0.avi"
     bag = tmp_path / "session"
     _record_live(bus, spawn, bag, [str(REPO / "launch" / "video.yaml"), f"video:={video}", "loop:=true",
-                                   f"fps:={LIVE_FPS}"], {"/camera/image": "/slip"}, 30, 40)
+                                   f"fps:={EVERY_FRAME_FPS}"], {"/camera/image": "/slip"}, 30, 40)
     recorded = [m for _, m, _ in read_bag(bag, topics=["/slip"])]
     replayed = _replay(spawn, bag, [str(REPO / "launch" / "replay.yaml"), "sync_topic:=/slip"],
                        {"/slip": {recorded[-1].stamp_ns}})
@@ -127,7 +126,7 @@ def test_two_finger_session_with_a_reset_replays_as_live(bus, spawn, isd_data: P
     videos = [isd_data / GRASP / "camera_0.avi", isd_data / GRASP / "camera_2.avi"]
     fingers = ["/left/slip", "/right/slip"]
     _record_live(bus, spawn, bag, [str(REPO / "launch" / "video_pair.yaml"), f"left:={videos[0]}",
-                                   f"right:={videos[1]}", "loop:=true", f"fps:={LIVE_FPS}"],
+                                   f"right:={videos[1]}", "loop:=true", f"fps:={EVERY_FRAME_FPS}"],
                  {"/left/camera/image": fingers[0], "/right/camera/image": fingers[1]}, 60, 80)
     recorded = {t: [m for _, m, _ in read_bag(bag, topics=[t])] for t in [*fingers, "/slip"]}
     last = {t: recorded[t][-1] for t in fingers}

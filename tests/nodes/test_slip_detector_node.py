@@ -18,12 +18,7 @@ from nodes.bus import PublisherSocket, TopicReader
 from nodes.cli import build_parser
 from nodes.shipped_models import model_path, shipped_models
 from tests.conftest import dots_image, write_raw_mini
-from tests.nodes.conftest import REPO, wait_status
-
-# The launches that compare every frame's P(slip) with `fv eval` play the videos at half their 25 fps: each
-# node keeps only its latest frame, so a tracker that fell behind on a loaded 2-core machine drops a frame, and
-# every later P(slip) of the grasp differs. At a rate slower than the model's, every frame is judged as offline.
-EVERY_FRAME_FPS = 12.5
+from tests.nodes.conftest import EVERY_FRAME_FPS, REPO, wait_status
 
 
 def _field(stamp_ns: int, value: float, grid: int = 30) -> DisplacementField:
@@ -440,8 +435,7 @@ def test_both_fingers_voted_on_slip_give_the_trial_score_of_fv_eval(bus_env, spa
     n = sum(len(a) for a in alone)
     last: dict[str, SlipState] = {}
     counts = dict.fromkeys(["/left/slip", "/right/slip", "/slip"], 0)
-    with TopicReader(list(counts)) as reader:  # at half the videos' rate: a frame dropped by a tracker
-        # that fell behind (2 of 224 states never came with two busy loops on 2 cores) judges another grasp
+    with TopicReader(list(counts)) as reader:  # (at 25 fps, 2 of 224 states never came with two busy loops)
         spawn("launch", str(REPO / "launch" / "video_pair.yaml"), f"left:={videos[0]}", f"right:={videos[1]}",
               "standby:=false", f"fps:={EVERY_FRAME_FPS}")  # standby as _launched_running_p_slip
         for k in range(2 * n):
