@@ -80,9 +80,7 @@ def _simulate(args: argparse.Namespace, scene: Scene | None, frames: int, index:
             truth = json.loads((args.out / "truth.json").read_text())["frames"][index]
             state, area = truth["slip_state"], truth["contact_area_mm2"]
         else:
-            frame = None
-            for frame, _ in zip(SimSensor(scene, seed=args.seed), range(index + 1)):
-                pass
+            frame = next(SimSensor(scene, seed=args.seed).frames(index))  # frames before it: mechanics only
             write_image(args.preview, preview_image(frame))
             state, area = frame.truth.slip_state, frame.truth.contact_area_mm2
         print(f"wrote preview of frame {index} to {args.preview} (slip state {state}, contact {area:.1f} mm^2)")

@@ -154,6 +154,21 @@ class RenderResult:
     radius_px: np.ndarray
 
 
+@dataclass(frozen=True)
+class _FrameDraws:
+    """The random draws of one frame (None: its effect is off).
+
+    Attributes:
+        drawn: (N,) bool markers not dropped out ("missing").
+        occluder: (centre (2,) px, radius px) of the occluder in the frame, or None when none is ("occlusion").
+        noise_cut: (bank frame, u offset px, v offset px) of the sensor noise ("noise").
+    """
+
+    drawn: np.ndarray | None
+    occluder: tuple[np.ndarray, float] | None
+    noise_cut: tuple[int, int, int] | None
+
+
 def ellipse_coverage(centres_px: np.ndarray, axes_px: np.ndarray, half_window: int) -> tuple[np.ndarray, np.ndarray]:
     """Anti-aliased coverage of filled ellipses on square pixel windows.
 
@@ -188,7 +203,7 @@ def ellipse_coverage(centres_px: np.ndarray, axes_px: np.ndarray, half_window: i
 class SkinRenderer:
     """Renders marker frames; holds the precomputed background, noise and lighting maps.
 
-    Each call to `render` is the next frame in time (exposure drift, turning gradient,
+    Each call to `render` (or `skip`) is the next frame in time (exposure drift, turning gradient,
     occluders moving); a renderer built with the same arguments and fed the same markers
     returns identical frames.
 
@@ -349,14 +364,36 @@ class SkinRenderer:
         cv2.scaleAdd(vignette, exposure, self._light, dst=self._light)
         cv2.multiply(self._frame, self._light, dst=self._frame)
 
-    def _apply_noise(self) -> None:
-        """Blur the frame and add sensor noise cut from the noise bank at a random offset."""
+    def _apply_noise(self, cut: tuple[int, int, int]) -> None:
+        """Blur the frame and add sensor noise cut from the noise bank: `cut` is (bank frame, u offset px,
+        v offset px), drawn by `_draw`."""
         h, w = self._frame.shape
         if self.params.blur_sigma_px > 0:
             cv2.GaussianBlur(self._frame, (0, 0), self.params.blur_sigma_px, dst=self._frame)
-        k = self._rng.integers(len(self._noise_bank))
-        du, dv = self._rng.integers(0, 2 * _NOISE_PAD_PX + 1, size=2)
+        k, du, dv = cut
         cv2.add(self._frame, self._noise_bank[k, dv:dv + h, du:du + w], dst=self._frame)
+
+    def _draw(self, n_markers: int) -> _FrameDraws:
+        """This frame's randomness, by effect, in one fixed order: what `render` and `skip` both take, so
+        that a skipped frame leaves the renderer where rendering it would."""
+        drawn = self._rng.random(n_markers) >= self.params.missing_probability if "missing" in self.effects else None
+        occluder = self._step_occluder() if "occlusion" in self.effects else None
+        cut = None
+        if "noise" in self.effects:
+            k = int(self._rng.integers(len(self._noise_bank)))
+            du, dv = (int(d) for d in self._rng.integers(0, 2 * _NOISE_PAD_PX + 1, size=2))
+            cut = (k, du, dv)
+        return _FrameDraws(drawn, occluder, cut)
+
+    def skip(self, n_markers: int) -> None:
+        """Pass over the next frame without rendering it: the renderer then renders the frame after it as
+        if it had rendered this one (the same randomness drawn, occluders moved, lighting advanced).
+
+        Args:
+            n_markers: the markers the frame would have had (the per-marker dropouts draw one number each).
+        """
+        self._draw(n_markers)
+        self._frame_index += 1
 
     def render(self, markers_skin_mm: np.ndarray) -> RenderResult:
         """Render the next frame.
@@ -387,25 +424,22 @@ class SkinRenderer:
             (centres[:, 0] - extent >= 0) & (centres[:, 0] + extent <= w - 1)
             & (centres[:, 1] - extent >= 0) & (centres[:, 1] + extent <= h - 1)
         )
-        drawn = np.ones(len(markers), dtype=bool)
-        if "missing" in self.effects:
-            drawn = self._rng.random(len(markers)) >= p.missing_probability
-            visible &= drawn
+        draws = self._draw(len(markers))
+        drawn = np.ones(len(markers), dtype=bool) if draws.drawn is None else draws.drawn
+        visible &= drawn
         np.copyto(self._frame, self.background)
         if np.any(drawn):
             half_window = int(np.ceil(singular[drawn, 0].max())) + 1
             coverage, origin = ellipse_coverage(centres[drawn], axes[drawn], half_window)
             self._paint(coverage, origin, p.marker_level)
-        if "occlusion" in self.effects:
-            occluder = self._step_occluder()
-            if occluder is not None:
-                centre, radius = occluder
-                visible &= np.hypot(*(centres - centre).T) > radius + extent
-                self._paint_disc(centre, radius, p.occluder_level)
+        if draws.occluder is not None:
+            centre, radius = draws.occluder
+            visible &= np.hypot(*(centres - centre).T) > radius + extent
+            self._paint_disc(centre, radius, p.occluder_level)
         if "lighting" in self.effects:
             self._apply_lighting()
-        if "noise" in self.effects:
-            self._apply_noise()
+        if draws.noise_cut is not None:
+            self._apply_noise(draws.noise_cut)
         np.clip(self._frame, 0.0, 255.0, out=self._frame)
         np.rint(self._frame, out=self._frame)
         self._frame_index += 1

@@ -2,7 +2,8 @@
 
 `SceneRunner` steps a scene's mechanics (object pose, loads, contact state) frame by
 frame; `check_scene` plays them without rendering, to refuse a scene that cannot be played before
-any frame is shown; `SimSensor` adds the fisheye renderer and per-frame ground truth; `write_sequence`
+any frame is shown; `SimSensor` adds the fisheye renderer and per-frame ground truth (`SimSensor.frames`:
+from a frame on, the frames before it played but not rendered); `write_sequence`
 stores frames (PNG) and truth (npz + json) for inspection; `preview_image` draws the true
 markers and displacement arrows over a frame.
 """
@@ -273,17 +274,31 @@ class SimSensor:
             yield grasp_scene(scenario)
 
     def __iter__(self) -> Iterator[SimFrame]:
-        """Yields SimFrame; finite for a scene, endless in random mode.
+        """Yields SimFrame; finite for a scene, endless in random mode (`frames` from the sensor's next frame)."""
+        return self.frames()
 
+    def frames(self, start: int = 0) -> Iterator[SimFrame]:
+        """Yields the SimFrames that iterating yields from frame index `start` on: the frames before it
+        are played (their mechanics, which later frames may depend on, e.g. a slide's gross slip) and
+        skipped by the renderer, never rendered. Frame N of a scene costs its mechanics up to N and one
+        rendered frame.
+
+        Args:
+            start: index of the first frame yielded, counted from the sensor's first frame (a sensor
+                iterated before has used up its first ones). Past a scene's end nothing is yielded.
         Raises:
             ValueError: naming the frame, when a frame cannot be played (`_marker_mechanics`;
-                `check_scene` finds it without rendering).
+                `check_scene` finds it without rendering), a skipped one too.
         """
         skin = self.params.skin
         for scene in self._scenes():
             runner = SceneRunner(scene, skin, self.params.contact)
             started = time.perf_counter()
             for mech, u in _marker_mechanics(runner, self.markers_ref_mm, self.params.camera_distance_mm):
+                if self._index < start:
+                    self.renderer.skip(len(self.markers_ref_mm))
+                    self._index += 1
+                    continue
                 result = self.renderer.render(np.column_stack([self.markers_ref_mm + u[:, :2], u[:, 2]]))
                 truth = FrameTruth(self._index, self.markers_ref_mm, u, result.markers_px, result.visible, mech, runner.model.grid, self.camera, self.params.camera_distance_mm, self._lens)
                 self.last_frame_s = time.perf_counter() - started

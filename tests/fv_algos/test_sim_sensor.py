@@ -37,6 +37,52 @@ def test_deterministic_from_seed() -> None:
     assert not np.array_equal(a[-1].image, c[-1].image)
 
 
+def test_frames_from_an_index_are_the_frames_iteration_gives_without_rendering_those_before(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every randomness of the renderer on, and often (occluders, dropouts): a skipped frame leaves the renderer
+    where rendering it would, and the mechanics of the frames before (a slide's gross slip) are played."""
+    from fv_algos.sim.render import RenderParams, SkinRenderer
+    from fv_algos.sim.sensor import SensorParams
+    desc = {**SCENE, "effects": ["normal", "shear", "slip", "lens", "noise", "lighting", "occlusion", "missing"],
+            "steps": SCENE["steps"] + [{"action": "slide", "duration_s": 0.3, "velocity_mm_s": [4.0, 0.0]}]}
+    params = SensorParams(render=RenderParams(occlusion_probability=0.3, missing_probability=0.05))
+    iterated = list(SimSensor(scene_from_dict(desc), params, seed=3))
+    assert iterated[-1].truth.slip_state == "gross" and not iterated[-1].truth.visible.all()
+    rendered = []
+    render = SkinRenderer.render
+    monkeypatch.setattr(SkinRenderer, "render", lambda self, markers: rendered.append(1) or render(self, markers))
+    for start in (0, 4, len(iterated) - 1):
+        rendered.clear()
+        frame = next(SimSensor(scene_from_dict(desc), params, seed=3).frames(start))
+        assert len(rendered) == 1
+        expected = iterated[start]
+        assert frame.stamp_s == expected.stamp_s and frame.truth.index == start
+        assert np.array_equal(frame.image, expected.image)
+        assert np.array_equal(frame.truth.markers_px, expected.truth.markers_px)
+        assert np.array_equal(frame.truth.visible, expected.truth.visible)
+        assert np.array_equal(frame.truth.mechanics.centre_mm, expected.truth.mechanics.centre_mm)
+    assert list(SimSensor(scene_from_dict(desc), params, seed=3).frames(len(iterated))) == []
+
+
+def test_a_preview_renders_its_frame_alone_as_iteration_renders_it(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`fv sim --preview P --frame N` rendered frames 0 to N to show frame N."""
+    import yaml
+
+    from fv_algos.sim.render import SkinRenderer
+    from nodes.cli import main
+    desc = {**SCENE, "effects": SCENE["effects"] + ["noise", "lighting"]}
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump(desc))
+    expected = _frames(7, desc)[4]
+    write_image(tmp_path / "expected.png", preview_image(expected))
+    rendered = []
+    render = SkinRenderer.render
+    monkeypatch.setattr(SkinRenderer, "render", lambda self, markers: rendered.append(1) or render(self, markers))
+    assert main(["sim", "--scene", str(tmp_path / "s.yaml"), "--preview", str(tmp_path / "p.png"), "--frame", "4",
+                 "--seed", "7"]) == 0
+    assert len(rendered) == 1
+    assert (tmp_path / "p.png").read_bytes() == (tmp_path / "expected.png").read_bytes()
+
+
 def test_truth_markers_match_the_image() -> None:
     frame = _frames(0)[-1]
     img = 255.0 - frame.image.astype(np.float64)
