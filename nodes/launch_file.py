@@ -38,7 +38,7 @@ from __future__ import annotations
 import json
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -116,7 +116,9 @@ class NodeSpec:
     respawn_delay_s: seconds between an exit and the restart. max_retries: restarts
     allowed (None = no limit). standby: a respawning node keeps a spare process that has
     done its imports and takes over at once when the node exits. source: "file:line" of
-    the entry, for messages.
+    the entry, for messages. included_at: "file:line" of the include entry of the launch file loaded
+    that brought it in ("" for a node of that file's own): one entry of an included file makes a node
+    per include.
     """
 
     kind: str
@@ -132,6 +134,7 @@ class NodeSpec:
     standby: bool = False
     required: bool = False
     source: str = ""
+    included_at: str = ""
 
     def argv(self) -> list[str]:
         """The `fv node` arguments that run this node (after `python -m nodes.cli`)."""
@@ -255,7 +258,8 @@ def load_launch(path: Path | str, args: dict[str, Any] | None = None, _stack: tu
         if not target.is_file():
             raise f.error(inc.lines["file"], f"{key}.file", f"{target} does not exist")
         namespace = _entry_namespace(f, inc, f"{key}.namespace", line, _namespace)
-        specs += load_launch(target, inc_args, _stack + (path,), namespace)
+        included = load_launch(target, inc_args, _stack + (path,), namespace)
+        specs += [replace(spec, included_at=f"{path}:{line}") for spec in included]
     for i, entry in enumerate(_section(f, doc, "nodes")):
         key = f"nodes[{i}]"
         line = _line(doc["nodes"], i, 1)
@@ -393,12 +397,23 @@ def _node_spec(f: _File, entry: _Dict, line: int, key: str, node_class: Any, out
 
 
 def _check_unique(specs: list[NodeSpec]) -> None:
-    """LaunchError naming both entries where two nodes get one name (/left/camera and /left_camera are
-    both left_camera)."""
+    """LaunchError naming both nodes where two nodes of one launch file (its own or included) get one name
+    (/left/camera and /left_camera are both left_camera), each at its place in that file: its entry, or for
+    an included node the include entry it came through, with its entry in the included file. One entry of a
+    file included twice makes both nodes; a clash inside an included file was refused there, so two included
+    nodes come through two include entries and no place is named twice."""
     seen: dict[str, NodeSpec] = {}
     for spec in specs:
-        if spec.name in seen:
-            first = seen[spec.name]
-            raise LaunchError(f"{spec.source}: name: node name {spec.name!r} ({spec.path}) is already used at "
-                              f"{first.source} ({first.path})")
-        seen[spec.name] = spec
+        first = seen.setdefault(spec.name, spec)
+        if first is not spec:
+            own = f", entry {spec.source}" if spec.included_at else ""
+            their = "" if not first.included_at else (
+                ", the same entry" if first.source == spec.source else f", entry {first.source}")
+            raise LaunchError(f"{_place(spec)}: name: node name {spec.name!r} ({spec.path}{own}) is already used at "
+                              f"{_place(first)} ({first.path}{their})")
+
+
+def _place(spec: NodeSpec) -> str:
+    """"file:line" of a node in the launch file being checked: the include entry it came through, or its
+    own entry."""
+    return spec.included_at or spec.source

@@ -159,7 +159,8 @@ def test_an_include_in_a_namespace_moves_its_nodes_topics_and_names_there(tmp_pa
         "hand_left_talker", "hand_right_ears_listener", "talker"]
     twice = _write(tmp_path, "twice.yaml", "include:\n  - {file: inner.yaml, namespace: a}\n"
                                            "  - {file: inner.yaml, namespace: a}\n")
-    with pytest.raises(LaunchError, match=r"'a_talker' \(/a/talker\) is already used"):
+    with pytest.raises(LaunchError, match=rf"{twice}:3: name: node name 'a_talker' \(/a/talker, entry .*inner.yaml:2\) "
+                                          rf"is already used at {twice}:2"):
         load_launch(twice)
     bad = _write(tmp_path, "bad.yaml", "include:\n  - file: inner.yaml\n    namespace: left/\n")
     with pytest.raises(LaunchError, match=rf"{bad}:3: include\[0\].namespace: 'left/' is not a namespace"):
@@ -198,22 +199,35 @@ def test_an_absolute_namespace_stands_under_an_include_namespace(tmp_path: Path)
         ("left_talker", "/left/talker", "/left"), ("hand_ears_listener", "/hand/ears/listener", "/hand/ears")]
     twice = _write(tmp_path, "twice.yaml", "include:\n  - {file: inner.yaml, namespace: a}\n"
                                            "  - {file: inner.yaml, namespace: b}\n")
-    with pytest.raises(LaunchError, match=r"'left_talker' \(/left/talker\) is already used"):
+    with pytest.raises(LaunchError, match=rf"{twice}:3: name: node name 'left_talker' \(/left/talker, entry .*inner.yaml:2\) "
+                                          rf"is already used at {twice}:2"):
         load_launch(twice)
 
 
 def test_a_name_made_twice_by_namespaces_names_both_entries(tmp_path: Path) -> None:
-    """Two nodes that end with one name are refused with both entries' lines and paths: `left_camera` at the
-    root and `camera` in the namespace left, or `camera` in left in two files."""
+    """Two nodes that end with one name are refused with both places in the launch file and paths: `left_camera`
+    at the root and `camera` in the namespace left, or `camera` in left in two files (the include entry, and
+    the entry in the included file). One file included twice in one namespace named the entry in it twice
+    ("inner.yaml:2: ... is already used at inner.yaml:2"): the two include entries tell the nodes apart."""
     clash = _write(tmp_path, "clash.yaml", "nodes:\n  - {kind: camera, name: left_camera}\n"
                                            "  - {kind: talker, name: camera, namespace: left}\n")
     assert _refusal(clash) == (f"{clash}:3: name: node name 'left_camera' (/left/camera) is already used at "
                               f"{clash}:2 (/left_camera)")
-    _write(tmp_path, "finger.yaml", "nodes:\n  - {kind: camera, name: camera, namespace: left}\n")
+    finger = _write(tmp_path, "finger.yaml", "nodes:\n  - {kind: camera, name: camera, namespace: left}\n")
     twice = _write(tmp_path, "twice.yaml", "include:\n  - {file: finger.yaml}\n"
                                            "nodes:\n  - {kind: talker, name: camera, namespace: left}\n")
     assert _refusal(twice) == (f"{twice}:4: name: node name 'left_camera' (/left/camera) is already used at "
-                              f"{tmp_path / 'finger.yaml'}:2 (/left/camera)")
+                              f"{twice}:2 (/left/camera, entry {finger}:2)")
+    inner = _write(tmp_path, "inner.yaml", "nodes:\n  - kind: talker\n")
+    both = _write(tmp_path, "both.yaml", "include:\n  - {file: inner.yaml, namespace: a}\n"
+                                         "  - {file: inner.yaml, namespace: a}\n")
+    assert _refusal(both) == (f"{both}:3: name: node name 'a_talker' (/a/talker, entry {inner}:2) is already used at "
+                             f"{both}:2 (/a/talker, the same entry)")
+    _write(tmp_path, "hand.yaml", "include:\n  - {file: inner.yaml, namespace: a}\n")
+    _write(tmp_path, "other.yaml", "nodes:\n  - kind: listener\n  - {kind: talker, namespace: a}\n")
+    arm = _write(tmp_path, "arm.yaml", "include:\n  - file: hand.yaml\n  - file: other.yaml\n")
+    assert _refusal(arm) == (f"{arm}:3: name: node name 'a_talker' (/a/talker, entry {tmp_path / 'other.yaml'}:3) "
+                            f"is already used at {arm}:2 (/a/talker, entry {inner}:2)")
 
 
 def test_check_shows_each_node_name_with_its_path(tmp_path: Path) -> None:
