@@ -129,6 +129,25 @@ def test_writer_and_reader_round_trip(bag: tuple[Path, list]) -> None:
     assert all(c.message_encoding == MESSAGE_ENCODING for c in summary.channels.values())
 
 
+def test_a_readers_topics_are_worked_out_once_and_each_answer_is_the_callers_own(
+        bag: tuple[Path, list], monkeypatch: pytest.MonkeyPatch) -> None:
+    """topics() scanned every chunk index per topic on each call (milliseconds on a bag of thousands of
+    chunks), and a play asks it in its params' check, its setup and each pass."""
+    import nodes.bag.reader
+    path, _ = bag
+    reader = BagReader(path)
+    first = reader.topics()
+    first["/slip"].nodes.append("someone")
+    first["/slip"].count = 0
+    del first["/field"]
+    monkeypatch.setattr(nodes.bag.reader, "_latched", lambda channel: pytest.fail("topics worked out again"))
+    again = reader.topics()
+    monkeypatch.undo()
+    assert again == BagReader(path).topics()
+    assert list(again) == ["/camera/info", "/camera/image", "/field", "/slip"]
+    assert (again["/slip"].count, again["/slip"].nodes) == (40, ["proc"])
+
+
 def test_split_by_size_and_duration_repeats_attachments(tmp_path: Path, rng: np.random.Generator) -> None:
     messages = sample_messages(60, rng)
     by_size = write_bag(tmp_path / "s", messages, chunk_size_b=4_000, max_bag_size_b=20_000, compression="lz4")
