@@ -20,6 +20,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -31,6 +32,9 @@ from nodes.camera_sources import (FolderSource, Frame, FrameSource, SourceConfig
                                   VideoFileSource)
 from nodes.node import Node
 from nodes.start_gate import StartGate
+
+if TYPE_CHECKING:
+    from fv_algos.sim.scene import Scene
 
 SOURCES = ("sim", "video", "folder", "v4l2")
 ENCODINGS = ("mono8", "bgr8")
@@ -79,6 +83,7 @@ class CameraParams:
             self.path = str(Path(self.path).expanduser())  # a shell leaves the ~ of video:=~/clip.avi as it is
             if not (Path(self.path).is_file() if self.source == "video" else Path(self.path).is_dir()):
                 raise ValueError(f"{self.source} {self.path}: no such {'file' if self.source == 'video' else 'folder'}")
+        self.sim_scene: Scene | None = None  # not a param: the scene read from `scene` here, which the source plays
         if self.source == "sim":  # a missing or bad scene, or one it cannot play: refused before a launch starts
             from nodes.sim_source import read_scene
             self.scene = str(Path(self.scene).expanduser()) if self.scene else ""
@@ -86,7 +91,7 @@ class CameraParams:
                 raise ValueError(f"scene_check_frames {self.scene_check_frames} must be >= 0")
             if self.prerender_max_mb <= 0:
                 raise ValueError(f"prerender_max_mb {self.prerender_max_mb} must be > 0")
-            read_scene(self.scene, self.prerender, self.scene_check_frames, self.prerender_max_mb)
+            self.sim_scene = read_scene(self.scene, self.prerender, self.scene_check_frames, self.prerender_max_mb)
         if self.undistort and not self.calibration and self.source != "sim":
             raise ValueError("undistort needs a calibration file")
         if self.start_timeout_s < 0:
@@ -105,7 +110,7 @@ def make_source(p: CameraParams) -> FrameSource:
     if p.source == "v4l2":
         return V4L2Source(p.path, p.width, p.height, p.fps, p.exposure, p.white_balance)
     from nodes.sim_source import SimSource
-    return SimSource(p.scene, p.seed, p.fps, p.prerender)
+    return SimSource(p.scene, p.seed, p.fps, p.prerender, scene=p.sim_scene)  # the file read once, by the params
 
 
 RATE_CHECK_S = 5.0  # the stretch of published frames the camera's rate is checked over, s

@@ -99,16 +99,20 @@ class SimSource:
     kept 9.5 MB per second of scene at 30 fps (launch/scenes, traced), and renders them all before the first
     frame; the camera's params bound it (`prerender_max_mb`). It needs a scene file (random scenarios never end)."""
 
-    def __init__(self, scene_path: str, seed: int, fps: float, prerender: bool = False) -> None:
+    def __init__(self, scene_path: str, seed: int, fps: float, prerender: bool = False,
+                 scene: Scene | None = None) -> None:
+        """`scene`: the scene of `scene_path` read already (`read_scene`: the camera's params read and check it),
+        or None to read it here."""
         self.scene_path = scene_path
         self.seed = seed
         self.fps = fps
         self.prerender = prerender
         self.name = source_name(scene_path)
-        try:
-            scene = read_scene(scene_path, prerender)  # the camera's params have checked it
-        except ValueError as exc:
-            raise SourceError(str(exc)) from None
+        if scene is None:
+            try:
+                scene = read_scene(scene_path, prerender)
+            except ValueError as exc:
+                raise SourceError(str(exc)) from None
         self.sensor = SimSensor(scene, seed=seed, loop_fps=fps)
         self.camera = self.sensor.camera
         self._images: Iterator[np.ndarray] | None = None

@@ -380,6 +380,23 @@ def test_a_scene_that_fails_while_playing_stops_the_camera_saying_why(bus, tmp_p
     assert sum(not isinstance(m, NodeStatus) for m in received) <= 4  # frames 0 to 3, once
 
 
+def test_a_camera_reads_its_scene_file_once(bus, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Its params read the scene (and checked it), then its source read the file again to play it."""
+    from nodes import sim_source
+    from nodes.camera import CameraNode
+    scene = str(Path(__file__).parents[2] / "launch" / "scenes" / "press_shear_slide.yaml")
+    read: list[str] = []
+    load_scene = sim_source.load_scene
+    monkeypatch.setattr(sim_source, "load_scene", lambda path: read.append(path) or load_scene(path))
+    node = CameraNode("camera", {"scene": scene, "scene_check_frames": 1})
+    try:
+        node.setup()
+        assert read == [scene]
+        assert node.source.sensor.scene is node.params.sim_scene
+    finally:
+        node.close()
+
+
 def test_a_scene_that_cannot_be_played_ends_fv_node_camera_at_its_start(bus, tmp_path: Path) -> None:
     import yaml
     scene = tmp_path / "off.yaml"
