@@ -117,7 +117,8 @@ def _check_scalar(cls: type[Message], name: str, value: Any, default: Any) -> An
     return value
 
 
-def _defaults(cls: type[Message]) -> dict[str, Any]:
+def scalar_defaults(cls: type[Message]) -> dict[str, Any]:
+    """{name: default value} of the scalar (non-header, non-array) fields of `cls`, in declaration order."""
     out = {}
     for f in dataclasses.fields(cls):
         if f.name in HEADER_FIELDS or f.name in cls.ARRAYS:
@@ -184,7 +185,7 @@ def _scalar_values(cls: type[Message], fields: dict[str, Any], topic: str = "?")
     """The scalar (non-header, non-array) fields of a `cls` message from `fields` ({name: value}), checked
     and as decoded (an int of a float field as a float; one of `cls.ADDED` that is missing as its default);
     MessageError for a missing, mistyped or unknown one."""
-    defaults = _defaults(cls)
+    defaults = scalar_defaults(cls)
     values = {}
     for name, default in defaults.items():
         if name not in fields:

@@ -84,15 +84,28 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="JSON report")
     p.set_defaults(func=_recover)
 
-    p = verbs.add_parser("export", help="a topic to video (mp4/avi), PNG frames, CSV or NPZ")
+    p = verbs.add_parser(
+        "export", help="a topic to video (mp4/avi), PNG frames, CSV or NPZ; topics to an MCAP that Foxglove reads",
+        description="Export a topic to video, PNG frames, CSV or NPZ, or topics (by default every one) to an MCAP "
+                    "file that Foxglove opens without our fv-msgpack codec (--format foxglove, or an output "
+                    "named *.mcap): each message a JSON object (message encoding json) with a JSON Schema "
+                    "(jsonschema), at its recorded log time. Image topics become foxglove.CompressedImage "
+                    "(--images png, lossless, the default; jpeg, smaller but lossy) or foxglove.RawImage "
+                    "(--images raw); every other type fv.<Type> with its fields as recorded (times as "
+                    "{sec, nsec}, arrays as nested lists), so a Plot panel plots /slip.probability.")
     p.add_argument("bag", help="bag folder or .mcap file")
-    p.add_argument("--topic", required=True, help="recorded topic to export")
+    p.add_argument("--topic", action="append", default=[],
+                   help="recorded topic to export (one for mp4/avi/png/csv/npz; foxglove: repeat for several, "
+                        "default every topic)")
     p.add_argument("-o", "--output", type=Path, required=True,
-                   help="output: x.mp4 / x.avi (Image), a folder for PNG (Image), x.csv or x.npz (any type)")
-    p.add_argument("--format", choices=["mp4", "avi", "png", "csv", "npz"],
-                   help="default: from the output's suffix (no suffix: png)")
+                   help="output: x.mp4 / x.avi (Image), a folder for PNG (Image), x.csv or x.npz (any type), "
+                        "x.mcap (foxglove)")
+    p.add_argument("--format", choices=["mp4", "avi", "png", "csv", "npz", "foxglove"],
+                   help="default: from the output's suffix (.mcap: foxglove; no suffix: png)")
     p.add_argument("--fps", type=non_negative_float, default=0.0,
                    help="video frame rate (default, 0: the recorded rate)")
+    p.add_argument("--images", choices=["png", "jpeg", "raw"], default="png",
+                   help="foxglove: Image topics as PNG (lossless, default), JPEG (lossy) or raw pixels")
     p.add_argument("--force", action="store_true", help="replace an output that exists")
     p.set_defaults(func=_export)
 
@@ -145,6 +158,6 @@ def _export(args: argparse.Namespace) -> int:
     if (args.output.is_file() or args.output.is_dir() and any(args.output.iterdir())) and not args.force:
         raise ValueError(f"{args.output} exists and is not empty: pass --force to replace what it holds, or "
                          "choose another output")
-    count, out = export(args.bag, args.topic, args.output, args.format, args.fps)
-    print(f"exported {count} messages of {args.topic} to {out}")
+    count, out = export(args.bag, args.topic, args.output, args.format, args.fps, args.images)
+    print(f"exported {count} messages of {', '.join(args.topic) or 'every topic'} to {out}")
     return 0

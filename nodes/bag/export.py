@@ -1,4 +1,5 @@
-"""`fv bag export`: one topic of a bag to a video, PNG frames, CSV or NPZ.
+"""`fv bag export`: one topic of a bag to a video, PNG frames, CSV or NPZ; any or every topic to an MCAP
+file that Foxglove reads (`nodes.bag.foxglove`).
 
 - mp4 (mp4v) / avi (MJPG) / png: `Image` topics; mono8 and rgb8 frames are converted
   to BGR for OpenCV. PNG files are named ``<index>_<stamp_ns>.png``.
@@ -7,6 +8,8 @@
 - npz: every column of the CSV as an array of length N, plus each array field stacked
   to shape (N, ...) when all messages agree on its shape, else concatenated along axis 0
   with ``<name>_offsets`` (N + 1 row offsets: message i is rows offsets[i]:offsets[i+1]).
+- foxglove (an output named ``*.mcap``): the topics chosen, by default every one, as JSON messages
+  with JSON Schemas, images as Foxglove's CompressedImage (PNG or JPEG) or RawImage.
 """
 from __future__ import annotations
 
@@ -14,7 +17,7 @@ import csv
 import json
 import re
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 
@@ -22,7 +25,8 @@ from msgs import Image, Message
 from msgs.message import HEADER_FIELDS
 from nodes.bag.reader import BagError, BagReader
 
-FORMATS = ("mp4", "avi", "png", "csv", "npz")
+FORMATS = ("mp4", "avi", "png", "csv", "npz", "foxglove")
+SUFFIX_FORMATS = {"mcap": "foxglove"}  # output suffixes that are not their format's name
 FOURCC = {"mp4": "mp4v", "avi": "MJPG"}
 
 
@@ -129,23 +133,42 @@ def _npz(messages: Iterator[tuple[str, Message, int]], output: Path) -> int:
     return len(columns.get("log_time_ns", []))
 
 
-def export(path: Path | str, topic: str, output: Path, fmt: str | None = None, fps: float = 0.0) -> tuple[int, Path]:
-    """Export `topic` of the bag at `path` to `output`; returns (messages written, output).
-    fmt: one of FORMATS (None: from the output's suffix, a folder means png).
-    fps: video frame rate (0: the topic's recorded mean rate)."""
-    bag = BagReader(path)
-    topics = bag.topics()
-    if topic not in topics:
-        raise BagError(path, f"has no topic {topic!r}; topics: {sorted(topics)}")
-    fmt = fmt or (output.suffix.lstrip(".").lower() or "png")
+def export_format(fmt: str | None, output: Path) -> str:
+    """The export format: `fmt`, else from the output's suffix (none: png, a folder of frames); ValueError
+    naming the formats for another."""
+    suffix = output.suffix.lstrip(".").lower()
+    fmt = fmt or SUFFIX_FORMATS.get(suffix, suffix) or "png"
     if fmt not in FORMATS:
         raise ValueError(f"export format {fmt!r} is not one of {list(FORMATS)} (from --format or the output suffix)")
-    type_name = topics[topic].type_name
+    return fmt
+
+
+def export(path: Path | str, topics: str | Sequence[str] | None, output: Path, fmt: str | None = None,
+           fps: float = 0.0, images: str = "png") -> tuple[int, Path]:
+    """Export `topics` of the bag at `path` to `output`; returns (messages written, output).
+    topics: one topic (a name or a list of one); for foxglove any number, None or [] meaning every topic.
+    fmt: one of FORMATS (None: `export_format`). fps: video frame rate (0: the topic's recorded mean rate).
+    images: foxglove's image kind (`nodes.bag.foxglove.IMAGE_KINDS`)."""
+    bag = BagReader(path)
+    known = bag.topics()
+    chosen = [topics] if isinstance(topics, str) else list(topics or [])
+    missing = [topic for topic in chosen if topic not in known]
+    if missing:
+        raise BagError(path, f"has no topic {', '.join(map(repr, missing))}; topics: {sorted(known)}")
+    fmt = export_format(fmt, output)
+    if fmt == "foxglove":
+        from nodes.bag.foxglove import export_foxglove
+        return export_foxglove(bag, chosen or None, output, images), output
+    if len(chosen) != 1:
+        raise ValueError(f"export to {fmt} takes one --topic, not {len(chosen)}: several topics, or every one, "
+                         "go into one file with --format foxglove")
+    topic = chosen[0]
+    type_name = known[topic].type_name
     if fmt in ("mp4", "avi", "png") and type_name != Image.TYPE:
         raise ValueError(f"{topic} holds {type_name}, not Image: export it as csv or npz")
     messages = bag.read([topic])
     if fmt in FOURCC:
-        rate = fps or topics[topic].rate_hz or 30.0
+        rate = fps or known[topic].rate_hz or 30.0
         return _video(messages, output, fmt, rate), output
     if fmt == "png":
         return _png(messages, output), output

@@ -290,13 +290,19 @@ class BagReader:
         for f in self._files:
             yield from f.messages(topics, start_ns, end_ns)
 
-    def read(self, topics: list[str] | None = None) -> Iterator[tuple[str, Message, int]]:
-        """(topic, typed message, log_time_ns) in log-time order."""
+    def decoded(self, topics: list[str] | None = None) -> Iterator[tuple[BagMessage, Message]]:
+        """(recorded message, its typed message) in log-time order; BagError for one that does not decode."""
         for m in self.messages(topics):
             try:
-                yield m.topic, m.decode(), m.log_time_ns
+                msg = m.decode()
             except MessageError as exc:
                 raise BagError(self.path, f"message at log time {m.log_time_ns} ns: {exc}") from None
+            yield m, msg
+
+    def read(self, topics: list[str] | None = None) -> Iterator[tuple[str, Message, int]]:
+        """(topic, typed message, log_time_ns) in log-time order."""
+        for m, msg in self.decoded(topics):
+            yield m.topic, msg, m.log_time_ns
 
 
 def read_bag(path: Path | str, topics: list[str] | None = None) -> Iterator[tuple[str, Message, int]]:

@@ -1,0 +1,233 @@
+"""`fv bag export --format foxglove`: a recorded bag as an MCAP of JSON messages with JSON Schemas, read back
+with the mcap library and checked against the schemas it carries (`conforms`: the part of JSON Schema the
+export writes), images decoded back to their recorded pixels."""
+from __future__ import annotations
+
+import base64
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+import msgs
+from msgs import ContactSummary, DisplacementField, Image, MarkerArray, NodeStatus, SlipState
+from nodes.bag import foxglove
+from nodes.bag.export import export
+from nodes.bag.reader import BagError, BagReader
+from nodes.cli import main
+from tests.nodes.test_bag import T0_NS, sample_messages, write_bag
+
+JSON_TYPES: dict[str, Any] = {
+    "object": lambda v: isinstance(v, dict), "array": lambda v: isinstance(v, list),
+    "string": lambda v: isinstance(v, str), "boolean": lambda v: isinstance(v, bool), "null": lambda v: v is None,
+    "integer": lambda v: isinstance(v, int) and not isinstance(v, bool),
+    "number": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)}
+
+
+def conforms(value: Any, schema: dict[str, Any], path: str = "$") -> list[str]:
+    """Where `value` breaks `schema` (type, one or a list; properties; required; items; minimum; maximum;
+    contentEncoding base64): [] when it does not."""
+    types = schema.get("type", [])
+    types = [types] if isinstance(types, str) else types
+    if types and not any(JSON_TYPES[t](value) for t in types):
+        return [f"{path}: {value!r:.60} is not {' or '.join(types)}"]
+    problems = []
+    if isinstance(value, dict):
+        problems += [f"{path}.{name}: missing" for name in schema.get("required", []) if name not in value]
+        for name, sub in schema.get("properties", {}).items():
+            if name in value:
+                problems += conforms(value[name], sub, f"{path}.{name}")
+    if isinstance(value, list) and "items" in schema:
+        for i, item in enumerate(value):
+            problems += conforms(item, schema["items"], f"{path}[{i}]")
+    if JSON_TYPES["number"](value):
+        if value < schema.get("minimum", -math.inf) or value > schema.get("maximum", math.inf):
+            problems.append(f"{path}: {value} is out of [{schema.get('minimum')}, {schema.get('maximum')}]")
+    if schema.get("contentEncoding") == "base64":
+        try:
+            base64.b64decode(value, validate=True)
+        except ValueError:
+            problems.append(f"{path}: not base64")
+    return problems
+
+
+def test_the_checker_finds_what_breaks_a_schema() -> None:
+    schema = foxglove.message_schema("SlipState")
+    good = foxglove.message_json(SlipState(stamp_ns=T0_NS, probability=0.5, window_stamps_ns=np.arange(2)))
+    assert conforms(good, schema) == []
+    assert conforms({**good, "probability": "0.5"}, schema) == ["$.probability: '0.5' is not number"]
+    assert conforms({**good, "timestamp": {"sec": 1, "nsec": 10**9}}, schema)[0].startswith("$.timestamp.nsec")
+    assert conforms({**good, "window_stamps_ns": [1.5]}, schema) == ["$.window_stamps_ns[0]: 1.5 is not integer"]
+    assert conforms({k: v for k, v in good.items() if k != "slip"}, schema) == ["$.slip: missing"]
+    assert conforms({"data": "no base64!"}, foxglove.COMPRESSED_IMAGE_SCHEMA)[-1] == "$.data: not base64"
+
+
+def recorded(rng: np.random.Generator) -> list[tuple[str, bool, msgs.Message, int]]:
+    """`sample_messages` (a latched CameraInfo; mono8 frames, fields, slip states) with a bgr8 and an rgb8
+    camera, markers, a contact, a status with counters and a field holding NaN and infinities."""
+    out = sample_messages(6, rng)
+    t = out[-1][3]
+    bad = rng.normal(0, 1, (4, 5, 3)).astype(np.float32)
+    bad[0, 0, 0], bad[1, 2, 1], bad[3, 4, 2] = np.nan, np.inf, -np.inf
+    for i, encoding in enumerate(("bgr8", "rgb8")):
+        out.append((f"/{encoding}/image", False, Image(stamp_ns=t + i, encoding=encoding, frame_id=encoding,
+                                                       data=rng.integers(0, 255, (20, 30, 3), dtype=np.uint8),
+                                                       frame_index=i), t + 10 + i))
+    out += [("/markers", False, MarkerArray(stamp_ns=t, ref_px=rng.normal(0, 9, (7, 2)).astype(np.float32),
+                                            cur_px=rng.normal(0, 9, (7, 2)).astype(np.float32),
+                                            valid=rng.random(7) > 0.5, frames_since_seen=np.arange(7),
+                                            width=32, height=24), t + 20),
+            ("/contact", False, ContactSummary(stamp_ns=t, in_contact=True, area_px2=12.5), t + 30),
+            ("/status", True, NodeStatus(stamp_ns=t, counters={"lost": 1, "odd": math.nan},
+                                         publishes=[["/slip", "SlipState"]]), t + 40),
+            ("/field", False, DisplacementField(stamp_ns=t + 50, field=bad, grid_x_px=np.arange(5.0),
+                                                grid_y_px=np.arange(4.0)), t + 50)]
+    return out
+
+
+@pytest.fixture
+def bag(tmp_path: Path) -> Path:
+    write_bag(tmp_path / "run", recorded(np.random.default_rng(3)), chunk_size_b=4_000)
+    return tmp_path / "run"
+
+
+def read_export(path: Path) -> list[tuple[Any, Any, Any, dict[str, Any]]]:
+    """(schema, channel, message record, parsed JSON) of every message of an exported file, in log-time order."""
+    with open(path, "rb") as f:
+        return [(s, c, m, json.loads(m.data)) for s, c, m in make_reader(f).iter_messages(log_time_order=True)]
+
+
+def test_every_topic_is_json_that_its_schema_describes_at_the_recorded_times(bag: Path, tmp_path: Path) -> None:
+    count, out = export(bag, None, tmp_path / "fox.mcap")
+    source = list(BagReader(bag).decoded())
+    exported = read_export(out)
+    assert count == len(exported) == len(source) == 25
+    schemas = {}
+    for (rec, msg), (schema, channel, m, obj) in zip(source, exported):
+        assert (channel.topic, m.log_time, m.publish_time, m.sequence) == (
+            rec.topic, rec.log_time_ns, rec.publish_time_ns, rec.sequence)
+        assert (channel.message_encoding, schema.encoding) == ("json", "jsonschema")
+        assert channel.metadata == {"node": rec.node, "latched": "true" if rec.latched else "false"}
+        described = json.loads(schema.data)
+        assert described["title"] == schema.name
+        assert conforms(obj, described) == [], rec.topic
+        assert set(obj) == set(described["properties"])  # every field, none other
+        assert obj["timestamp"] == {"sec": msg.stamp_ns // 10**9, "nsec": msg.stamp_ns % 10**9}
+        schemas[rec.topic] = schema.name
+    assert schemas == {"/camera/info": "fv.CameraInfo", "/camera/image": "foxglove.CompressedImage",
+                       "/bgr8/image": "foxglove.CompressedImage", "/rgb8/image": "foxglove.CompressedImage",
+                       "/field": "fv.DisplacementField", "/slip": "fv.SlipState", "/markers": "fv.MarkerArray",
+                       "/contact": "fv.ContactSummary", "/status": "fv.NodeStatus"}
+
+
+def test_values_come_back_as_recorded(bag: Path, tmp_path: Path) -> None:
+    """PNG frames decode to the recorded pixels (an rgb8 frame's channels in their order), slip states keep
+    their probability, arrays their shape and every float32 value, NaN and infinities as null."""
+    _, out = export(bag, None, tmp_path / "fox.mcap")
+    frames = 0
+    for (_rec, msg), (_s, _c, _m, obj) in zip(BagReader(bag).decoded(), read_export(out)):
+        if isinstance(msg, Image):
+            assert obj["format"] == "png" and obj["frame_id"] == msg.frame_id
+            pixels = cv2.imdecode(np.frombuffer(base64.b64decode(obj["data"]), np.uint8), cv2.IMREAD_UNCHANGED)
+            assert np.array_equal(pixels[..., ::-1] if msg.encoding == "rgb8" else pixels, msg.data)
+            frames += 1
+        elif isinstance(msg, SlipState):
+            assert obj["probability"] == msg.probability and obj["slip"] is msg.slip
+            assert obj["window_stamps_ns"] == msg.window_stamps_ns.tolist()
+            assert obj["pub_time"] == {"sec": msg.pub_ns // 10**9, "nsec": msg.pub_ns % 10**9}
+        elif isinstance(msg, DisplacementField):
+            field = np.array([[[math.nan if v is None else v for v in px] for px in row] for row in obj["field"]],
+                             np.float32)
+            finite = np.isfinite(msg.field)
+            assert field.shape == msg.field.shape and np.array_equal(field[finite], msg.field[finite])
+            assert np.isnan(field[~finite]).all()
+        elif isinstance(msg, MarkerArray):
+            assert np.array_equal(np.array(obj["cur_px"], np.float32), msg.cur_px)
+            assert obj["valid"] == msg.valid.tolist() and obj["width"] == 32
+        elif isinstance(msg, NodeStatus):
+            assert obj["counters"] == {"lost": 1, "odd": None} and obj["publishes"] == [["/slip", "SlipState"]]
+    assert frames == 8
+
+
+def test_raw_and_jpeg_images(bag: Path, tmp_path: Path) -> None:
+    frames = {msg.stamp_ns: msg for _t, msg, _ in BagReader(bag).read() if isinstance(msg, Image)}
+    _, raw = export(bag, ["/camera/image", "/rgb8/image"], tmp_path / "raw.mcap", images="raw")
+    exported = read_export(raw)
+    assert {c.topic for _s, c, _m, _o in exported} == {"/camera/image", "/rgb8/image"} and len(exported) == 7
+    for schema, _c, _m, obj in exported:
+        img = frames[obj["timestamp"]["sec"] * 10**9 + obj["timestamp"]["nsec"]]
+        assert schema.name == "foxglove.RawImage" and conforms(obj, json.loads(schema.data)) == []
+        assert (obj["width"], obj["height"], obj["encoding"]) == (img.width, img.height, img.encoding)
+        assert obj["step"] == img.data.nbytes // img.height
+        assert base64.b64decode(obj["data"]) == img.data.tobytes()
+    _, jpeg = export(bag, ["/bgr8/image"], tmp_path / "jpeg.mcap", images="jpeg")
+    [(schema, _c, _m, obj)] = read_export(jpeg)
+    assert schema.name == "foxglove.CompressedImage" and obj["format"] == "jpeg"
+    pixels = cv2.imdecode(np.frombuffer(base64.b64decode(obj["data"]), np.uint8), cv2.IMREAD_UNCHANGED)
+    assert pixels.shape == (20, 30, 3)  # lossy: near the recorded pixels, not equal
+
+
+def test_every_message_type_has_a_schema_its_messages_meet() -> None:
+    for type_name in msgs.known_types():
+        if type_name == Image.TYPE:
+            continue
+        schema = foxglove.message_schema(type_name)
+        assert schema["title"] == f"fv.{type_name}"
+        assert conforms(foxglove.message_json(msgs.message_type(type_name)()), schema) == []
+
+
+def test_the_command_picks_topics_and_refuses_bad_input(bag: Path, tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture) -> None:
+    out = tmp_path / "out.mcap"  # .mcap: foxglove without --format
+    assert main(["bag", "export", str(bag), "--topic", "/slip", "--topic", "/field", "-o", str(out)]) == 0
+    assert capsys.readouterr().out == f"exported 13 messages of /slip, /field to {out}\n"
+    assert {c.topic for _s, c, _m, _o in read_export(out)} == {"/slip", "/field"}
+    assert main(["bag", "export", str(bag), "-o", str(out)]) == 2  # exists
+    assert "pass --force" in capsys.readouterr().err
+    assert main(["bag", "export", str(bag), "-o", str(out), "--force"]) == 0
+    assert "exported 25 messages of every topic" in capsys.readouterr().out
+    assert len(read_export(out)) == 25
+
+    for argv, error in (
+            (["--topic", "/nope", "--topic", "/slip", "-o", str(tmp_path / "a.mcap")],
+             f"bag {bag}: has no topic '/nope'; topics: ["),
+            (["-o", str(tmp_path / "a.csv")], "export to csv takes one --topic, not 0"),
+            (["--topic", "/slip", "--topic", "/field", "-o", str(tmp_path / "a.npz")], "takes one --topic, not 2"),
+            (["--topic", "/slip", "-o", str(out), "--force", "--format", "foxglove"], None)):
+        code = main(["bag", "export", str(bag), *argv])
+        err = capsys.readouterr().err
+        if error is None:
+            assert code == 0
+            continue
+        assert code == 2 and error in err and err.count("\n") == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.mcap", "run"]
+
+    not_a_bag = tmp_path / "notes.mcap"
+    not_a_bag.write_text("not a bag\n")
+    assert main(["bag", "export", str(not_a_bag), "-o", str(tmp_path / "b.mcap")]) == 2
+    assert f"bag {not_a_bag}: not an MCAP file" in capsys.readouterr().err
+    with pytest.raises(BagError, match="message encoding 'json', not 'fv-msgpack'"):  # an export is no bag
+        export(out, None, tmp_path / "again.mcap")
+
+
+def test_a_failed_export_leaves_no_file(bag: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The file appears whole or not at all: a frame that cannot be encoded midway leaves nothing, not a
+    truncated MCAP that Foxglove would refuse or show in part."""
+    encode = foxglove.image_json
+    written = []
+
+    def failing(img: Image, kind: str) -> dict[str, Any]:
+        if written:
+            raise RuntimeError("OpenCV cannot encode")
+        written.append(img)
+        return encode(img, kind)
+
+    monkeypatch.setattr(foxglove, "image_json", failing)
+    with pytest.raises(RuntimeError, match="cannot encode"):
+        export(bag, None, tmp_path / "fox.mcap")
+    assert written and sorted(p.name for p in tmp_path.iterdir()) == ["run"]
