@@ -35,11 +35,15 @@ def _bgr(img: Image) -> np.ndarray:
     return as_bgr(img.data, img.encoding)
 
 
+def cell(value: Any) -> Any:
+    """A scalar field's value as one CSV cell or JSON value: a list or map as its JSON text, else as it is."""
+    return json.dumps(value) if isinstance(value, (list, dict)) else value
+
+
 def _row(msg: Message, log_time_ns: int) -> dict[str, Any]:
     row: dict[str, Any] = {"log_time_ns": log_time_ns}
     row.update({name: getattr(msg, name) for name in HEADER_FIELDS})
-    for name, value in msg.scalar_fields().items():
-        row[name] = json.dumps(value) if isinstance(value, (list, dict)) else value
+    row.update({name: cell(value) for name, value in msg.scalar_fields().items()})
     return row
 
 

@@ -2,7 +2,8 @@
 
 Every message becomes a JSON object (MCAP message encoding ``json``) described by a JSON Schema
 (schema encoding ``jsonschema``); its log time, publish time and sequence are the recorded ones, and
-its channel keeps the recorded channel's metadata (publishing node, latched).
+its channel keeps the recorded channel's metadata (publishing node, latched). The bag's metadata
+records and attachments (the launch file) are copied.
 
 - `Image` topics in one of Foxglove's well-known image schemas, ``timestamp`` the frame's stamp_ns,
   ``data`` base64 (the schema says ``contentEncoding: base64``), as `IMAGE_KINDS` says:
@@ -12,17 +13,22 @@ its channel keeps the recorded channel's metadata (publishing node, latched).
   ``foxglove.RawImage`` {timestamp, frame_id, width, height, encoding (mono8 / bgr8 / rgb8, as
   recorded), step (bytes per row), data (rows of pixels)}.
 - every other type with schema ``fv.<Type>`` made from its message definition: {timestamp (stamp_ns),
-  pub_time (pub_ns), seq, frame_id, node, then each scalar field as its JSON type and each array field
-  as nested lists (a (H, W, 3) field: H lists of W lists of 3 numbers, so that Foxglove's message
-  paths index it as ``/field.field[12][3][2]`` and ``np.asarray`` gives it back; NaN and infinities,
-  which JSON cannot hold, as null)}. Times are {sec, nsec}, as in Foxglove's schemas (an int64 of ns
-  is past the 2**53 that a JSON number holds exactly in Foxglove).
+  pub_time (pub_ns), seq, frame_id, node, then each field}. Times are {sec, nsec}, as in Foxglove's
+  schemas (an int64 of ns is past the 2**53 up to which a JSON number is exact in Foxglove). A list or
+  map field (a status's counters, a param state's params) is its JSON text, as in the CSV export.
+  A 1-D array is a JSON array (``/slip.window_stamps_ns[0]``: numbers, exact in the file, to about
+  256 ns in Foxglove); one of two or more dimensions is
+  {shape, data}, data flat in C order (a (30, 30, 3) field: ``/field.field.data[i]``, i = (row * 30 +
+  column) * 3 + channel; ``np.reshape(data, shape)`` in Python). NaN and infinities, which JSON cannot
+  hold, are null.
+
+The schemas keep to the JSON Schema Foxglove parses: one type per property; objects with properties;
+arrays with items of a single type that is not an array (nested lists would not load).
 """
 from __future__ import annotations
 
 import base64
 import json
-import math
 from pathlib import Path
 from typing import IO, Any
 
@@ -34,6 +40,7 @@ from msgs import Image, Message
 from msgs.camera import ENCODING_CHANNELS
 from msgs.wire import scalar_defaults
 from nodes.bag.codec import META_LATCHED, META_NODE
+from nodes.bag.export import cell
 from nodes.bag.reader import BagMessage, BagReader
 
 MESSAGE_ENCODING = "json"
@@ -74,7 +81,7 @@ RAW_IMAGE_SCHEMA = _object("foxglove.RawImage", "A raw image", {
     "data": {**BASE64, "description": "Raw image data"}})
 
 SCALAR_TYPES: tuple[tuple[type, str], ...] = (  # bool before int: a bool is an int in Python
-    (bool, "boolean"), (int, "integer"), (float, "number"), (str, "string"), (list, "array"), (dict, "object"))
+    (bool, "boolean"), (int, "integer"), (float, "number"), (str, "string"), (list, "string"), (dict, "string"))
 
 
 def foxglove_time(ns: int) -> dict[str, int]:
@@ -82,29 +89,30 @@ def foxglove_time(ns: int) -> dict[str, int]:
     return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
 
 
-def _scalar_type(default: Any) -> str:
+def _scalar_schema(default: Any) -> dict[str, Any]:
     for kind, name in SCALAR_TYPES:
         if isinstance(default, kind):
-            return name
+            return {"type": name, "description": "JSON text"} if kind in (list, dict) else {"type": name}
     raise TypeError(f"no JSON type for a field of {type(default).__name__}")
 
 
 def _array_schema(type_name: str, name: str, spec: msgs.ArraySpec) -> dict[str, Any]:
-    """Nested-list schema of array field `name` of `type_name`: one "array" level per dimension."""
-    if len(spec.ndim) != 1:
-        raise ValueError(f"{type_name}.{name}: an array of {' or '.join(map(str, spec.ndim))} dimensions "
-                         "has no one JSON schema")
+    """Schema of array field `name` of `type_name`: a JSON array when 1-D, else {shape, data}."""
     if set(spec.kinds) <= set("iu"):
-        schema: dict[str, Any] = {"type": "integer"}
+        item = "integer"
     elif set(spec.kinds) <= set("iuf"):
-        schema = {"type": ["number", "null"]}  # null: NaN or an infinity
+        item = "number"
     elif spec.kinds == "b":
-        schema = {"type": "boolean"}
+        item = "boolean"
     else:
         raise ValueError(f"{type_name}.{name}: no JSON type for array kinds {spec.kinds!r}")
-    for _ in range(spec.ndim[0]):
-        schema = {"type": "array", "items": schema}
-    return schema
+    values = {"type": "array", "items": {"type": item}}
+    if item == "number":
+        values["description"] = "null where NaN or infinite"
+    if spec.ndim == (1,):
+        return values
+    return _object(f"{TYPE_PREFIX}{type_name}.{name}", "array of shape `shape`, `data` flat in C order",
+                   {"shape": {"type": "array", "items": {"type": "integer"}}, "data": values})
 
 
 def message_schema(type_name: str) -> dict[str, Any]:
@@ -114,38 +122,29 @@ def message_schema(type_name: str) -> dict[str, Any]:
         "timestamp": {**TIME_SCHEMA, "description": "stamp_ns: capture time of the data"},
         "pub_time": {**TIME_SCHEMA, "description": "pub_ns: time the message was published"},
         "seq": {"type": "integer", "minimum": 0}, "frame_id": {"type": "string"}, "node": {"type": "string"}}
-    properties.update({name: {"type": _scalar_type(default)} for name, default in scalar_defaults(cls).items()})
+    properties.update({name: _scalar_schema(default) for name, default in scalar_defaults(cls).items()})
     properties.update({name: _array_schema(type_name, name, spec) for name, spec in cls.ARRAYS.items()})
     doc = (cls.__doc__ or "").strip().splitlines()
     return _object(TYPE_PREFIX + type_name, doc[0] if doc else "", properties)
 
 
-def _plain(value: Any) -> Any:
-    """`value` (a scalar field's: number, text, list, map) with NaN and infinities, at any depth, as None."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
-    return value
-
-
-def _array(values: np.ndarray) -> list:
-    """Nested lists of an array, NaN and infinities as None. A float32 value is written with the fewest
-    digits that give it back (0.7703418, not 0.7703418135643005: a 30x30x3 field's JSON 33 kB, not 56)."""
-    if values.dtype == np.float32:
-        values = values.astype(str).astype(np.float64)  # numpy's shortest float32 text, read as a float64
-    if values.dtype.kind == "f" and not np.isfinite(values).all():
-        values = np.where(np.isfinite(values), values.astype(object), None)
-    return values.tolist()
+def _array(values: np.ndarray) -> list | dict[str, list]:
+    """A 1-D array as a list, another as {shape, data}; NaN and infinities as None. A float32 value is
+    written with the fewest digits that give it back (0.7703418, not 0.7703418135643005: a 30x30x3
+    field's JSON 33 kB, not 56)."""
+    flat = values.reshape(-1)
+    if flat.dtype == np.float32:
+        flat = flat.astype(str).astype(np.float64)  # numpy's shortest float32 text, read as a float64
+    if flat.dtype.kind == "f" and not np.isfinite(flat).all():
+        flat = np.where(np.isfinite(flat), flat.astype(object), None)
+    return flat.tolist() if values.ndim == 1 else {"shape": list(values.shape), "data": flat.tolist()}
 
 
 def message_json(msg: Message) -> dict[str, Any]:
     """The JSON object of a message of any type but Image."""
     out: dict[str, Any] = {"timestamp": foxglove_time(msg.stamp_ns), "pub_time": foxglove_time(msg.pub_ns),
                            "seq": msg.seq, "frame_id": msg.frame_id, "node": msg.node}
-    out.update({name: _plain(value) for name, value in msg.scalar_fields().items()})
+    out.update({name: cell(value) for name, value in msg.scalar_fields().items()})
     out.update({name: _array(getattr(msg, name)) for name in msg.ARRAYS})
     return out
 
@@ -194,6 +193,14 @@ class _FoxgloveWriter:
                 {META_NODE: rec.node, META_LATCHED: "true" if rec.latched else "false"})
         return self._channels[key]
 
+    def copy_records(self, bag: BagReader) -> None:
+        """The bag's metadata records (the recording's host, command line, totals) and attachments (a
+        split bag's sticky ones once)."""
+        for name, data in bag.metadata().items():
+            self.writer.add_metadata(name, data)
+        for att in {(att.name, att.data): att for att in bag.attachments()}.values():
+            self.writer.add_attachment(att.log_time_ns, att.log_time_ns, att.name, att.media_type, att.data)
+
     def write(self, rec: BagMessage, msg: Message) -> None:
         obj = image_json(msg, self.images) if isinstance(msg, Image) else message_json(msg)
         data = json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
@@ -213,6 +220,7 @@ def export_foxglove(bag: BagReader, topics: list[str] | None, output: Path, imag
         nonlocal count
         with open(tmp, "wb") as stream:
             out = _FoxgloveWriter(stream, images)
+            out.copy_records(bag)
             for rec, msg in bag.decoded(topics):
                 out.write(rec, msg)
                 count += 1

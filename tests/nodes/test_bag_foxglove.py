@@ -56,7 +56,43 @@ def conforms(value: Any, schema: dict[str, Any], path: str = "$") -> list[str]:
     return problems
 
 
-def test_the_checker_finds_what_breaks_a_schema() -> None:
+FOXGLOVE_TYPES = ("boolean", "string", "number", "integer", "object", "array")
+
+
+def foxglove_loads(schema: dict[str, Any], path: str = "$") -> list[str]:
+    """Why Foxglove's JSON Schema parser (@foxglove/mcap-support parseJsonSchema) would refuse `schema`, []
+    when it would not: an object's every property needs one type of FOXGLOVE_TYPES, an object its
+    properties, an array items of one of those types but array."""
+    if schema.get("type") != "object" or not isinstance(schema.get("properties"), dict):
+        return [f"{path}: not an object with properties"]
+    problems = []
+    for name, sub in schema["properties"].items():
+        where = f"{path}.{name}"
+        if sub.get("type") not in FOXGLOVE_TYPES:
+            problems.append(f"{where}: type {sub.get('type')!r}")
+        elif sub["type"] == "object":
+            problems += foxglove_loads(sub, where)
+        elif sub["type"] == "array":
+            items = sub.get("items", {})
+            if items.get("type") not in FOXGLOVE_TYPES or items["type"] == "array":
+                problems.append(f"{where}: items of type {items.get('type')!r}")
+            elif items["type"] == "object":
+                problems += foxglove_loads(items, f"{where}[]")
+    return problems
+
+
+def nulls(msg: msgs.Message) -> list[str]:
+    """What `conforms` says of each NaN or infinity in `msg`'s float arrays, which JSON holds as null."""
+    out = []
+    for name in msg.ARRAYS:
+        values = getattr(msg, name)
+        if values.dtype.kind == "f":
+            data = "" if values.ndim == 1 else ".data"
+            out += [f"$.{name}{data}[{i}]: None is not number" for i in np.flatnonzero(~np.isfinite(values))]
+    return out
+
+
+def test_the_checkers_find_what_breaks_a_schema() -> None:
     schema = foxglove.message_schema("SlipState")
     good = foxglove.message_json(SlipState(stamp_ns=T0_NS, probability=0.5, window_stamps_ns=np.arange(2)))
     assert conforms(good, schema) == []
@@ -65,6 +101,11 @@ def test_the_checker_finds_what_breaks_a_schema() -> None:
     assert conforms({**good, "window_stamps_ns": [1.5]}, schema) == ["$.window_stamps_ns[0]: 1.5 is not integer"]
     assert conforms({k: v for k, v in good.items() if k != "slip"}, schema) == ["$.slip: missing"]
     assert conforms({"data": "no base64!"}, foxglove.COMPRESSED_IMAGE_SCHEMA)[-1] == "$.data: not base64"
+    assert foxglove_loads(schema) == []
+    nested = {"type": "array", "items": {"type": "array", "items": {"type": "number"}}}
+    assert foxglove_loads({**schema, "properties": {"a": nested, "b": {"type": ["number", "null"]},
+                                                    "c": {"type": "object"}}}) == [
+        "$.a: items of type 'array'", "$.b: type ['number', 'null']", "$.c: not an object with properties"]
 
 
 def recorded(rng: np.random.Generator) -> list[tuple[str, bool, msgs.Message, int]]:
@@ -83,7 +124,7 @@ def recorded(rng: np.random.Generator) -> list[tuple[str, bool, msgs.Message, in
                                             valid=rng.random(7) > 0.5, frames_since_seen=np.arange(7),
                                             width=32, height=24), t + 20),
             ("/contact", False, ContactSummary(stamp_ns=t, in_contact=True, area_px2=12.5), t + 30),
-            ("/status", True, NodeStatus(stamp_ns=t, counters={"lost": 1, "odd": math.nan},
+            ("/status", True, NodeStatus(stamp_ns=t, counters={"lost": 1, "odd": 2.5},
                                          publishes=[["/slip", "SlipState"]]), t + 40),
             ("/field", False, DisplacementField(stamp_ns=t + 50, field=bad, grid_x_px=np.arange(5.0),
                                                 grid_y_px=np.arange(4.0)), t + 50)]
@@ -92,7 +133,9 @@ def recorded(rng: np.random.Generator) -> list[tuple[str, bool, msgs.Message, in
 
 @pytest.fixture
 def bag(tmp_path: Path) -> Path:
-    write_bag(tmp_path / "run", recorded(np.random.default_rng(3)), chunk_size_b=4_000)
+    """A bag split in files, each with the launch file attached."""
+    write_bag(tmp_path / "run", recorded(np.random.default_rng(3)), chunk_size_b=4_000, max_bag_size_b=6_000)
+    assert len(BagReader(tmp_path / "run").files) > 1
     return tmp_path / "run"
 
 
@@ -115,10 +158,15 @@ def test_every_topic_is_json_that_its_schema_describes_at_the_recorded_times(bag
         assert channel.metadata == {"node": rec.node, "latched": "true" if rec.latched else "false"}
         described = json.loads(schema.data)
         assert described["title"] == schema.name
-        assert conforms(obj, described) == [], rec.topic
+        assert foxglove_loads(described) == []
+        assert conforms(obj, described) == ([] if isinstance(msg, Image) else nulls(msg)), rec.topic
         assert set(obj) == set(described["properties"])  # every field, none other
         assert obj["timestamp"] == {"sec": msg.stamp_ns // 10**9, "nsec": msg.stamp_ns % 10**9}
         schemas[rec.topic] = schema.name
+    with open(out, "rb") as f:
+        reader = make_reader(f)
+        assert {m.name: m.metadata for m in reader.iter_metadata()} == {"fv_recording": {"host": "test"}}
+        assert [(a.name, a.data) for a in reader.iter_attachments()] == [("launch.yaml", b"nodes: []\n")]
     assert schemas == {"/camera/info": "fv.CameraInfo", "/camera/image": "foxglove.CompressedImage",
                        "/bgr8/image": "foxglove.CompressedImage", "/rgb8/image": "foxglove.CompressedImage",
                        "/field": "fv.DisplacementField", "/slip": "fv.SlipState", "/markers": "fv.MarkerArray",
@@ -127,7 +175,8 @@ def test_every_topic_is_json_that_its_schema_describes_at_the_recorded_times(bag
 
 def test_values_come_back_as_recorded(bag: Path, tmp_path: Path) -> None:
     """PNG frames decode to the recorded pixels (an rgb8 frame's channels in their order), slip states keep
-    their probability, arrays their shape and every float32 value, NaN and infinities as null."""
+    their probability, arrays their shape and every float32 value, NaN and infinities as null, lists and
+    maps their JSON text."""
     _, out = export(bag, None, tmp_path / "fox.mcap")
     frames = 0
     for (_rec, msg), (_s, _c, _m, obj) in zip(BagReader(bag).decoded(), read_export(out)):
@@ -141,16 +190,18 @@ def test_values_come_back_as_recorded(bag: Path, tmp_path: Path) -> None:
             assert obj["window_stamps_ns"] == msg.window_stamps_ns.tolist()
             assert obj["pub_time"] == {"sec": msg.pub_ns // 10**9, "nsec": msg.pub_ns % 10**9}
         elif isinstance(msg, DisplacementField):
-            field = np.array([[[math.nan if v is None else v for v in px] for px in row] for row in obj["field"]],
-                             np.float32)
-            finite = np.isfinite(msg.field)
-            assert field.shape == msg.field.shape and np.array_equal(field[finite], msg.field[finite])
-            assert np.isnan(field[~finite]).all()
+            assert obj["field"]["shape"] == list(msg.field.shape)
+            field = np.array([math.nan if v is None else v for v in obj["field"]["data"]], np.float32)
+            finite = np.isfinite(msg.field.reshape(-1))
+            assert np.array_equal(field[finite], msg.field.reshape(-1)[finite]) and np.isnan(field[~finite]).all()
+            assert obj["grid_x_px"] == msg.grid_x_px.tolist()
         elif isinstance(msg, MarkerArray):
-            assert np.array_equal(np.array(obj["cur_px"], np.float32), msg.cur_px)
+            assert np.array_equal(np.reshape(obj["cur_px"]["data"], obj["cur_px"]["shape"]).astype(np.float32),
+                                  msg.cur_px)
             assert obj["valid"] == msg.valid.tolist() and obj["width"] == 32
         elif isinstance(msg, NodeStatus):
-            assert obj["counters"] == {"lost": 1, "odd": None} and obj["publishes"] == [["/slip", "SlipState"]]
+            assert json.loads(obj["counters"]) == {"lost": 1, "odd": 2.5}
+            assert json.loads(obj["publishes"]) == [["/slip", "SlipState"]]
     assert frames == 8
 
 
@@ -178,6 +229,7 @@ def test_every_message_type_has_a_schema_its_messages_meet() -> None:
             continue
         schema = foxglove.message_schema(type_name)
         assert schema["title"] == f"fv.{type_name}"
+        assert foxglove_loads(schema) == []
         assert conforms(foxglove.message_json(msgs.message_type(type_name)()), schema) == []
 
 
