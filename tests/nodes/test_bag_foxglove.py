@@ -220,7 +220,7 @@ def test_raw_and_jpeg_images(bag: Path, tmp_path: Path) -> None:
     [(schema, _c, _m, obj)] = read_export(jpeg)
     assert schema.name == "foxglove.CompressedImage" and obj["format"] == "jpeg"
     pixels = cv2.imdecode(np.frombuffer(base64.b64decode(obj["data"]), np.uint8), cv2.IMREAD_UNCHANGED)
-    assert pixels.shape == (20, 30, 3)  # lossy: near the recorded pixels, not equal
+    assert pixels.shape == (20, 30, 3)  # lossy: the recorded size, not the recorded pixels
 
 
 def test_every_message_type_has_a_schema_its_messages_meet() -> None:
