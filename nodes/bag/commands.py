@@ -92,7 +92,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "(jsonschema), at its recorded log time. Image topics become foxglove.CompressedImage "
                     "(--images png, lossless, the default; jpeg, smaller but lossy) or foxglove.RawImage "
                     "(--images raw); every other type fv.<Type> with its fields as recorded (times as "
-                    "{sec, nsec}, arrays as nested lists), so a Plot panel plots /slip.probability.")
+                    "{sec, nsec}, 1-D arrays as lists, others as {shape, data} with data flat in C order, list and "
+                    "map fields as their JSON text), so a Plot panel plots /slip.probability.")
     p.add_argument("bag", help="bag folder or .mcap file")
     p.add_argument("--topic", action="append", default=[],
                    help="recorded topic to export (one for mp4/avi/png/csv/npz; foxglove: repeat for several, "
