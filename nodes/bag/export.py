@@ -17,7 +17,7 @@ import csv
 import json
 import re
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -171,11 +171,23 @@ def export(path: Path | str, topics: str | Sequence[str] | None, output: Path, f
     if fmt in ("mp4", "avi", "png") and type_name != Image.TYPE:
         raise ValueError(f"{topic} holds {type_name}, not Image: export it as csv or npz")
     messages = bag.read([topic])
+    if fmt == "png":
+        return _png(messages, output), output  # each frame written whole
     if fmt in FOURCC:
         rate = fps or known[topic].rate_hz or 30.0
-        return _video(messages, output, fmt, rate), output
-    if fmt == "png":
-        return _png(messages, output), output
-    if fmt == "csv":
-        return _csv(messages, output), output
-    return _npz(messages, output), output
+        return _whole(output, lambda tmp: _video(messages, tmp, fmt, rate)), output
+    return _whole(output, lambda tmp: (_csv if fmt == "csv" else _npz)(messages, tmp)), output
+
+
+def _whole(output: Path, write: Callable[[Path], int]) -> int:
+    """``write(tmp)``'s count, its file renamed to ``output`` once whole (`write_atomically`): an export
+    that fails or is stopped half-way leaves no file, and an earlier one it was to replace as it was."""
+    from fv_algos.atomic_file import write_atomically
+    count = 0
+
+    def counted(tmp: Path) -> None:
+        nonlocal count
+        count = write(tmp)
+
+    write_atomically(output, counted)
+    return count

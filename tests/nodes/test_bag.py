@@ -3,6 +3,7 @@ export, the errors for files that are not bags, and record / play's when no forw
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -284,6 +285,26 @@ def test_export_keeps_a_file_that_exists_and_refuses_rates_that_mean_nothing(
                   "--fps", fps])
         assert "is not a finite number >= 0" in capsys.readouterr().err
         assert not (tmp_path / f"{fps}.avi").exists()
+
+
+def test_an_export_that_fails_half_way_leaves_no_file_and_keeps_the_one_it_was_to_replace(
+        tmp_path: Path, rng: np.random.Generator) -> None:
+    """Video, CSV and NPZ exports are written whole or not at all: a camera that changed its mode mid-bag
+    stopped a video export at its first frame of the new size and left the frames before it as the video."""
+    messages = sample_messages(6, rng) + [
+        (t, latched, replace(m, data=np.zeros((48, 64), np.uint8)) if t == "/camera/image" else m, log + 10**9)
+        for t, latched, m, log in sample_messages(2, rng)[1:]]
+    write_bag(tmp_path / "bag", messages)
+    for name in ("v.mp4", "v.avi"):
+        with pytest.raises(ValueError, match="frame 6 is 64x48 px, the video 32x24 px"):
+            export(tmp_path / "bag", "/camera/image", tmp_path / name)
+        assert not (tmp_path / name).exists()
+    kept = tmp_path / "kept.avi"
+    kept.write_bytes(b"an earlier export")
+    with pytest.raises(ValueError, match="frame 6"):
+        export(tmp_path / "bag", "/camera/image", kept)
+    assert kept.read_bytes() == b"an earlier export"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bag", "kept.avi"]
 
 
 def test_info_into_a_reader_that_stops_early_ends_quietly(bag: tuple[Path, list]) -> None:
