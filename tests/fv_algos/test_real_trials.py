@@ -430,8 +430,8 @@ def test_real_cv_online_reports_how_early_the_held_out_networks_tell_slips(isd_d
     root = _subset(isd_data, tmp_path / "trials", trials)
     out, plot = tmp_path / "cv.json", tmp_path / "online.png"
     argv = ["real", "cv", "--trials", str(root), "--cache", str(tmp_path / "cache"), "--folds", "2", "--steps", "5",
-            "--hidden", "4", "--members", "1", "--online", "--alarm", "0.5:25:5", "--plot", str(plot)]
-    assert main([*argv, "--out", str(out), "--json"]) == 0
+            "--hidden", "4", "--members", "1", "--online", "--alarm", "0.5:25:5"]
+    assert main([*argv, "--plot", str(plot), "--out", str(out), "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     online = report["online"]
     assert "running" not in report and online["cameras"] == {"held": 4, "slip": 4} and online["fps"] == 25.0
@@ -448,7 +448,7 @@ def test_real_cv_online_reports_how_early_the_held_out_networks_tell_slips(isd_d
     for fold in report["folds"]:  # the head is linear in the pooled features, which average the cameras:
         for i, p in zip(fold["trials"], fold["probability"]):  # the trial's logit is its cameras' last ones' mean
             assert logit(p) == pytest.approx(np.mean([logit(c[-1]) for c in running[i]]), abs=1e-4)
-    assert main([*argv]) == 0  # the text report names every check time and rule
+    assert main([*argv]) == 0  # the text report names every check time and rule (the plot is drawn above)
     text = capsys.readouterr().out
     assert "at 0.4 s: P >= 0.5 for" in text and "alarm P >= 0.5 from frame 25, 5 in a row:" in text
     model = tmp_path / "mine_trial.pt"  # a model trained beside this report records its online part
