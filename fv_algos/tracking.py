@@ -150,7 +150,7 @@ def neighbour_graph(reference_px: np.ndarray, neighbours: int) -> tuple[np.ndarr
     return indices[:, 1:].astype(np.int64), spacing
 
 
-def gather_rows(values: np.ndarray, index: np.ndarray) -> np.ndarray:
+def _gather_rows(values: np.ndarray, index: np.ndarray) -> np.ndarray:
     """values (N, ...) taken at the rows `index` (P, k) int: (P, k, ...), as values[index]
     (numpy's take, several times faster than fancy indexing for (N, 2) rows)."""
     return values.take(index, axis=0)
@@ -207,7 +207,7 @@ def _inconsistent(
     their valid reference neighbours `graph` (N, k); spacing (N,) px."""
     if graph.shape[1] == 0:
         return np.zeros(displacement.shape[0], dtype=bool)
-    return valid & _outside_band(displacement, gather_rows(displacement, graph), valid[graph], spacing,
+    return valid & _outside_band(displacement, _gather_rows(displacement, graph), valid[graph], spacing,
                                  tolerance_ratio)
 
 
@@ -427,7 +427,7 @@ class Tracker:
         k = min(self.params.neighbours, judges.size)
         _, nearest = cKDTree(self._ref[judges]).query(self._ref[judged], k=k)
         around = judges[nearest.reshape(-1, k)]
-        outside = _outside_band(displacement[judged], gather_rows(displacement, around),
+        outside = _outside_band(displacement[judged], _gather_rows(displacement, around),
                                 np.ones(around.shape, dtype=bool), self._spacing[judged], self.params.tolerance_ratio)
         return judged[outside], own_dots[has_dot][outside]
 
@@ -452,12 +452,12 @@ class Tracker:
         """
         seen = matched >= 0
         new = np.where(seen[:, None], det[np.maximum(matched, 0)], self._cur)
-        step_med, step_has = masked_median(gather_rows(new - self._cur, self._graph),
+        step_med, step_has = masked_median(_gather_rows(new - self._cur, self._graph),
                                            (seen & self._valid)[self._graph])
         pred = base + step_med
         if step_has.all():
             return pred, step_has
-        total_med, total_has = masked_median(gather_rows(new - self._ref, self._graph), seen[self._graph])
+        total_med, total_has = masked_median(_gather_rows(new - self._ref, self._graph), seen[self._graph])
         pred = np.where(step_has[:, None], pred, self._ref + total_med)
         return pred, step_has | total_has
 
@@ -570,7 +570,7 @@ class Tracker:
         if self._valid.all():
             return self._cur.copy()
         last_total = np.where(self._valid[:, None], self._cur - self._ref, 0.0)
-        total_med, total_has = masked_median(gather_rows(last_total, self._graph), self._valid[self._graph])
+        total_med, total_has = masked_median(_gather_rows(last_total, self._graph), self._valid[self._graph])
         lost = np.where(total_has[:, None], self._ref + total_med, self._cur)
         return np.where(self._valid[:, None], self._cur, lost)
 
@@ -581,7 +581,7 @@ class Tracker:
         paired = cols >= 0
         step = np.where(paired[:, None], det[np.maximum(cols, 0)] - base, 0.0)
         around = np.hstack([np.arange(base.shape[0])[:, None], self._graph])
-        median, has = masked_median(gather_rows(step, around), paired[around])
+        median, has = masked_median(_gather_rows(step, around), paired[around])
         return np.where(has[:, None], base + median, base)
 
     def _reacquire(
