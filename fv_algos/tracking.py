@@ -170,11 +170,9 @@ def masked_median(values: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.
     filled = np.where(mask[:, :, None], values, np.inf)
     ordered = np.sort(filled, axis=1)
     count = mask.sum(axis=1)
-    lo = np.maximum((count - 1) // 2, 0)
-    hi = np.maximum(count // 2, 0)
-    rows = np.arange(n)
-    low = ordered[rows, np.minimum(lo, k - 1)]
-    high = ordered[rows, np.minimum(hi, k - 1)]
+    rows = np.arange(n)  # the middle of count <= k values: both indices are < k
+    low = ordered[rows, np.maximum(count - 1, 0) >> 1]
+    high = ordered[rows, count >> 1]
     has = count > 0
     median = np.where(has[:, None], 0.5 * (low + high), 0.0)
     return median, has

@@ -6,7 +6,7 @@ import pytest
 
 from fv_algos.detection import Detections
 from fv_algos.perception import Perception, PerceptionParams
-from fv_algos.tracking import Tracker, TrackerParams, neighbour_consistency
+from fv_algos.tracking import Tracker, TrackerParams, masked_median, neighbour_consistency
 from tests.fv_algos.test_detection import SIM_MARKER, grid_centres, render_markers
 
 PITCH = 25.0
@@ -35,6 +35,19 @@ def test_clean_small_motion_is_exact() -> None:
         state = tracker.step(_det(truth, k))
         assert state.valid.all()
         assert np.sqrt(np.mean((state.current_px - truth) ** 2)) < 1e-12
+
+
+def test_masked_median_is_the_median_of_the_masked_entries() -> None:
+    """Rows of k = 1..8 values with any number of them masked in (none: 0 and has False), and all."""
+    rng = np.random.default_rng(0)
+    for k in range(1, 9):
+        values = rng.normal(size=(50, k, 2))
+        for mask in (rng.random((50, k)) < 0.6, np.ones((50, k), dtype=bool)):
+            median, has = masked_median(values, mask)
+            assert np.array_equal(has, mask.any(axis=1))
+            for row in range(50):
+                expected = np.median(values[row][mask[row]], axis=0) if has[row] else np.zeros(2)
+                np.testing.assert_allclose(median[row], expected, rtol=0.0, atol=1e-12)
 
 
 @pytest.mark.slow
