@@ -180,15 +180,15 @@ def test_object_held_out_cross_validation_keeps_objects_apart() -> None:
     inputs, labels = _toy_trials(30)
     objects = [f"o{i % 6}" for i in range(30)]
     config = TrialNetConfig(steps=20)  # the toy trials are told apart after 10 steps (40 took twice as long)
-    report = cross_validate_trials(inputs, labels, objects, folds=3, config=config)
+    report = cross_validate_trials(inputs, labels, objects, folds=3, config=config, workers=2)
     assert len(report["folds"]) == 3 and report["summary"]["trial_accuracy_mean"] >= 0.8
     for fold in report["folds"]:  # every test object is absent from its fold's training trials
         assert {objects[i] for i in fold["trials"]} == set(fold["objects"])
     assert sum(fold["n_trials"] for fold in report["folds"]) == 30
     assert "running" not in report
-    # Folds in two spawned processes with the online pass (which runs in parallel there): the
-    # same figures as in this process without it.
-    online = cross_validate_trials(inputs, labels, objects, folds=3, config=config, workers=2, online=True)
+    # In this process with the online pass: the same figures as the folds in two spawned processes
+    # without it (the processes change no figure, nor does the online pass).
+    online = cross_validate_trials(inputs, labels, objects, folds=3, config=config, online=True)
     assert {key: value for key, value in online.items() if key != "running"} == report
     assert [[len(series) for series in cameras] for cameras in online["running"]] == [
         [x.shape[1] for x in cameras] for cameras in inputs]
