@@ -68,6 +68,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "order with --sync-topic")
     p.add_argument("--sync-window", type=int, default=1, help="frames of one stream in flight before waiting")
     p.add_argument("--sync-timeout", type=float, default=2.0, metavar="S", help="give up on one answer after S")
+    p.add_argument("--as-recorded-by", action="append", default=[], metavar="TOPIC",
+                   help="replay a live session as its pipeline took it: play only the frames whose stamps the "
+                        "recorded TOPIC answered (the tracker's /markers; a live pipeline under load drops frames, "
+                        "and a replay of every frame judges more), synced on TOPIC unless --sync-topic is given; "
+                        "repeated, paired in order with --sync-on")
     p.add_argument("--name", default="bag_play", help="node name")
     p.set_defaults(func=_play)
 
@@ -133,7 +138,8 @@ def _play(args: argparse.Namespace) -> int:
               "duration_s": args.duration, "topics": args.topics, "fast": args.fast,
               "start_paused": args.start_paused, "wait_for_subscribers": not args.no_wait_for_subscribers,
               "subscriber_timeout_s": args.wait_timeout, "sync_topic": args.sync_topic, "sync_on": args.sync_on,
-              "sync_window": args.sync_window, "sync_timeout_s": args.sync_timeout, "keyboard": True}
+              "sync_window": args.sync_window, "sync_timeout_s": args.sync_timeout,
+              "as_recorded_by": args.as_recorded_by, "keyboard": True}
     node = BagPlay(args.name, params, remap=parse_remaps(args.remap))  # its params' check opens the bag (once):
     require_forwarder()  # a bad one is reported before the bus is checked
     node.spin()

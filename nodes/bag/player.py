@@ -12,10 +12,18 @@ on `sync_on` the player waits until the pipeline answers on `sync_topic` with a
 message stamped at or after it, so a slow consumer never loses a frame (several streams,
 e.g. one camera per finger: each `sync_on` topic waits for its own answer topic). A frame that a
 pipeline node says ends with it unanswered (`msgs.Unanswered` on `unanswered` beside the answer topic:
-`/unanswered` for `/slip`, `/left/unanswered` for `/left/slip`) waits no longer. Before the
-first message the player waits for the nodes of `start_after` to report (a replay
+`/unanswered` for `/slip`, `/left/unanswered` for `/left/slip`) waits no longer.
+
+Before the first message the player waits for the nodes of `start_after` to report (a replay
 pipeline's nodes, every subscription made) and until every played volatile topic has
 a subscriber.
+
+`as_recorded_by` replays a live session as its pipeline took it. Each node keeps only its latest frame, so
+a live run under load drops frames (at the tracker), and a replay of every recorded frame judges frames the
+live run did not: every later P(slip) of the grasp differs. Given the recorded topic on which a stage
+answered each frame it took (the tracker's `/markers`, which `fv bag record -a` records), only the frames
+the live pipeline took are played (`live_frames`; the others counted in `frames_left_out`), with flow
+control on that topic unless `sync_topic` names another, so that the replay drops none itself.
 
 A recording made before a recorder got only running publishers' latched messages as it began
 (`nodes.latched_cache`; its metadata lacks the entry that says so) may hold an earlier session's,
@@ -74,6 +82,9 @@ class BagPlayParams:
     stamped as it, on `unanswered` in the answer topic's namespace: `unanswered_topic`) waits no
     more (counted in `unanswered`). sync_window: messages of one stream allowed in flight unanswered;
     sync_timeout_s: give up waiting for one answer after this long (counted).
+    as_recorded_by: play of each stream only the frames the live pipeline took (`live_frames`): the
+    recorded topic on which a stage answered them live (e.g. /markers; a list paired with `sync_on` as
+    `sync_topic` is), also the sync topic when `sync_topic` is "". "" = every frame.
     keyboard: space/enter on the terminal toggles pause (when stdin is a terminal).
     """
 
@@ -94,6 +105,7 @@ class BagPlayParams:
     sync_on: str | list[str] = ""
     sync_window: int = 1
     sync_timeout_s: float = 2.0
+    as_recorded_by: str | list[str] = ""
     keyboard: bool = False
 
     def __post_init__(self) -> None:
@@ -105,18 +117,27 @@ class BagPlayParams:
             raise ValueError("start_offset_s, duration_s, subscriber_timeout_s and start_timeout_s must be >= 0")
         if self.sync_window < 1 or self.sync_timeout_s <= 0:
             raise ValueError("sync_window must be >= 1 and sync_timeout_s > 0")
-        answers, waiting = topic_list(self.sync_topic), topic_list(self.sync_on)
-        if len(answers) > 1 and len(waiting) != len(answers) or len(answers) == 1 and len(waiting) > 1:
-            raise ValueError(f"sync_on {waiting} and sync_topic {answers}: give one recorded topic per sync "
-                             "topic, paired in order (or one sync topic and at most one sync_on)")
-        if len(set(answers)) < len(answers) or len(set(waiting)) < len(waiting):
-            raise ValueError(f"sync_on {waiting} and sync_topic {answers}: a topic is named twice")
+        waiting = topic_list(self.sync_on)
+        for name, noun in (("sync_topic", "sync topic"), ("as_recorded_by", "as_recorded_by topic")):
+            answers = topic_list(getattr(self, name))
+            if len(answers) > 1 and len(waiting) != len(answers) or len(answers) == 1 and len(waiting) > 1:
+                raise ValueError(f"sync_on {waiting} and {name} {answers}: give one recorded topic per {noun}, "
+                                 f"paired in order (or one {noun} and at most one sync_on)")
+            if len(set(answers)) < len(answers):
+                raise ValueError(f"{name} {answers}: a topic is named twice")
+        if len(set(waiting)) < len(waiting):
+            raise ValueError(f"sync_on {waiting}: a topic is named twice")
         # a missing, unfinished or damaged bag, or one without a topic to play, is refused by `fv launch --check`
         known = self.bag.topics()
-        missing = [t for t in dict.fromkeys(self.topics + topic_list(self.sync_on)) if t not in known]
+        missing = [t for t in dict.fromkeys(self.topics + waiting) if t not in known]
         if missing:
             raise BagError(self.path, f"has no topic {', '.join(map(repr, missing))} to play; its topics: "
                                       f"{sorted(known)}")
+        unrecorded = [t for t in topic_list(self.as_recorded_by) if t not in known]
+        if unrecorded:
+            raise BagError(self.path, f"has no topic {', '.join(map(repr, unrecorded))}, which as_recorded_by "
+                                      "names: the live pipeline's answers are needed to play the frames it took "
+                                      f"(record the session with `fv bag record -a`); its topics: {sorted(known)}")
 
     @cached_property
     def bag(self) -> BagReader:
@@ -158,6 +179,43 @@ def gone_at_start(bag: BagReader, topics: list[str]) -> set[tuple[str, str, int,
     return gone
 
 
+@dataclass(frozen=True)
+class LiveFrames:
+    """Which frames of a recorded camera topic a live pipeline took (`live_frames`): those stamped as in
+    `taken` (ns), and the frames of a live camera (no `frame_index`) stamped before `before_ns`."""
+
+    taken: frozenset[int]
+    before_ns: int
+
+    def took(self, header: dict) -> bool:
+        """Whether the frame of message header `header` (an Image's: its stamp_ns, and its frame_index among its
+        fields where recorded) was taken."""
+        stamp = header["stamp_ns"]
+        live = header["fields"].get("frame_index", -1) < 0  # a recording made before Images had one: a live camera's
+        return stamp in self.taken or live and stamp < self.before_ns
+
+
+def live_frames(bag: BagReader, images: str, answers: str) -> LiveFrames:
+    """The frames of `images` that the live pipeline recorded in `bag` took, from its answers on `answers` (a
+    stage's output stamped as each frame it answered: the tracker's /markers) and the frames the stage left
+    unanswered on purpose (each camera's frames before the tracker's reference...). Where the bag holds the
+    stage's `unanswered` notices (`unanswered_topic`; `fv bag record -a` records them only when named), those
+    of `images` say which. Else a video's frames, which carry their number (`frame_index`), are taken where
+    answered: a tracker's frames before a pass's reference change nothing when left out. A live camera's are
+    numbered by the frames the tracker has seen, which takes its reference at number `reference_frame`: its
+    frames before the first answer are all taken (those the live tracker did not see cannot be told).
+    BagError when `answers` holds no message."""
+    answered = frozenset(split_payload(m.payload, m.topic)[0]["stamp_ns"] for m in bag.messages([answers]))
+    if not answered:
+        raise BagError(bag.path, f"holds no message on {answers!r} (as_recorded_by): no frame of {images!r} "
+                                 "was answered live")
+    notices = unanswered_topic(answers)
+    if notices not in bag.topics():
+        return LiveFrames(answered, min(answered))
+    noticed = (m.decode() for m in bag.messages([notices]))
+    return LiveFrames(answered | {n.stamp_ns for n in noticed if n.topic == images}, 0)
+
+
 def unanswered_topic(answer_topic: str) -> str:
     """Where the nodes that answer on `answer_topic` say what they leave unanswered: `unanswered` in its
     namespace (`/slip` -> `/unanswered`, `/left/slip` -> `/left/unanswered`)."""
@@ -189,7 +247,11 @@ class BagPlay(Node):
         self.out_topic = {t: self.resolve(t) for t in self.played_topics}
         images = [t for t in self.played_topics if known[t].type_name == Image.TYPE]
         self.sync_on = waiting or images[:1]
-        self.sync_topics = topic_list(p.sync_topic)
+        recorded_by = topic_list(p.as_recorded_by)
+        if recorded_by and not self.sync_on:
+            raise ValueError(f"as_recorded_by {recorded_by}: no Image topic is played, whose frames it would choose")
+        self.live = {topic: live_frames(self.bag, topic, answers) for topic, answers in zip(self.sync_on, recorded_by)}
+        self.sync_topics = topic_list(p.sync_topic) or recorded_by
         self.gone_at_start = gone_at_start(self.bag, self.played_topics)
         if self.gone_at_start:
             self.log.info("not played: %s, latched messages the recorder got as it began from processes that "
@@ -199,6 +261,8 @@ class BagPlay(Node):
         self.clock = PlayClock(p.rate, paused=p.start_paused)
         self.error: str | None = None
         self.counters.update(played=0, frames=0, sync_timeouts=0, unanswered=0, loops=0)
+        if self.live:
+            self.counters["frames_left_out"] = 0
         # stream k: the messages on sync_on[k] (with one stream, every message counted), answered on
         # sync_topics[k]; per stream, the stamps of its messages sent and not yet answered
         self._pending: list[collections.deque[int]] = [collections.deque() for _ in self.sync_topics]
@@ -299,6 +363,9 @@ class BagPlay(Node):
             header, frames = split_payload(m.payload, m.topic)
         except msgs.MessageError as exc:
             raise BagError(self.params.path, f"message at log time {m.log_time_ns} ns: {exc}") from None
+        if m.topic in self.live and not self.live[m.topic].took(header):
+            self.counters["frames_left_out"] += 1
+            return
         self._pub.publish_raw(self.out_topic[m.topic], m.node, m.latched, frames)
         self.counters["played"] += 1
         if self.sync_on and m.topic not in self.sync_on:
@@ -348,6 +415,8 @@ class BagPlay(Node):
         """The closing line; `elapsed_s` is the time spent playing, the `paused_s` seconds paused left out."""
         c = self.counters
         sync = f", sync timeouts {c['sync_timeouts']}" if self._sync is not None else ""
+        if self.live:
+            sync += f", {c['frames_left_out']} frames the live pipeline did not take left out"
         paused = f" (and {paused_s:.2f} s paused)" if paused_s > 0 else ""
         rate = c["frames"] / max(elapsed_s, 1e-9)
         if not self.sync_on:  # every message counts: "played 201 messages (201 messages)" said it twice

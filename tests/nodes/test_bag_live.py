@@ -27,7 +27,7 @@ import pytest
 import yaml
 
 import msgs
-from msgs import CameraInfo, Image, MarkerArray, SlipState
+from msgs import CameraInfo, Image, MarkerArray, SlipState, Unanswered
 from nodes.bag.reader import BagError, BagReader, read_bag
 from nodes.bag.commands import parse_size
 from nodes.bag.recorder import BagRecord
@@ -323,6 +323,54 @@ def test_fast_play_syncs_each_finger_on_its_own_answers(bus: BusAddress, spawn: 
     assert "sync timeouts 0" in log and "(80 on /left/camera/image, /right/camera/image)" in log
     fps = float(log.split(" frames/s")[0].rsplit(": ", 1)[1])
     assert fps < 2 / 0.03 * 1.1  # each right frame waited for its 30 ms answer
+
+
+ANSWERED = [2, 3, 5, 6, 8, 9]  # of frames 0 .. 9: 0 before the tracker's reference, 1, 4 and 7 dropped live
+
+
+def _live_session(folder: Path, frame_index: Callable[[int], int], notices: bool) -> None:
+    """A bag of a live run: frames 0 .. 9 on /camera/image (frame_index(i) each), /markers answering ANSWERED, and
+    with ``notices`` the recorded `unanswered` notices: the tracker's of frame 0, another stage's of frame 4."""
+    stamp = [T0_NS + i * 10_000_000 for i in range(10)]
+    messages = [("/camera/image", False, Image(stamp_ns=stamp[i], data=np.zeros((4, 4), np.uint8),
+                                               frame_index=frame_index(i)), stamp[i]) for i in range(10)]
+    messages += [("/markers", False, MarkerArray(stamp_ns=stamp[i]), stamp[i] + 1) for i in ANSWERED]
+    if notices:
+        messages += [("/unanswered", False, Unanswered(stamp_ns=stamp[0], topic="/camera/image"), stamp[0] + 1),
+                     ("/unanswered", False, Unanswered(stamp_ns=stamp[4], topic="/field"), stamp[4] + 1)]
+    write_bag(folder, sorted(messages, key=lambda m: m[3]))
+
+
+@pytest.mark.parametrize("frame_index, notices, played", [
+    (lambda i: i, False, ANSWERED),  # a video's frames: those answered (each pass numbered, its reference by number)
+    (lambda i: -1, False, [0, 1, *ANSWERED]),  # a live camera's: also all before the first answer (counted)
+    (lambda i: -1, True, [0, *ANSWERED]),  # the notices recorded: also the frames the tracker said it left
+], ids=["video", "live camera", "notices recorded"])
+def test_as_recorded_by_plays_the_frames_the_live_pipeline_took(bus: BusAddress, tmp_path: Path, frame_index,
+                                                                notices: bool, played: list[int]) -> None:
+    """`as_recorded_by` /markers: of a live run that dropped frames, only the frames the live pipeline took are
+    played, each once the pipeline has answered the one before on /markers (none lost)."""
+    _live_session(tmp_path / "b", frame_index, notices)
+    seen: list[int] = []
+    done = threading.Event()
+    consumer = _answer_slowly(bus, "/camera/image", "/markers", 0.0, seen, done)
+    node = BagPlay("play", {"path": str(tmp_path / "b"), "fast": True, "topics": ["/camera/image"],
+                            "as_recorded_by": "/markers"}, address=bus)
+    in_thread(node).join(20)
+    done.set()
+    consumer.join(5)
+    assert seen == played and node.error is None
+    assert node.counters["frames_left_out"] == 10 - len(played) and node.counters["sync_timeouts"] == 0
+
+
+def test_as_recorded_by_refuses_a_bag_without_the_live_answers(bus: BusAddress, tmp_path: Path) -> None:
+    write_bag(tmp_path / "frames", sample_messages(3, np.random.default_rng(6)))
+    with pytest.raises(ParamError, match=r"frames: has no topic '/markers', which as_recorded_by names: the live "
+                                         r"pipeline's answers are needed .* `fv bag record -a`"):
+        BagPlay("play", {"path": str(tmp_path / "frames"), "as_recorded_by": "/markers"}, address=bus)
+    with pytest.raises(ValueError, match="one recorded topic per as_recorded_by topic"):
+        BagPlay("p", {"path": "x", "as_recorded_by": ["/left/markers", "/right/markers"],
+                      "sync_on": "/left/camera/image"})
 
 
 def test_sync_streams_must_pair_up() -> None:

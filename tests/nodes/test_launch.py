@@ -329,6 +329,10 @@ def test_both_fingers_start_together_and_their_slips_are_the_fusion_inputs(name:
      r"bag right_only: has no topic '/left/camera/image' to play; its topics: \['/right/camera/image'\]"),
     ("replay_pair.yaml", {"bag": "run1"}, "bag run1: has no topic '/left/camera/image', '/right/camera/image' to play"),
     ("replay.yaml", {"bag": "session"}, "bag session: has no topic '/camera/image' to play"),
+    ("replay.yaml", {"bag": "run1", "as_recorded_by": "/markers"},  # frames only: the live answers not recorded
+     "bag run1: has no topic '/markers', which as_recorded_by names"),
+    ("replay_pair.yaml", {"bag": "session", "as_recorded_by": ["/left/markers"]},
+     r"sync_on \['/left/camera/image', '/right/camera/image'\] and as_recorded_by \['/left/markers'\]: give one"),
     ("video_pair.yaml", {"left": "a.avi", "right": "b.av"}, "video b.av: no such file"),
     ("video.yaml", {"video": "clip.avi", "model": "gelsite_online"}, "model 'gelsite_online' is neither a shipped"),
     ("video.yaml", {"video": "clip.avi", "model": "a.avi"}, "a.avi is not a model file"),  # respawned for good

@@ -12,16 +12,18 @@ frame."""
 from __future__ import annotations
 
 import shutil
+import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from msgs import SlipState
+from msgs import Image, SlipState
 from nodes.bag.bench import stop_process
 from nodes.bag.reader import read_bag
 from fv_algos.camera_vote import camera_vote
 from nodes.bus import PublisherSocket, TopicReader
-from tests.nodes.conftest import EVERY_FRAME_FPS, REPO, Bus, wait_status
+from tests.nodes.conftest import EVERY_FRAME_FPS, REPO, Bus, wait_for, wait_status
 
 GRASP = Path("train") / "bag_of_peanuts" / "exp_num_8"  # a slip, 57 frames per camera
 # The live runs play the videos at EVERY_FRAME_FPS: at full speed, beside other tests on a loaded 2-core
@@ -83,14 +85,15 @@ def _record_live_once(spawn, bag: Path, launch_args: list[str], states_before_re
 
 def _replay(spawn, bag: Path, launch_args: list[str], awaited: dict[str, set[int]]) -> dict[str, list]:
     """The states on the topics of ``awaited`` of `fv launch LAUNCH_ARGS` until each topic has given a state
-    at each of its stamps in ``awaited[topic]``."""
+    at each of its stamps in ``awaited[topic]``; the launch is stopped then."""
     got: dict[str, list] = {t: [] for t in awaited}
     with TopicReader(list(awaited)) as reader:
-        spawn("launch", *launch_args, f"bag:={bag}", "model:=gelsight_online", "standby:=false")
+        launch = spawn("launch", *launch_args, f"bag:={bag}", "model:=gelsight_online", "standby:=false")
         while any(not stamps <= {s.stamp_ns for s in got[t]} for t, stamps in awaited.items()):
             item = reader.recv(90.0 if not any(got.values()) else 10.0)
             assert item is not None, f"replay stopped at {({t: len(v) for t, v in got.items()})} states"
             got[item.topic].append(item.msg)
+    stop_process(launch, timeout_s=30.0)
     return got
 
 
@@ -138,3 +141,108 @@ def test_two_finger_session_with_a_reset_replays_as_live(bus, spawn, isd_data: P
         _assert_replayed_as_live(recorded[topic], replayed[topic], topic)
     final = [s for s in replayed["/slip"] if s.stamp_ns in ends][-1]  # voted on after both fingers' last states
     assert final.probability == pytest.approx(camera_vote([s.probability for s in last.values()]), abs=1e-4)
+
+
+
+# A camera whose driver hands the pipeline every BURST_EVERY-th frame with the BURST - 1 before it at once
+# (their capture stamps a frame period apart): each node keeps only its latest frame, so the tracker, busy
+# with the first of them, drops one at least (`_live_drops` of the recording says which).
+BURST = 3
+BURST_EVERY = 8  # frames
+CAMERA_PERIOD_S = 0.04  # 25 fps, the videos' own rate
+PASS_FRAMES = [*range(57), *range(20)]  # frame_index of each frame sent: the video, then its next pass begun
+RESET_AFTER = 33  # the gripper's /tracker/reset comes between this frame (not held for a burst) and the next
+
+
+def _bursts(count: int) -> list[list[int]]:
+    """Frames 0 .. count - 1 in the groups the camera hands over (BURST, BURST_EVERY)."""
+    groups, held = [], []
+    for k in range(count):
+        held.append(k)
+        if not BURST_EVERY - BURST <= k % BURST_EVERY < BURST_EVERY - 1:
+            groups.append(held)
+            held = []
+    return groups + [held] if held else groups
+
+
+def _video_frames(path: Path) -> list[np.ndarray]:
+    """Every frame of the video at ``path``, (H, W, 3) uint8 BGR."""
+    import cv2
+    capture = cv2.VideoCapture(str(path))
+    frames = []
+    while (read := capture.read())[0]:
+        frames.append(read[1])
+    return frames
+
+
+def _pipeline_launch(folder: Path, namespaces: list[str]) -> Path:
+    """A launch file in ``folder`` of the perception pipeline (launch/camera_pipeline.yaml, no standby spares)
+    under each of ``namespaces`` ("" = none): what a camera launch runs, its camera left to the test."""
+    includes = "".join(f"  - file: {REPO / 'launch' / 'camera_pipeline.yaml'}\n"
+                       + (f"    namespace: {ns}\n" if ns else "") + "    args: {standby: false}\n" for ns in namespaces)
+    path = folder / "pipeline.yaml"
+    path.write_text(f"include:\n{includes}")
+    return path
+
+
+def _launch_arg(name: str, topics: list[str]) -> str:
+    """The launch argument ``name`` giving ``topics``: one topic (replay.yaml's args) or a list (replay_pair's)."""
+    return f"{name}:={topics[0]}" if len(topics) == 1 else f"{name}:=[{','.join(topics)}]"
+
+
+def _record_bursts(spawn, bag: Path, videos: dict[str, Path], nodes: list[str]) -> None:
+    """Record (`fv bag record -a`) a live session of the running pipeline nodes ``nodes`` with a camera per
+    topic of ``videos`` (image topic -> video) whose frames come in bursts (`_bursts`), the video played as
+    PASS_FRAMES with a /tracker/reset after frame RESET_AFTER."""
+    recorder = spawn("bag", "record", "-a", "-x", "^/status$", "--compression", "none", "-o", str(bag))
+    for node in ["bag_record", *nodes]:
+        wait_status(node, timeout_s=90.0)
+    frames = {topic: _video_frames(path) for topic, path in videos.items()}
+    camera, gripper = PublisherSocket("camera"), PublisherSocket("gripper")
+    assert camera.wait_connected(5.0) and gripper.wait_connected(5.0)
+    wait_for(lambda: all(camera.has_subscribers(t) for t in videos), 10.0, "the trackers subscribed")
+    t0_ns, start = time.time_ns(), time.monotonic()
+    for group in _bursts(len(PASS_FRAMES)):
+        time.sleep(max(0.0, start + group[-1] * CAMERA_PERIOD_S - time.monotonic()))
+        for k in group:
+            for topic, video in frames.items():
+                camera.publish(topic, Image(stamp_ns=t0_ns + int(k * CAMERA_PERIOD_S * 1e9), frame_id="camera",
+                                            encoding="bgr8", data=video[PASS_FRAMES[k]], frame_index=PASS_FRAMES[k]))
+        if RESET_AFTER in group:
+            time.sleep(CAMERA_PERIOD_S / 2)
+            gripper.publish("/tracker/reset", SlipState())
+    time.sleep(2.0)  # the pipeline's last answers
+    camera.close()
+    gripper.close()
+    assert stop_process(recorder, timeout_s=30.0) == 0
+
+
+@pytest.mark.parametrize("namespaces", [[""], ["left", "right"]], ids=["one camera", "two fingers"])
+def test_a_session_that_dropped_frames_replays_as_live_as_recorded_by_its_markers(
+        bus, spawn, isd_data: Path, tmp_path: Path, namespaces: list[str]) -> None:
+    """A live run whose tracker dropped frames (a camera's bursts) replayed with `as_recorded_by` (each
+    camera's /markers): only the frames the live pipeline took are played, and every live state comes back
+    as it was; replayed with every frame (`sync_topic`: none lost), the states differ."""
+    prefixes = [f"/{ns}" if ns else "" for ns in namespaces]
+    videos = {f"{p}/camera/image": isd_data / GRASP / f"camera_{2 * k}.avi" for k, p in enumerate(prefixes)}
+    slips = {f"{p}/camera/image": f"{p}/slip" for p in prefixes}
+    bag = tmp_path / "session"
+    launch = spawn("launch", str(_pipeline_launch(tmp_path, namespaces)))
+    _record_bursts(spawn, bag, videos, [f"{ns}_{n}" if ns else n for ns in namespaces
+                                        for n in ("tracker", "interpolator", "slip_detector")])
+    stop_process(launch, timeout_s=30.0)
+    drops = _live_drops(bag, slips)
+    assert set(drops) == set(videos), f"the live run dropped frames of {sorted(drops)} only"
+    recorded = {t: [m for _, m, _ in read_bag(bag, topics=[t])] for t in slips.values()}
+    awaited = {t: {states[-1].stamp_ns} for t, states in recorded.items()}
+    replay = [str(REPO / "launch" / ("replay.yaml" if len(namespaces) == 1 else "replay_pair.yaml"))]
+    as_live = _replay(spawn, bag, [*replay, _launch_arg("as_recorded_by", [f"{p}/markers" for p in prefixes])],
+                      awaited)
+    for topic in slips.values():
+        _assert_replayed_as_live(recorded[topic], as_live[topic], topic)
+    every_frame = _replay(spawn, bag, [*replay, "fast:=true", _launch_arg("sync_topic", list(slips.values()))],
+                          awaited)
+    for topic in slips.values():
+        again = {s.stamp_ns: s.probability for s in every_frame[topic]}
+        same = [s for s in recorded[topic] if abs(again.get(s.stamp_ns, -1.0) - s.probability) <= 1e-4]
+        assert len(same) < len(recorded[topic]), f"{topic}: every live state replayed from every frame"
