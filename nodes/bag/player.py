@@ -242,16 +242,16 @@ class BagPlay(Node):
         absent = [t for t in p.optional_topics if t not in known]
         if absent:
             self.log.info("not in the bag, not played: %s", ", ".join(absent))
+        recorded_by = topic_list(p.as_recorded_by)
+        self.sync_topics = topic_list(p.sync_topic) or recorded_by
         present = [t for t in p.optional_topics if t in known and t not in p.topics]
-        self.played_topics = p.topics + present if p.topics else list(known)
+        self.played_topics = p.topics + present if p.topics else self._all_but_answers(list(known))
         self.out_topic = {t: self.resolve(t) for t in self.played_topics}
         images = [t for t in self.played_topics if known[t].type_name == Image.TYPE]
         self.sync_on = waiting or images[:1]
-        recorded_by = topic_list(p.as_recorded_by)
         if recorded_by and not self.sync_on:
             raise ValueError(f"as_recorded_by {recorded_by}: no Image topic is played, whose frames it would choose")
         self.live = {topic: live_frames(self.bag, topic, answers) for topic, answers in zip(self.sync_on, recorded_by)}
-        self.sync_topics = topic_list(p.sync_topic) or recorded_by
         self.gone_at_start = gone_at_start(self.bag, self.played_topics)
         if self.gone_at_start:
             self.log.info("not played: %s, latched messages the recorder got as it began from processes that "
@@ -280,6 +280,16 @@ class BagPlay(Node):
             threading.Thread(target=self._read_keys, name=f"{self.name}-keys", daemon=True).start()
         self._thread = threading.Thread(target=self._run_play, name=f"{self.name}-play", daemon=True)
         self._thread.start()
+
+    def _all_but_answers(self, topics: list[str]) -> list[str]:
+        """`topics` (every recorded one) without those the player waits on for the pipeline's answers (the sync
+        topics and their `unanswered` notices): played, the recorded answers would come beside the pipeline's own
+        (a live session's /markers, recorded with `-a`: each frame's twice on the interpolator's input)."""
+        waited_on = set(self.sync_topics) | {unanswered_topic(t) for t in self.sync_topics}
+        answers = [t for t in topics if self.resolve(t) in waited_on]
+        if answers:
+            self.log.info("not played: %s, on which the pipeline's answers are awaited", ", ".join(answers))
+        return [t for t in topics if t not in answers]
 
     # -- control ----------------------------------------------------------------------
     def _toggle_pause(self) -> None:

@@ -6,7 +6,10 @@ recorded frame numbers) and the same P(slip): one camera at the recorded speed, 
 each frame waiting for the pipeline's answer to the one before (`sync_topic`), so that no replayed frame is
 dropped. The pipeline keeps only each node's latest frame: a live run that dropped one (a node fell behind
 on a loaded machine) gives no state for it, which the replay, playing every recorded frame, gives, and every
-later P(slip) of that grasp differs; such a live run is recorded again. The launches run without standby
+later P(slip) of that grasp differs; such a live run is recorded again. A live run that dropped frames on
+purpose (its camera hands some over in bursts, which the tracker cannot all take) is replayed as its pipeline
+took it (`as_recorded_by` each camera's /markers: only the frames its tracker answered), one camera and two
+fingers: every live state comes back; replayed from every frame, they differ. The launches run without standby
 spares: their imports at start, beside the nodes' own, made a live run on a loaded 2-core machine drop a
 frame."""
 from __future__ import annotations
@@ -190,10 +193,10 @@ def _launch_arg(name: str, topics: list[str]) -> str:
     return f"{name}:={topics[0]}" if len(topics) == 1 else f"{name}:=[{','.join(topics)}]"
 
 
-def _record_bursts(spawn, bag: Path, videos: dict[str, Path], nodes: list[str]) -> None:
+def _record_bursts(spawn, bag: Path, videos: dict[str, Path], nodes: list[str], answers: list[str]) -> None:
     """Record (`fv bag record -a`) a live session of the running pipeline nodes ``nodes`` with a camera per
     topic of ``videos`` (image topic -> video) whose frames come in bursts (`_bursts`), the video played as
-    PASS_FRAMES with a /tracker/reset after frame RESET_AFTER."""
+    PASS_FRAMES with a /tracker/reset after frame RESET_AFTER, until the pipeline's ``answers`` fall silent."""
     recorder = spawn("bag", "record", "-a", "-x", "^/status$", "--compression", "none", "-o", str(bag))
     for node in ["bag_record", *nodes]:
         wait_status(node, timeout_s=90.0)
@@ -202,47 +205,71 @@ def _record_bursts(spawn, bag: Path, videos: dict[str, Path], nodes: list[str]) 
     assert camera.wait_connected(5.0) and gripper.wait_connected(5.0)
     wait_for(lambda: all(camera.has_subscribers(t) for t in videos), 10.0, "the trackers subscribed")
     t0_ns, start = time.time_ns(), time.monotonic()
-    for group in _bursts(len(PASS_FRAMES)):
-        time.sleep(max(0.0, start + group[-1] * CAMERA_PERIOD_S - time.monotonic()))
-        for k in group:
-            for topic, video in frames.items():
-                camera.publish(topic, Image(stamp_ns=t0_ns + int(k * CAMERA_PERIOD_S * 1e9), frame_id="camera",
-                                            encoding="bgr8", data=video[PASS_FRAMES[k]], frame_index=PASS_FRAMES[k]))
-        if RESET_AFTER in group:
-            time.sleep(CAMERA_PERIOD_S / 2)
-            gripper.publish("/tracker/reset", SlipState())
-    time.sleep(2.0)  # the pipeline's last answers
+    with TopicReader(answers) as reader:
+        for group in _bursts(len(PASS_FRAMES)):
+            time.sleep(max(0.0, start + group[-1] * CAMERA_PERIOD_S - time.monotonic()))
+            for k in group:
+                for topic, video in frames.items():
+                    camera.publish(topic, Image(stamp_ns=t0_ns + int(k * CAMERA_PERIOD_S * 1e9), frame_id="camera",
+                                                encoding="bgr8", data=video[PASS_FRAMES[k]],
+                                                frame_index=PASS_FRAMES[k]))
+            if RESET_AFTER in group:
+                time.sleep(CAMERA_PERIOD_S / 2)
+                gripper.publish("/tracker/reset", SlipState())
+        while reader.recv(1.0) is not None:  # the pipeline's last answers
+            pass
     camera.close()
     gripper.close()
     assert stop_process(recorder, timeout_s=30.0) == 0
 
 
-@pytest.mark.parametrize("namespaces", [[""], ["left", "right"]], ids=["one camera", "two fingers"])
-def test_a_session_that_dropped_frames_replays_as_live_as_recorded_by_its_markers(
-        bus, spawn, isd_data: Path, tmp_path: Path, namespaces: list[str]) -> None:
-    """A live run whose tracker dropped frames (a camera's bursts) replayed with `as_recorded_by` (each
-    camera's /markers): only the frames the live pipeline took are played, and every live state comes back
-    as it was; replayed with every frame (`sync_topic`: none lost), the states differ."""
+def _session_that_dropped_frames(spawn, isd_data: Path, folder: Path, namespaces: list[str]) -> dict[str, list]:
+    """The states of a live session recorded in ``folder``/session (`_record_bursts`) of the pipeline under each
+    of ``namespaces`` (`_pipeline_launch`), the cameras those of peanuts 8, as {slip topic: its states}; it is
+    checked that each camera's tracker dropped frames."""
     prefixes = [f"/{ns}" if ns else "" for ns in namespaces]
     videos = {f"{p}/camera/image": isd_data / GRASP / f"camera_{2 * k}.avi" for k, p in enumerate(prefixes)}
     slips = {f"{p}/camera/image": f"{p}/slip" for p in prefixes}
-    bag = tmp_path / "session"
-    launch = spawn("launch", str(_pipeline_launch(tmp_path, namespaces)))
-    _record_bursts(spawn, bag, videos, [f"{ns}_{n}" if ns else n for ns in namespaces
-                                        for n in ("tracker", "interpolator", "slip_detector")])
+    launch = spawn("launch", str(_pipeline_launch(folder, namespaces)))
+    _record_bursts(spawn, folder / "session", videos, [f"{ns}_{n}" if ns else n for ns in namespaces
+                                                       for n in ("tracker", "interpolator", "slip_detector")],
+                   list(slips.values()))
     stop_process(launch, timeout_s=30.0)
-    drops = _live_drops(bag, slips)
+    drops = _live_drops(folder / "session", slips)
     assert set(drops) == set(videos), f"the live run dropped frames of {sorted(drops)} only"
-    recorded = {t: [m for _, m, _ in read_bag(bag, topics=[t])] for t in slips.values()}
-    awaited = {t: {states[-1].stamp_ns} for t, states in recorded.items()}
-    replay = [str(REPO / "launch" / ("replay.yaml" if len(namespaces) == 1 else "replay_pair.yaml"))]
-    as_live = _replay(spawn, bag, [*replay, _launch_arg("as_recorded_by", [f"{p}/markers" for p in prefixes])],
-                      awaited)
-    for topic in slips.values():
+    return {t: [m for _, m, _ in read_bag(folder / "session", topics=[t])] for t in slips.values()}
+
+
+def _replay_as_recorded(spawn, bag: Path, launch: str, recorded: dict[str, list], as_recorded_by: bool) -> dict:
+    """The states of `_replay` of ``bag`` through launch file ``launch`` as a batch, each finger's frames
+    waiting for its /slip answer; with ``as_recorded_by``, only the frames each camera's live tracker answered
+    on its /markers."""
+    slips = list(recorded)
+    markers = [t.replace("/slip", "/markers") for t in slips]
+    args = [str(REPO / "launch" / launch), "fast:=true", _launch_arg("sync_topic", slips)]
+    if as_recorded_by:
+        args.append(_launch_arg("as_recorded_by", markers))
+    return _replay(spawn, bag, args, {t: {states[-1].stamp_ns} for t, states in recorded.items()})
+
+
+def test_a_session_whose_tracker_dropped_frames_replays_as_live_as_recorded_by_its_markers(
+        bus, spawn, isd_data: Path, tmp_path: Path) -> None:
+    """A live run whose tracker dropped frames (a camera's bursts) replayed with `as_recorded_by` /markers: only
+    the frames the live tracker took are played, and every live state comes back as it was; replayed from
+    every frame, none lost, the states differ."""
+    recorded = _session_that_dropped_frames(spawn, isd_data, tmp_path, [""])
+    as_live = _replay_as_recorded(spawn, tmp_path / "session", "replay.yaml", recorded, as_recorded_by=True)
+    _assert_replayed_as_live(recorded["/slip"], as_live["/slip"], "/slip")
+    every_frame = _replay_as_recorded(spawn, tmp_path / "session", "replay.yaml", recorded, as_recorded_by=False)
+    again = {s.stamp_ns: s.probability for s in every_frame["/slip"]}
+    same = [s for s in recorded["/slip"] if abs(again.get(s.stamp_ns, -1.0) - s.probability) <= 1e-4]
+    assert len(every_frame["/slip"]) > len(recorded["/slip"]) > len(same), "the replay of every frame"
+
+
+def test_a_two_finger_session_whose_trackers_dropped_frames_replays_as_live(bus, spawn, isd_data: Path,
+                                                                           tmp_path: Path) -> None:
+    """replay_pair.yaml with `as_recorded_by` each finger's /markers: each finger's live states back."""
+    recorded = _session_that_dropped_frames(spawn, isd_data, tmp_path, ["left", "right"])
+    as_live = _replay_as_recorded(spawn, tmp_path / "session", "replay_pair.yaml", recorded, as_recorded_by=True)
+    for topic in recorded:
         _assert_replayed_as_live(recorded[topic], as_live[topic], topic)
-    every_frame = _replay(spawn, bag, [*replay, "fast:=true", _launch_arg("sync_topic", list(slips.values()))],
-                          awaited)
-    for topic in slips.values():
-        again = {s.stamp_ns: s.probability for s in every_frame[topic]}
-        same = [s for s in recorded[topic] if abs(again.get(s.stamp_ns, -1.0) - s.probability) <= 1e-4]
-        assert len(same) < len(recorded[topic]), f"{topic}: every live state replayed from every frame"
