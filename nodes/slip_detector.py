@@ -12,7 +12,10 @@ A trial model (`gelsight_online`, `gelsight_trial`) judges the whole grasp so fa
 starts at the tracker's reference (`/markers/reference`, latched: a new one after
 `/tracker/reset`), and every field of it, with the camera image of the same stamp (`/camera/image`), updates the
 running P(slip) of the grasp (`fv_algos.grasp_judge`); a field stamped before the grasp's reference (none
-yet, or one of the grasp before) is left out, counted in before_grasp. Its SlipState's window_stamps_ns
+yet, or one of the grasp before) is left out, counted in before_grasp. A new reference takes over at its
+grasp's first field: the fields of the grasp before that come after it (the reference comes straight from the
+tracker, a frame's field through the interpolator, so it may overtake the last ones) are judged in that grasp;
+the reference of the grasp under way again (a respawned tracker's, latched) starts none. Its SlipState's window_stamps_ns
 holds the grasp's first stamp and that of its last frame judged: a camera faster than the model's
 frame rate (`fv_algos.frame_rate`) has only the frames a camera at that rate would have filmed judged,
 and the others repeat the grasp's P(slip) so far (counted in rate_skipped). That answer is the grasp's outcome so far, to be
@@ -167,6 +170,7 @@ class SlipDetectorNode(Node):
         self.judged: tuple[float, int] | None = None  # P(slip) of the grasp at its last frame judged, and that stamp
         self.images: collections.OrderedDict[int, Image] = collections.OrderedDict()  # by stamp, oldest first
         self.grasp_start_ns: int | None = None
+        self.next_grasp: tuple[int, int] | None = None  # (reference stamp, markers) of a grasp that takes over at its first field
         self.last_field_ns: int | None = None  # stamp of the grasp's last field given to the judge
         self.reference_markers = 0
         self.slow_gaps_before = 0  # the judge's slow gaps before the current grasp
@@ -258,12 +262,19 @@ class SlipDetectorNode(Node):
             self.images.popitem(last=False)
 
     def on_reference(self, msg: MarkerArray) -> None:
-        """A new reference: a new grasp starts at its frame (not at one without markers)."""
+        """A new reference (not one without markers): a new grasp starts at its frame, at once when none is under
+        way, else at the first field stamped at or after it (`next_grasp`): the grasp under way keeps the fields
+        stamped before it, which the reference may have overtaken. The reference of the grasp under way starts
+        none."""
         if not self.usable_reference(msg):
             return
-        self.grasp_start_ns = msg.stamp_ns
-        self.reference_markers = len(msg.ref_px)
-        self.start_grasp()
+        if self.grasp_start_ns is None:
+            self.grasp_start_ns, self.reference_markers = msg.stamp_ns, len(msg.ref_px)
+            self.start_grasp()
+        elif msg.stamp_ns != self.grasp_start_ns:
+            self.next_grasp = (msg.stamp_ns, len(msg.ref_px))
+        else:
+            self.next_grasp = None  # the grasp under way goes on
 
     def start_grasp(self) -> None:
         """Judge the grasp from its reference frame (`grasp_start_ns`) on, from nothing."""
@@ -283,6 +294,9 @@ class SlipDetectorNode(Node):
         --loop` of a recording whose frames carry no `frame_index`): the grasp is judged again from it, as a
         new grasp (its fields were all left out as out of order)."""
         require_grid(msg, self.field_grid)
+        if self.next_grasp is not None and msg.stamp_ns >= self.next_grasp[0]:
+            (self.grasp_start_ns, self.reference_markers), self.next_grasp = self.next_grasp, None
+            self.start_grasp()
         if self.grasp_start_ns is None or msg.stamp_ns < self.grasp_start_ns:
             self.counters["before_grasp"] += 1  # no reference yet, or a field of the grasp before the current one
             return

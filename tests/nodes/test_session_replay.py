@@ -152,9 +152,8 @@ def test_two_finger_session_with_a_reset_replays_as_live(bus, spawn, isd_data: P
 # The trackers of a live run are stalled (SIGSTOP, as a loaded machine stalls a process) while the camera sends
 # the frames of each STALLS range: each node keeps only its latest frame, so once going on, a tracker takes one
 # or two of them and drops the others (`_live_drops` of the recording says which; a run that dropped none of a
-# camera's is recorded again, LIVE_RUNS runs at most). No stall ends at a grasp's last frame: a tracker that
-# then takes the next grasp's reference at once has it overtake that frame's field on its way through the
-# interpolator, and the slip detector leaves the field out (before_grasp), which a replay does not.
+# camera's is recorded again, LIVE_RUNS runs at most). The stalls drop frames inside grasps; where a next grasp's
+# reference overtakes a grasp's last field, test_slip_detector_node holds the slip detector to judging it.
 STALLS = [range(8, 12), range(18, 22), range(26, 30), range(40, 44), range(48, 52), range(64, 68), range(71, 75)]
 CAMERA_PERIOD_S = 0.04  # 25 fps, the videos' own rate
 PASS_FRAMES = [*range(57), *range(20)]  # frame_index of each frame sent: the video, then its next pass begun

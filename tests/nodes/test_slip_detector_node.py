@@ -524,6 +524,54 @@ def test_each_pass_of_a_looped_video_is_judged_as_the_first(bus_env, spawn, tmp_
     assert all(a.stamp_ns < b.stamp_ns and a.seq + 1 == b.seq for a, b in zip(states, states[1:]))
 
 
+def test_a_grasp_keeps_its_last_fields_when_the_next_reference_overtakes_them() -> None:
+    """The tracker sends a new reference straight to the slip detector and a frame's field through the
+    interpolator: after a stall it took a grasp's last frame and the next grasp's reference at once, the
+    reference came first, and that last field was left out (before_grasp). It is judged in its grasp now, as
+    where it came first; the next grasp starts at its first field, and its reference sent again (a respawned
+    tracker's, latched) starts no other."""
+    from msgs import Image
+    from nodes.slip_detector import SlipDetectorNode
+    rng = np.random.default_rng(3)
+    images = {k * 40_000_000: rng.integers(0, 255, (240, 320, 3), np.uint8) for k in range(1, 16)}
+    states: dict[str, list[SlipState]] = {}
+    for order in ("field first", "reference first"):
+        node = SlipDetectorNode("slip_detector", {"model": "gelsight_online"})
+        published: list[SlipState] = states.setdefault(order, [])
+        try:
+            node.setup()
+            node.slip_pub.publish = published.append
+
+            def frame(stamp: int) -> None:
+                node.on_image(Image(stamp_ns=stamp, encoding="bgr8", data=images[stamp]))
+                node.on_grasp_field(_field(stamp, stamp / 4e8))
+
+            node.on_reference(_reference(40_000_000, 320))
+            for stamp in list(images)[:8]:
+                frame(stamp)
+            if order == "reference first":
+                node.on_reference(_reference(400_000_000, 320))
+                frame(360_000_000)
+            else:
+                frame(360_000_000)
+                node.on_reference(_reference(400_000_000, 320))
+            for stamp in list(images)[9:12]:
+                frame(stamp)
+            node.on_reference(_reference(400_000_000, 320))
+            for stamp in list(images)[12:]:
+                frame(stamp)
+            assert node.counters["before_grasp"] == node.counters["out_of_order_fields"] == 0, order
+            assert node.counters["grasps"] == 2, order
+        finally:
+            node.close()
+    field_first, reference_first = states["field first"], states["reference first"]
+    assert len(reference_first) == len(field_first) == 15
+    assert [s.window_stamps_ns.tolist() for s in reference_first] == [s.window_stamps_ns.tolist() for s in field_first]
+    assert [s.probability for s in reference_first] == [s.probability for s in field_first]
+    assert reference_first[8].window_stamps_ns.tolist() == [40_000_000, 360_000_000]
+    assert [s.window_stamps_ns[0] for s in reference_first[9:]] == [400_000_000] * 6
+
+
 def test_a_reference_without_markers_is_ignored() -> None:
     """`fv topic pub /markers/reference MarkerArray '{width: 1}'` (no markers) set a window model's frame
     width: P(slip) read the fields 640-fold; a trial model started a grasp at it."""
