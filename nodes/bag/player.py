@@ -51,7 +51,7 @@ from nodes.bag.clock import PlayClock
 from nodes.bag.codec import LATCHED_ENTRY, RECORDING_META, split_payload
 from nodes.bag.reader import BagError, BagMessage, BagReader
 from nodes.bus import PublisherSocket, TopicReader
-from nodes.node import UNANSWERED_TOPIC, Node
+from nodes.node import UNANSWERED_TOPIC, Node, is_plumbing_topic
 from nodes.start_gate import StartGate
 
 SUBSCRIBER_POLL_S = 0.02
@@ -245,7 +245,7 @@ class BagPlay(Node):
         recorded_by = topic_list(p.as_recorded_by)
         self.sync_topics = topic_list(p.sync_topic) or recorded_by
         present = [t for t in p.optional_topics if t in known and t not in p.topics]
-        self.played_topics = p.topics + present if p.topics else self._all_but_answers(list(known))
+        self.played_topics = p.topics + present if p.topics else self._data_topics(list(known))
         self.out_topic = {t: self.resolve(t) for t in self.played_topics}
         images = [t for t in self.played_topics if known[t].type_name == Image.TYPE]
         self.sync_on = waiting or images[:1]
@@ -281,15 +281,21 @@ class BagPlay(Node):
         self._thread = threading.Thread(target=self._run_play, name=f"{self.name}-play", daemon=True)
         self._thread.start()
 
-    def _all_but_answers(self, topics: list[str]) -> list[str]:
-        """`topics` (every recorded one) without those the player waits on for the pipeline's answers (the sync
-        topics and their `unanswered` notices): played, the recorded answers would come beside the pipeline's own
-        (a live session's /markers, recorded with `-a`: each frame's twice on the interpolator's input)."""
+    def _data_topics(self, topics: list[str]) -> list[str]:
+        """`topics` (every recorded one) without the bus's plumbing (`is_plumbing_topic`: the nodes' param
+        requests and states, the `unanswered` notices, which `fv bag record -a` records only since it leaves
+        them out: played, a param request would set the replay's node, a notice release a frame early) and those
+        the player waits on for the pipeline's answers (the sync topics and their notices: played, the recorded
+        answers would come beside the pipeline's own, a live session's /markers recorded with `-a` each frame's
+        twice on the interpolator's input). Name one in `topics` to play it."""
         waited_on = set(self.sync_topics) | {unanswered_topic(t) for t in self.sync_topics}
         answers = [t for t in topics if self.resolve(t) in waited_on]
         if answers:
             self.log.info("not played: %s, on which the pipeline's answers are awaited", ", ".join(answers))
-        return [t for t in topics if t not in answers]
+        plumbing = [t for t in topics if t not in answers and is_plumbing_topic(t)]
+        if plumbing:
+            self.log.info("not played: %s, the bus's plumbing (name a topic to play it)", ", ".join(plumbing))
+        return [t for t in topics if t not in answers and t not in plumbing]
 
     # -- control ----------------------------------------------------------------------
     def _toggle_pause(self) -> None:

@@ -480,6 +480,33 @@ def test_optional_topics_are_played_when_recorded_and_skipped_when_not(bus: BusA
         BagPlay("play", {"path": str(tmp_path / "without"), "topics": ["/tracker/reset"]}, address=bus)
 
 
+def test_a_bag_holding_the_bus_plumbing_plays_it_only_when_named(bus: BusAddress, tmp_path: Path,
+                                                               caplog: pytest.LogCaptureFixture) -> None:
+    """`fv bag record -a` recorded the nodes' param requests and `unanswered` notices before it left them out:
+    played with every topic, such a bag's `/tracker/param/set` set the replay's tracker and its notices released
+    frames before the pipeline answered them. Now they are played only when named."""
+    from msgs import ParamSet, Unanswered
+    messages = sample_messages(4, np.random.default_rng(5))
+    plumbing = [("/tracker/param/set", False, ParamSet(request_id="r", values={"gate_px": 3.0}), messages[2][3] + 5),
+                ("/unanswered", False, Unanswered(stamp_ns=messages[1][2].stamp_ns, topic="/camera/image"),
+                 messages[2][3] + 7)]
+    write_bag(tmp_path / "old", sorted(messages + plumbing, key=lambda m: m[3]))
+    caplog.set_level(logging.INFO)
+    shown = ["/camera/image", "/tracker/param/set", "/unanswered"]
+    topics = ["/camera/info", "/field", "/slip", *shown]  # every recorded one, so that none is waited for
+    for named, want in (([], ["/camera/image"] * 4), (["/camera/image", "/unanswered"], [
+            "/camera/image", "/unanswered", "/camera/image", "/camera/image", "/camera/image"])):
+        with TopicReader(topics, bus) as reader:
+            node = BagPlay("play", {"path": str(tmp_path / "old"), "fast": True, "topics": named}, address=bus)
+            thread = in_thread(node)
+            got = []
+            while (item := reader.recv(2.0)) is not None:
+                got.append(item.topic)
+            thread.join(5)
+        assert [t for t in got if t in shown] == want and node.error is None, named
+    assert "not played: /tracker/param/set, /unanswered, the bus's plumbing (name a topic to play it)" in caplog.text
+
+
 def test_start_paused_until_sigusr1(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
     write_bag(tmp_path / "b", sample_messages(20, np.random.default_rng(4)))
     with TopicReader(["/slip"], bus) as reader:
