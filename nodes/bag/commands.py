@@ -53,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-l", "--loop", action="store_true", help="start over at the end")
     p.add_argument("--start-offset", type=float, default=0.0, metavar="S", help="skip the first S seconds")
     p.add_argument("--duration", type=float, default=0.0, metavar="S", help="play only S seconds (0 = all)")
-    p.add_argument("--topics", nargs="+", default=[], help="recorded topics to play (default all)")
+    p.add_argument("--topics", nargs="+", default=[], help="recorded topics to play (default: all but the bus's plumbing, param and unanswered topics, and the answers --sync-topic awaits)")
     p.add_argument("--remap", action="append", default=[], metavar="FROM:=TO", help="rename a topic")
     p.add_argument("-p", "--start-paused", action="store_true", help="wait for space/enter or SIGUSR1")
     p.add_argument("--fast", action="store_true", help="as fast as possible (batch processing)")
