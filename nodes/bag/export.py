@@ -133,7 +133,8 @@ def _npz(messages: Iterator[tuple[str, Message, int]], output: Path) -> int:
             out[f"{name}_offsets"] = np.cumsum([0] + [len(a) for a in items])
         else:
             raise ValueError(f"array {name!r} changes shape beyond its first dimension: cannot export it as npz")
-    np.savez_compressed(output, **out)
+    with open(output, "wb") as f:  # a path not ending in .npz would get the suffix added
+        np.savez_compressed(f, **out)
     return len(columns.get("log_time_ns", []))
 
 

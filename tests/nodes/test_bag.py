@@ -402,6 +402,8 @@ def test_export_video_png_csv_npz(bag: tuple[Path, list], tmp_path: Path) -> Non
     export(path, "/field", tmp_path / "field.npz")
     npz = np.load(tmp_path / "field.npz")
     assert npz["field"].shape == (40, 5, 6, 3) and list(npz["seq"]) == list(range(40))
+    assert export(path, "/field", tmp_path / "field_data", "npz")[1] == tmp_path / "field_data"  # written as named
+    assert np.load(tmp_path / "field_data")["field"].shape == (40, 5, 6, 3)
     with pytest.raises(ValueError, match="not Image"):
         export(path, "/field", tmp_path / "f.mp4")
 
