@@ -14,8 +14,10 @@ starts at the tracker's reference (`/markers/reference`, latched: a new one afte
 running P(slip) of the grasp (`fv_algos.grasp_judge`); a field stamped before the grasp's reference (none
 yet, or one of the grasp before) is left out, counted in before_grasp. A new reference takes over at its
 grasp's first field: the fields of the grasp before that come after it (the reference comes straight from the
-tracker, a frame's field through the interpolator, so it may overtake the last ones) are judged in that grasp;
-the reference of the grasp under way again (a respawned tracker's, latched) starts none. Its SlipState's window_stamps_ns
+tracker, a frame's field through the interpolator, so it may overtake the last ones) are judged in that grasp,
+and several references that come before their first fields take over in turn; the grasp's own reference
+message again (the same stamp) starts none, and one stamped before it (a recording played again) starts its
+grasp at once. Its SlipState's window_stamps_ns
 holds the grasp's first stamp and that of its last frame judged: a camera faster than the model's
 frame rate (`fv_algos.frame_rate`) has only the frames a camera at that rate would have filmed judged,
 and the others repeat the grasp's P(slip) so far (counted in rate_skipped). That answer is the grasp's outcome so far, to be
@@ -170,7 +172,7 @@ class SlipDetectorNode(Node):
         self.judged: tuple[float, int] | None = None  # P(slip) of the grasp at its last frame judged, and that stamp
         self.images: collections.OrderedDict[int, Image] = collections.OrderedDict()  # by stamp, oldest first
         self.grasp_start_ns: int | None = None
-        self.next_grasp: tuple[int, int] | None = None  # (reference stamp, markers) of a grasp that takes over at its first field
+        self.next_grasps: list[tuple[int, int]] = []  # (reference stamp, markers) of grasps to take over at their first fields, by stamp
         self.last_field_ns: int | None = None  # stamp of the grasp's last field given to the judge
         self.reference_markers = 0
         self.slow_gaps_before = 0  # the judge's slow gaps before the current grasp
@@ -262,19 +264,19 @@ class SlipDetectorNode(Node):
             self.images.popitem(last=False)
 
     def on_reference(self, msg: MarkerArray) -> None:
-        """A new reference (not one without markers): a new grasp starts at its frame, at once when none is under
-        way, else at the first field stamped at or after it (`next_grasp`): the grasp under way keeps the fields
-        stamped before it, which the reference may have overtaken. The reference of the grasp under way starts
-        none."""
+        """A new reference (not one without markers): a new grasp starts at its frame. One stamped after the
+        grasp under way's start takes over at the first field stamped at or after it (`next_grasps`): the grasp
+        under way keeps the fields stamped before it, which the reference may have overtaken. One stamped before
+        it (time went back: a recording played again) takes over at once, as does the first; the reference of
+        the grasp under way (its stamp) starts none."""
         if not self.usable_reference(msg):
             return
-        if self.grasp_start_ns is None:
+        if self.grasp_start_ns is None or msg.stamp_ns < self.grasp_start_ns:
             self.grasp_start_ns, self.reference_markers = msg.stamp_ns, len(msg.ref_px)
+            self.next_grasps = []
             self.start_grasp()
-        elif msg.stamp_ns != self.grasp_start_ns:
-            self.next_grasp = (msg.stamp_ns, len(msg.ref_px))
-        else:
-            self.next_grasp = None  # the grasp under way goes on
+        elif msg.stamp_ns != self.grasp_start_ns and all(msg.stamp_ns != stamp for stamp, _ in self.next_grasps):
+            self.next_grasps = sorted(self.next_grasps + [(msg.stamp_ns, len(msg.ref_px))])
 
     def start_grasp(self) -> None:
         """Judge the grasp from its reference frame (`grasp_start_ns`) on, from nothing."""
@@ -294,8 +296,10 @@ class SlipDetectorNode(Node):
         --loop` of a recording whose frames carry no `frame_index`): the grasp is judged again from it, as a
         new grasp (its fields were all left out as out of order)."""
         require_grid(msg, self.field_grid)
-        if self.next_grasp is not None and msg.stamp_ns >= self.next_grasp[0]:
-            (self.grasp_start_ns, self.reference_markers), self.next_grasp = self.next_grasp, None
+        due = [grasp for grasp in self.next_grasps if grasp[0] <= msg.stamp_ns]
+        if due:  # the latest reference at or before this field's frame; those before it had no field
+            (self.grasp_start_ns, self.reference_markers) = due[-1]
+            self.next_grasps = self.next_grasps[len(due):]
             self.start_grasp()
         if self.grasp_start_ns is None or msg.stamp_ns < self.grasp_start_ns:
             self.counters["before_grasp"] += 1  # no reference yet, or a field of the grasp before the current one

@@ -528,8 +528,8 @@ def test_a_grasp_keeps_its_last_fields_when_the_next_reference_overtakes_them() 
     """The tracker sends a new reference straight to the slip detector and a frame's field through the
     interpolator: after a stall it took a grasp's last frame and the next grasp's reference at once, the
     reference came first, and that last field was left out (before_grasp). It is judged in its grasp now, as
-    where it came first; the next grasp starts at its first field, and its reference sent again (a respawned
-    tracker's, latched) starts no other."""
+    where it came first; the next grasp starts at its first field, and its reference message sent again (the
+    same stamp) starts no other."""
     from msgs import Image
     from nodes.slip_detector import SlipDetectorNode
     rng = np.random.default_rng(3)
@@ -570,6 +570,40 @@ def test_a_grasp_keeps_its_last_fields_when_the_next_reference_overtakes_them() 
     assert [s.probability for s in reference_first] == [s.probability for s in field_first]
     assert reference_first[8].window_stamps_ns.tolist() == [40_000_000, 360_000_000]
     assert [s.window_stamps_ns[0] for s in reference_first[9:]] == [400_000_000] * 6
+
+
+def test_references_that_come_before_their_first_fields_take_over_in_turn() -> None:
+    """Two resets within the interpolator's lag: both references come before the first field of either grasp.
+    Each grasp starts at its own first field (the second reference had made the first grasp's fields be judged
+    in the grasp before it); a reference stamped before the grasp under way (a recording played again) starts
+    its grasp at once."""
+    from msgs import Image
+    from nodes.slip_detector import SlipDetectorNode
+    rng = np.random.default_rng(4)
+    node = SlipDetectorNode("slip_detector", {"model": "gelsight_online"})
+    published: list[SlipState] = []
+    try:
+        node.setup()
+        node.slip_pub.publish = published.append
+
+        def frame(stamp: int) -> None:
+            node.on_image(Image(stamp_ns=stamp, encoding="bgr8", data=rng.integers(0, 255, (240, 320, 3), np.uint8)))
+            node.on_grasp_field(_field(stamp, stamp / 4e8))
+
+        node.on_reference(_reference(40_000_000, 320))
+        for k in range(1, 6):
+            frame(k * 40_000_000)
+        node.on_reference(_reference(320_000_000, 320))  # sent second, stamped later: queued in stamp order
+        node.on_reference(_reference(240_000_000, 320))
+        for k in range(6, 10):
+            frame(k * 40_000_000)
+        assert [s.window_stamps_ns[0] for s in published[5:]] == [240_000_000] * 2 + [320_000_000] * 2
+        node.on_reference(_reference(40_000_000, 320))  # the recording again from its start
+        frame(40_000_000)
+        assert published[-1].window_stamps_ns.tolist() == [40_000_000, 40_000_000]
+        assert node.counters["grasps"] == 4 and node.counters["before_grasp"] == 0
+    finally:
+        node.close()
 
 
 def test_a_reference_without_markers_is_ignored() -> None:
