@@ -84,7 +84,8 @@ class BagPlayParams:
     sync_timeout_s: give up waiting for one answer after this long (counted).
     as_recorded_by: play of each stream only the frames the live pipeline took (`live_frames`): the
     recorded topic on which a stage answered them live (e.g. /markers; a list paired with `sync_on` as
-    `sync_topic` is), also the sync topic when `sync_topic` is "". "" = every frame.
+    `sync_topic` is; without `sync_on`, each with the one Image topic played in its namespace,
+    `camera_answered_on`), also the sync topic when `sync_topic` is "". "" = every frame.
     keyboard: space/enter on the terminal toggles pause (when stdin is a terminal).
     """
 
@@ -216,6 +217,19 @@ def live_frames(bag: BagReader, images: str, answers: str) -> LiveFrames:
     return LiveFrames(answered | {n.stamp_ns for n in noticed if n.topic == images}, 0)
 
 
+def camera_answered_on(answers: str, images: list[str]) -> str:
+    """The one topic of `images` (the Image topics played) in the namespace of `answers` (`/left/markers`:
+    `/left/camera/image`; `/markers`: any), whose frames a live stage answered there; ValueError naming them
+    where none or several are."""
+    namespace = posixpath.dirname(answers).rstrip("/") + "/"
+    cameras = [t for t in images if t.startswith(namespace)]
+    if len(cameras) != 1:
+        raise ValueError(f"as_recorded_by {answers}: {len(cameras) or 'no'} Image topic(s) played in its namespace "
+                         f"{namespace!r} ({', '.join(cameras) or 'played: ' + (', '.join(images) or 'none')}), "
+                         "whose frames it would choose: give sync_on, the camera topic it answers")
+    return cameras[0]
+
+
 def unanswered_topic(answer_topic: str) -> str:
     """Where the nodes that answer on `answer_topic` say what they leave unanswered: `unanswered` in its
     namespace (`/slip` -> `/unanswered`, `/left/slip` -> `/left/unanswered`)."""
@@ -242,16 +256,20 @@ class BagPlay(Node):
         absent = [t for t in p.optional_topics if t not in known]
         if absent:
             self.log.info("not in the bag, not played: %s", ", ".join(absent))
-        recorded_by = topic_list(p.as_recorded_by)
-        self.sync_topics = topic_list(p.sync_topic) or recorded_by
+        self.recorded_by = topic_list(p.as_recorded_by)
+        self.sync_topics = topic_list(p.sync_topic) or self.recorded_by
         present = [t for t in p.optional_topics if t in known and t not in p.topics]
         self.played_topics = p.topics + present if p.topics else self._data_topics(list(known))
         self.out_topic = {t: self.resolve(t) for t in self.played_topics}
         images = [t for t in self.played_topics if known[t].type_name == Image.TYPE]
-        self.sync_on = waiting or images[:1]
-        if recorded_by and not self.sync_on:
-            raise ValueError(f"as_recorded_by {recorded_by}: no Image topic is played, whose frames it would choose")
-        self.live = {topic: live_frames(self.bag, topic, answers) for topic, answers in zip(self.sync_on, recorded_by)}
+        if waiting:
+            self.sync_on = waiting
+        elif self.recorded_by:
+            self.sync_on = [camera_answered_on(answers, images) for answers in self.recorded_by]
+        else:
+            self.sync_on = images[:1]
+        self.live = {topic: live_frames(self.bag, topic, answers)
+                     for topic, answers in zip(self.sync_on, self.recorded_by)}
         self.gone_at_start = gone_at_start(self.bag, self.played_topics)
         if self.gone_at_start:
             self.log.info("not played: %s, latched messages the recorder got as it began from processes that "
@@ -285,11 +303,12 @@ class BagPlay(Node):
         """`topics` (every recorded one) without the bus's plumbing (`is_plumbing_topic`: the nodes' param
         requests and states, the `unanswered` notices, which `fv bag record -a` records only since it leaves
         them out: played, a param request would set the replay's node, a notice release a frame early) and those
-        the player waits on for the pipeline's answers (the sync topics and their notices: played, the recorded
-        answers would come beside the pipeline's own, a live session's /markers recorded with `-a` each frame's
-        twice on the interpolator's input). Name one in `topics` to play it."""
+        the player waits on for the pipeline's answers (the sync topics and their notices) or reads the live
+        ones from (`as_recorded_by`): played, the recorded answers would come beside the pipeline's own, a live
+        session's /markers recorded with `-a` each frame's twice on the interpolator's input). Name one in
+        `topics` to play it."""
         waited_on = set(self.sync_topics) | {unanswered_topic(t) for t in self.sync_topics}
-        answers = [t for t in topics if self.resolve(t) in waited_on]
+        answers = [t for t in topics if self.resolve(t) in waited_on or t in self.recorded_by]
         if answers:
             self.log.info("not played: %s, on which the pipeline's answers are awaited", ", ".join(answers))
         plumbing = [t for t in topics if t not in answers and is_plumbing_topic(t)]

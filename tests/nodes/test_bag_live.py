@@ -373,6 +373,42 @@ def test_as_recorded_by_refuses_a_bag_without_the_live_answers(bus: BusAddress, 
                       "sync_on": "/left/camera/image"})
 
 
+def test_as_recorded_by_chooses_the_camera_of_its_namespace(bus: BusAddress, tmp_path: Path) -> None:
+    """A two-finger bag: `as_recorded_by` /right/markers alone chose the first Image topic, /left/camera/image,
+    filtered it by the right camera's answers and played the right camera whole. Now it chooses the right
+    camera's frames it answered; an answer topic whose namespace holds both cameras, or none played, is refused,
+    naming them; the live answers it reads are not played, with another sync topic too (they were)."""
+    messages = []
+    for k, side in enumerate(("/left", "/right")):
+        stamps = [T0_NS + i * 10_000_000 + 3_000_000 * k for i in range(6)]
+        messages += [(f"{side}/camera/image", False, Image(stamp_ns=t, data=np.zeros((4, 4), np.uint8),
+                                                           frame_index=i), t) for i, t in enumerate(stamps)]
+        messages += [(f"{side}/markers", False, MarkerArray(stamp_ns=t), t + 1) for t in stamps[1::2]]
+    write_bag(tmp_path / "pair", sorted(messages, key=lambda m: m[3]))
+    node = BagPlay("play", {"path": str(tmp_path / "pair"), "fast": True, "as_recorded_by": "/right/markers",
+                            "sync_topic": "/right/slip"}, address=bus)
+    node.setup()
+    try:
+        assert node.sync_on == ["/right/camera/image"]
+        assert node.played_topics == ["/left/camera/image", "/right/camera/image", "/left/markers"]
+        assert node.live["/right/camera/image"].taken == {T0_NS + i * 10_000_000 + 3_000_000 for i in (1, 3, 5)}
+    finally:
+        node.close()
+    node = BagPlay("play", {"path": str(tmp_path / "pair"), "as_recorded_by": "/right/markers",
+                            "topics": ["/left/camera/image"]}, address=bus)
+    with pytest.raises(ValueError, match=r"as_recorded_by /right/markers: no Image topic\(s\) played in its "
+                                         r"namespace '/right/' \(played: /left/camera/image\).*give sync_on"):
+        node.setup()
+    node.close()
+    messages += [("/markers", False, MarkerArray(stamp_ns=T0_NS), T0_NS + 1)]
+    write_bag(tmp_path / "root", sorted(messages, key=lambda m: m[3]))
+    node = BagPlay("play", {"path": str(tmp_path / "root"), "as_recorded_by": "/markers"}, address=bus)
+    with pytest.raises(ValueError, match=r"2 Image topic\(s\) played in its namespace '/' \(/left/camera/image, "
+                                         r"/right/camera/image\)"):
+        node.setup()
+    node.close()
+
+
 def test_sync_streams_must_pair_up() -> None:
     with pytest.raises(ValueError, match="one recorded topic per sync topic"):
         BagPlay("p", {"path": "x", "sync_topic": ["/left/slip", "/right/slip"], "sync_on": "/left/camera/image"})
