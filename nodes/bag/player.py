@@ -288,8 +288,11 @@ class BagPlay(Node):
         self._answer_stream = {topic: k for k, topic in enumerate(self.sync_topics)}
         self._pub = PublisherSocket(self.name, self.address, self.ctx)
         self.keep_answering(self._pub)
-        self._unanswered_topics = {unanswered_topic(t) for t in self.sync_topics} - set(self.sync_topics)
-        self._sync = (TopicReader(self.sync_topics + sorted(self._unanswered_topics), self.address, self.ctx)
+        self._notice_streams: dict[str, list[int]] = {}  # unanswered topic -> the streams whose answers it concerns
+        for k, topic in enumerate(self.sync_topics):
+            if unanswered_topic(topic) not in self.sync_topics:
+                self._notice_streams.setdefault(unanswered_topic(topic), []).append(k)
+        self._sync = (TopicReader(self.sync_topics + sorted(self._notice_streams), self.address, self.ctx)
                       if self.sync_topics else None)
         self.start_gate = StartGate(self, p.start_after, p.start_timeout_s)
         if threading.current_thread() is threading.main_thread():
@@ -433,14 +436,15 @@ class BagPlay(Node):
     def _answered(self, topic: str, stamp_ns: int) -> bool:
         """Take what a message on `topic` stamped `stamp_ns` answers off the sent messages awaiting one: an
         answer on a sync topic answers its stream's messages stamped at or before it; a notice on an unanswered
-        topic, the message of that very stamp in any stream (counted in `unanswered`). False when none."""
+        topic, the message of that very stamp in the streams answered in its namespace (counted in `unanswered`;
+        two cameras' frames may share a stamp). False when none."""
         if topic in self._answer_stream:
             pending = self._pending[self._answer_stream[topic]]
             answered = bool(pending) and pending[0] <= stamp_ns
             while pending and pending[0] <= stamp_ns:
                 pending.popleft()
             return answered
-        holding = [pending for pending in self._pending if stamp_ns in pending]
+        holding = [self._pending[k] for k in self._notice_streams.get(topic, []) if stamp_ns in self._pending[k]]
         for pending in holding:
             pending.remove(stamp_ns)
         self.counters["unanswered"] += len(holding)

@@ -409,6 +409,27 @@ def test_as_recorded_by_chooses_the_camera_of_its_namespace(bus: BusAddress, tmp
     node.close()
 
 
+def test_a_notice_releases_the_frame_of_its_own_camera(bus: BusAddress, tmp_path: Path) -> None:
+    """Two fingers' cameras whose frames share stamps (synchronised cameras): the left tracker's notice that it
+    left a frame unanswered released the right camera's frame of that stamp too, before the right pipeline had
+    answered it."""
+    stamp = T0_NS + 10_000_000
+    write_bag(tmp_path / "pair", [(f"{side}/camera/image", False, Image(stamp_ns=stamp, data=np.zeros((4, 4), np.uint8)),
+                                   stamp) for side in ("/left", "/right")])
+    node = BagPlay("play", {"path": str(tmp_path / "pair"), "fast": True,
+                            "sync_on": ["/left/camera/image", "/right/camera/image"],
+                            "sync_topic": ["/left/slip", "/right/slip"]}, address=bus)
+    node.setup()
+    try:
+        for pending in node._pending:
+            pending.append(stamp)
+        assert node._answered("/left/unanswered", stamp) and node.counters["unanswered"] == 1
+        assert [list(p) for p in node._pending] == [[], [stamp]]
+        assert node._answered("/right/unanswered", stamp) and not node._answered("/right/unanswered", stamp)
+    finally:
+        node.close()
+
+
 def test_sync_streams_must_pair_up() -> None:
     with pytest.raises(ValueError, match="one recorded topic per sync topic"):
         BagPlay("p", {"path": "x", "sync_topic": ["/left/slip", "/right/slip"], "sync_on": "/left/camera/image"})
