@@ -4,26 +4,29 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
 
 _writing: set[Path] = set()  # the temporary files this process is writing
+T = TypeVar("T")
 
 
-def write_atomically(path: Path, write: Callable[[Path], None]) -> None:
+def write_atomically(path: Path, write: Callable[[Path], T]) -> T:
     """Create ``path`` through ``write(tmp)`` on a temporary file beside it (named after this process,
     so processes sharing a cache never write the same file), then rename it into place: a reader sees
-    the whole file or none. Missing folders are created."""
+    the whole file or none. Missing folders are created. Returns what ``write`` returned."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp{path.suffix}")
     _writing.add(tmp)
     try:
-        write(tmp)
+        result = write(tmp)
         tmp.replace(path)
     finally:
         tmp.unlink(missing_ok=True)
         _writing.discard(tmp)
+    return result
 
 
 def remove_partial_files() -> None:

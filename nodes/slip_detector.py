@@ -172,7 +172,7 @@ class SlipDetectorNode(Node):
         self.judged: tuple[float, int] | None = None  # P(slip) of the grasp at its last frame judged, and that stamp
         self.images: collections.OrderedDict[int, Image] = collections.OrderedDict()  # by stamp, oldest first
         self.grasp_start_ns: int | None = None
-        self.next_grasps: list[tuple[int, int]] = []  # (reference stamp, markers) of grasps to take over at their first fields, by stamp
+        self.next_grasps: dict[int, int] = {}  # reference stamp -> markers of grasps to take over at their first fields
         self.last_field_ns: int | None = None  # stamp of the grasp's last field given to the judge
         self.reference_markers = 0
         self.slow_gaps_before = 0  # the judge's slow gaps before the current grasp
@@ -272,11 +272,11 @@ class SlipDetectorNode(Node):
         if not self.usable_reference(msg):
             return
         if self.grasp_start_ns is None or msg.stamp_ns < self.grasp_start_ns:
+            self.next_grasps.clear()
             self.grasp_start_ns, self.reference_markers = msg.stamp_ns, len(msg.ref_px)
-            self.next_grasps = []
             self.start_grasp()
-        elif msg.stamp_ns != self.grasp_start_ns and all(msg.stamp_ns != stamp for stamp, _ in self.next_grasps):
-            self.next_grasps = sorted(self.next_grasps + [(msg.stamp_ns, len(msg.ref_px))])
+        elif msg.stamp_ns != self.grasp_start_ns:
+            self.next_grasps[msg.stamp_ns] = len(msg.ref_px)
 
     def start_grasp(self) -> None:
         """Judge the grasp from its reference frame (`grasp_start_ns`) on, from nothing."""
@@ -296,10 +296,12 @@ class SlipDetectorNode(Node):
         --loop` of a recording whose frames carry no `frame_index`): the grasp is judged again from it, as a
         new grasp (its fields were all left out as out of order)."""
         require_grid(msg, self.field_grid)
-        due = [grasp for grasp in self.next_grasps if grasp[0] <= msg.stamp_ns]
+        due = [stamp for stamp in self.next_grasps if stamp <= msg.stamp_ns]
         if due:  # the latest reference at or before this field's frame; those before it had no field
-            (self.grasp_start_ns, self.reference_markers) = due[-1]
-            self.next_grasps = self.next_grasps[len(due):]
+            self.grasp_start_ns = max(due)
+            self.reference_markers = self.next_grasps[self.grasp_start_ns]
+            for stamp in due:
+                del self.next_grasps[stamp]
             self.start_grasp()
         if self.grasp_start_ns is None or msg.stamp_ns < self.grasp_start_ns:
             self.counters["before_grasp"] += 1  # no reference yet, or a field of the grasp before the current one

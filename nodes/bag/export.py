@@ -17,7 +17,7 @@ import csv
 import json
 import re
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 
@@ -174,21 +174,9 @@ def export(path: Path | str, topics: str | Sequence[str] | None, output: Path, f
     messages = bag.read([topic])
     if fmt == "png":
         return _png(messages, output), output  # each frame written whole
+    # whole or not at all: an export that fails or is stopped half-way leaves no file, and an earlier one as it was
+    from fv_algos.atomic_file import write_atomically
     if fmt in FOURCC:
         rate = fps or known[topic].rate_hz or 30.0
-        return _whole(output, lambda tmp: _video(messages, tmp, fmt, rate)), output
-    return _whole(output, lambda tmp: (_csv if fmt == "csv" else _npz)(messages, tmp)), output
-
-
-def _whole(output: Path, write: Callable[[Path], int]) -> int:
-    """``write(tmp)``'s count, its file renamed to ``output`` once whole (`write_atomically`): an export
-    that fails or is stopped half-way leaves no file, and an earlier one it was to replace as it was."""
-    from fv_algos.atomic_file import write_atomically
-    count = 0
-
-    def counted(tmp: Path) -> None:
-        nonlocal count
-        count = write(tmp)
-
-    write_atomically(output, counted)
-    return count
+        return write_atomically(output, lambda tmp: _video(messages, tmp, fmt, rate)), output
+    return write_atomically(output, lambda tmp: (_csv if fmt == "csv" else _npz)(messages, tmp)), output

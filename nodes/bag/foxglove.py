@@ -214,10 +214,9 @@ def export_foxglove(bag: BagReader, topics: list[str] | None, output: Path, imag
     from fv_algos.atomic_file import write_atomically
     if images not in IMAGE_KINDS:
         raise ValueError(f"image kind {images!r} is not one of {list(IMAGE_KINDS)}")
-    count = 0
 
-    def write(tmp: Path) -> None:
-        nonlocal count
+    def write(tmp: Path) -> int:
+        count = 0
         with open(tmp, "wb") as stream:
             out = _FoxgloveWriter(stream, images)
             out.copy_records(bag)
@@ -225,6 +224,6 @@ def export_foxglove(bag: BagReader, topics: list[str] | None, output: Path, imag
                 out.write(rec, msg)
                 count += 1
             out.writer.finish()
+        return count
 
-    write_atomically(output, write)
-    return count
+    return write_atomically(output, write)

@@ -95,6 +95,20 @@ def in_thread(node) -> threading.Thread:
     return thread
 
 
+def play_to_the_end(bus: BusAddress, params: dict, topics: list[str],
+                    remap: dict[str, str] | None = None) -> tuple[BagPlay, list]:
+    """A `BagPlay` of ``params`` (and ``remap``) run to its end in a thread, and what came on ``topics``
+    meanwhile (the items of a `TopicReader` subscribed before it started, until 2 s without one)."""
+    with TopicReader(topics, bus) as reader:
+        node = BagPlay("play", params, remap=remap, address=bus)
+        thread = in_thread(node)
+        got = []
+        while (item := reader.recv(2.0)) is not None:
+            got.append(item)
+        thread.join(5)
+    return node, got
+
+
 def test_kill_9_then_recover_keeps_every_completed_chunk(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
     flush_s = 0.2
     rec = spawn("bag", "record", "/camera/image", "/slip", "-o", str(tmp_path / "crash"), "--chunk-size", "64K",
@@ -438,15 +452,10 @@ def test_sync_streams_must_pair_up() -> None:
 def test_play_offset_duration_topics_remap_and_latched_first(bus: BusAddress, tmp_path: Path) -> None:
     messages = sample_messages(50, np.random.default_rng(2))  # frames every 10 ms
     write_bag(tmp_path / "b", messages)
-    with TopicReader(["/cam2", "/camera/info", "/slip"], bus) as reader:
-        node = BagPlay("play", {"path": str(tmp_path / "b"), "fast": True, "start_offset_s": 0.2,
-                                "duration_s": 0.1, "topics": ["/camera/image", "/camera/info"]},
-                       remap={"/camera/image": "/cam2"}, address=bus)
-        thread = in_thread(node)
-        got = []
-        while (item := reader.recv(2.0)) is not None:
-            got.append((item.topic, item.msg.seq, item.latched))
-        thread.join(5)
+    node, items = play_to_the_end(bus, {"path": str(tmp_path / "b"), "fast": True, "start_offset_s": 0.2,
+                                        "duration_s": 0.1, "topics": ["/camera/image", "/camera/info"]},
+                                  ["/cam2", "/camera/info", "/slip"], remap={"/camera/image": "/cam2"})
+    got = [(item.topic, item.msg.seq, item.latched) for item in items]
     start = messages[0][3]
     want = [i for i, (t, _, _, lt) in enumerate(m for m in messages if m[0] == "/camera/image")
             if start + 0.2e9 <= lt < start + 0.3e9]
@@ -480,15 +489,9 @@ def test_a_play_reads_each_files_summary_once(bus: BusAddress, tmp_path: Path, m
 def test_a_duration_under_a_nanosecond_plays_the_first_message(bus: BusAddress, tmp_path: Path) -> None:
     """The stretch [start, start + duration) was cut to whole ns: --duration 1e-12 played nothing."""
     write_bag(tmp_path / "b", sample_messages(5, np.random.default_rng(2)))  # the camera info opens the bag
-    with TopicReader(["/camera/image", "/camera/info"], bus) as reader:
-        node = BagPlay("play", {"path": str(tmp_path / "b"), "fast": True, "duration_s": 1e-12,
-                                "topics": ["/camera/image", "/camera/info"]}, address=bus)
-        thread = in_thread(node)
-        got = []
-        while (item := reader.recv(2.0)) is not None:
-            got.append(item.topic)
-        thread.join(5)
-    assert got == ["/camera/info"]
+    _, items = play_to_the_end(bus, {"path": str(tmp_path / "b"), "fast": True, "duration_s": 1e-12,
+                                     "topics": ["/camera/image", "/camera/info"]}, ["/camera/image", "/camera/info"])
+    assert [item.topic for item in items] == ["/camera/info"]
 
 
 def test_a_loop_over_nothing_ends_and_numbers_that_mean_nothing_are_refused(bus: BusAddress, tmp_path: Path) -> None:
@@ -525,14 +528,9 @@ def test_optional_topics_are_played_when_recorded_and_skipped_when_not(bus: BusA
     params = {"fast": True, "topics": ["/camera/image"], "optional_topics": ["/tracker/reset", "/not_recorded"]}
     for name, want in (("with", ["/camera/image"] * 3 + ["/tracker/reset"] + ["/camera/image"] * 3),
                        ("without", ["/camera/image"] * 6)):
-        with TopicReader(["/camera/image", "/tracker/reset"], bus) as reader:
-            node = BagPlay("play", {"path": str(tmp_path / name), **params}, address=bus)
-            thread = in_thread(node)
-            got = []
-            while (item := reader.recv(2.0)) is not None:
-                got.append(item.topic)
-            thread.join(5)
-        assert got == want and node.error is None, name
+        node, items = play_to_the_end(bus, {"path": str(tmp_path / name), **params},
+                                      ["/camera/image", "/tracker/reset"])
+        assert [item.topic for item in items] == want and node.error is None, name
     with pytest.raises(ParamError, match="without: has no topic '/tracker/reset' to play"):  # as its params are checked
         BagPlay("play", {"path": str(tmp_path / "without"), "topics": ["/tracker/reset"]}, address=bus)
 
@@ -553,14 +551,8 @@ def test_a_bag_holding_the_bus_plumbing_plays_it_only_when_named(bus: BusAddress
     topics = ["/camera/info", "/field", "/slip", *shown]  # every recorded one, so that none is waited for
     for named, want in (([], ["/camera/image"] * 4), (["/camera/image", "/unanswered"], [
             "/camera/image", "/unanswered", "/camera/image", "/camera/image", "/camera/image"])):
-        with TopicReader(topics, bus) as reader:
-            node = BagPlay("play", {"path": str(tmp_path / "old"), "fast": True, "topics": named}, address=bus)
-            thread = in_thread(node)
-            got = []
-            while (item := reader.recv(2.0)) is not None:
-                got.append(item.topic)
-            thread.join(5)
-        assert [t for t in got if t in shown] == want and node.error is None, named
+        node, items = play_to_the_end(bus, {"path": str(tmp_path / "old"), "fast": True, "topics": named}, topics)
+        assert [item.topic for item in items if item.topic in shown] == want and node.error is None, named
     assert "not played: /tracker/param/set, /unanswered, the bus's plumbing (name a topic to play it)" in caplog.text
 
 

@@ -20,13 +20,13 @@ import signal
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from msgs import Image, SlipState
 from nodes.bag.bench import stop_process
 from nodes.bag.reader import read_bag
 from fv_algos.camera_vote import camera_vote
+from fv_algos.real_trials import read_frames
 from nodes.bus import PublisherSocket, TopicReader
 from tests.nodes.conftest import EVERY_FRAME_FPS, REPO, Bus, wait_for, wait_status
 
@@ -160,16 +160,6 @@ PASS_FRAMES = [*range(57), *range(20)]  # frame_index of each frame sent: the vi
 RESET_AFTER = 33  # the gripper's /tracker/reset comes between this frame and the next
 
 
-def _video_frames(path: Path) -> list[np.ndarray]:
-    """Every frame of the video at ``path``, (H, W, 3) uint8 BGR."""
-    import cv2
-    capture = cv2.VideoCapture(str(path))
-    frames = []
-    while (read := capture.read())[0]:
-        frames.append(read[1])
-    return frames
-
-
 def _pipeline_launch(folder: Path, namespaces: list[str]) -> Path:
     """A launch file in ``folder`` of the perception pipeline (launch/camera_pipeline.yaml, no standby spares)
     under each of ``namespaces`` ("" = none): what a camera launch runs, its camera left to the test."""
@@ -193,7 +183,7 @@ def _record_stalls(spawn, bag: Path, videos: dict[str, Path], nodes: list[str], 
     recorder = spawn("bag", "record", "-a", "-x", "^/status$", "--compression", "none", "-o", str(bag))
     pids = {node: wait_status(node, timeout_s=90.0).pid for node in ["bag_record", *nodes]}
     trackers = [pid for node, pid in pids.items() if node.endswith("tracker")]
-    frames = {topic: _video_frames(path) for topic, path in videos.items()}
+    frames = {topic: list(read_frames(path)) for topic, path in videos.items()}
     camera, gripper = PublisherSocket("camera"), PublisherSocket("gripper")
     assert camera.wait_connected(5.0) and gripper.wait_connected(5.0)
     wait_for(lambda: all(camera.has_subscribers(t) for t in videos), 10.0, "the trackers subscribed")
