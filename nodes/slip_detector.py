@@ -16,7 +16,8 @@ yet, or one of the grasp before) is left out, counted in before_grasp. A new ref
 grasp's first field: the fields of the grasp before that come after it (the reference comes straight from the
 tracker, a frame's field through the interpolator, so it may overtake the last ones) are judged in that grasp,
 and several references that come before their first fields take over in turn; the grasp's own reference
-message again (the same stamp) starts none, and one stamped before it (a recording played again) starts its
+message again (the same stamp: a respawned tracker's, which publishes the reference it resumes as it was
+taken) starts none, and one stamped before it (a recording played again) starts its
 grasp at once. Its SlipState's window_stamps_ns
 holds the grasp's first stamp and that of its last frame judged: a camera faster than the model's
 frame rate (`fv_algos.frame_rate`) has only the frames a camera at that rate would have filmed judged,

@@ -28,7 +28,10 @@ take a deformed frame as the reference: with `resume`, it first waits up to
 `resume_wait_s` for the latched `/markers/reference` of its previous process (same node
 name, same image size, stamped no later than the first frame this process sees; under `fv
 launch`, published since the launch started) and goes on tracking against it: its publisher is
-gone, and the forwarder gives it to the subscriptions that ask for gone publishers' messages. A
+gone, and the forwarder gives it to the subscriptions that ask for gone publishers' messages. It
+publishes the reference it resumes (the previous process's or the recording's) as it was taken, stamped at
+the frame it was taken from: the slip detector goes on with the grasp under way (and a replay's grasp starts
+where the live one did), where a copy stamped at this process's first frame started a new grasp. A
 reference stamped after that frame belongs to another stream (e.g. the live session a bus still
 holds, when a recording of it is replayed), and one from before the launch to an earlier session (a
 forwarder left running keeps it): neither is resumed."""
@@ -212,7 +215,8 @@ class TrackerNode(Node):
             self.needs_reference = False
             self.take_next = False
             self.inherited = None
-            self.reference_pub.publish(marker_array(state, msg))
+            # a resumed reference is published as it was taken (its frame's stamp): the grasp under way goes on
+            self.reference_pub.publish(replace(old) if resume else marker_array(state, msg))
         try:
             detections = self.perception.detect(image)
         except ValueError as exc:  # a camera reopened at another size: its markers are not the reference's

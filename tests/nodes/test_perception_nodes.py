@@ -202,7 +202,9 @@ def test_a_replay_is_tracked_against_the_recorded_reference_from_before_its_firs
     longer get): a recording begun as the camera respawned, mid-grasp, had 113 of 179 replayed
     decisions differ from the live ones. A recording that starts at a video's frame 0 (frame_index: a
     looped video's pass begins there too) holds the frame the live tracker took its reference from: the
-    replay takes its own there."""
+    replay takes its own there. The reference resumed is published stamped as recorded, at the live frame it
+    was taken from (it was stamped at the replay's first frame: the replay's grasp started there, not where
+    the live one had)."""
     from msgs import Image
     rest = _skin_at_rest()
     with _tracker({"resume": False, "recorded_reference": "recorded/markers/reference"}) as (node, references, _):
@@ -217,7 +219,7 @@ def test_a_replay_is_tracked_against_the_recorded_reference_from_before_its_firs
             node.on_image(Image(seq=first_seq + k, stamp_ns=24_000_000_000 + k, encoding="mono8", data=rest,
                                 frame_index=index))
         assert node.counters["resumed"] == int(resumed) and node.counters["references"] == int(not resumed)
-        assert len(references) == 1 and references[0].stamp_ns == (24_000_000_000 if resumed else 24_000_000_001)
+        assert len(references) == 1 and references[0].stamp_ns == (1 if resumed else 24_000_000_001)
 
 
 def test_a_stream_that_ends_before_the_reference_frame_is_said(caplog: pytest.LogCaptureFixture) -> None:
@@ -360,6 +362,28 @@ def test_a_dark_frame_met_when_resuming_is_retried_as_a_new_reference_is() -> No
         node.on_image(Image(stamp_ns=3, encoding="mono8", data=rest))
         assert node.counters["resumed"] == 1 and len(references) == 1 and node.state == "ok"
         assert markers[-1].valid.all()
+
+
+def test_a_resumed_reference_is_published_as_it_was_taken() -> None:
+    """A respawned tracker published the reference it resumed stamped at its own first frame, the skin
+    sheared there: the slip detector took it for a new grasp (its grasp start, window_stamps_ns[0] on /slip,
+    moved to the respawn) and slip_fusion left the other finger out as on an earlier grasp. It now publishes
+    the previous process's reference as that process took it: its stamp, its markers."""
+    from fv_algos.perception import Perception
+    from msgs import Image
+    rest = _skin_at_rest()
+    sheared = np.roll(rest, 2, axis=1)
+    with _tracker({"reference_frame": 0, "resume_wait_s": 0.0}) as (node, references, markers):
+        node.launch_ns = 0
+        taken = _reference_of(Perception().reset(rest).reference_px, rest, node.started_ns - 1)
+        node.on_reference(taken)
+        node.on_image(Image(stamp_ns=5, encoding="mono8", data=sheared))
+        assert node.counters["resumed"] == 1 and len(references) == 1 and len(markers) == 1
+        again = references[0]
+        assert again.stamp_ns == taken.stamp_ns == 1 and (again.width, again.height) == (taken.width, taken.height)
+        for name in ("ref_px", "cur_px", "valid", "frames_since_seen"):
+            np.testing.assert_array_equal(getattr(again, name), getattr(taken, name))
+        assert markers[0].stamp_ns == 5 and np.abs(markers[0].cur_px - markers[0].ref_px)[markers[0].valid].max() > 1
 
 
 @pytest.mark.parametrize("ref, says", [

@@ -9,7 +9,9 @@ on a loaded machine) gives no state for it, which the replay, playing every reco
 later P(slip) of that grasp differs; such a live run is recorded again. A live run that dropped frames on
 purpose (its trackers stalled while the camera sends a few: they take only the latest) is replayed as its pipeline
 took it (`as_recorded_by` each camera's /markers: only the frames its tracker answered), one camera and two
-fingers: every live state comes back; replayed from every frame, they differ. The launches run without standby
+fingers: every live state comes back; replayed from every frame, they differ. A live run whose tracker is
+killed mid-grasp and respawned goes on with the grasp, as does the replay of its recording begun mid-grasp.
+The launches run without standby
 spares: their imports at start, beside the nodes' own, made a live run on a loaded 2-core machine drop a
 frame."""
 from __future__ import annotations
@@ -266,3 +268,53 @@ def test_a_two_finger_session_whose_trackers_dropped_frames_replays_as_live(bus,
     as_live = _replay_as_recorded(spawn, tmp_path / "session", "replay_pair.yaml", recorded, as_recorded_by=True)
     for topic in recorded:
         _assert_replayed_as_live(recorded[topic], as_live[topic], topic)
+
+
+def test_a_tracker_respawned_mid_grasp_goes_on_with_the_grasp_live_and_replayed(bus, spawn, isd_data: Path,
+                                                                                tmp_path: Path) -> None:
+    """The tracker killed (kill -9) mid-grasp and respawned by the launch resumes its reference and publishes it
+    as it was taken, stamped at its frame: /slip goes on with the grasp under way (its grasp start,
+    window_stamps_ns[0], stays at the reference frame). Stamped at the respawned tracker's first frame, it
+    started a new grasp there. A recording begun after the reference, replayed (replay.yaml), tracks against
+    the recorded reference and judges the grasp from where it started live (it started at the bag's first
+    frame)."""
+    video = list(read_frames(isd_data / GRASP / "camera_0.avi"))
+    bag = tmp_path / "session"
+    launch = spawn("launch", str(_pipeline_launch(tmp_path, [""])))
+    pids = {node: wait_status(node, timeout_s=90.0).pid for node in ("tracker", "interpolator", "slip_detector")}
+    camera = PublisherSocket("camera")
+    assert camera.wait_connected(5.0)
+    wait_for(lambda: camera.has_subscribers("/camera/image"), 10.0, "the tracker subscribed")
+    stamps: list[int] = []
+    live: list[SlipState] = []
+
+    def send(frames: range) -> None:
+        for k in frames:
+            stamps.append(time.time_ns())
+            camera.publish("/camera/image", Image(stamp_ns=stamps[-1], frame_id="camera", encoding="bgr8",
+                                                  data=video[k], frame_index=k))
+            time.sleep(CAMERA_PERIOD_S)
+
+    with TopicReader(["/slip"]) as reader:
+        send(range(8))
+        recorder = spawn("bag", "record", "-a", "-x", "^/status$", "--compression", "none", "-o", str(bag))
+        wait_status("bag_record", timeout_s=20.0)
+        send(range(8, 24))
+        os.kill(pids["tracker"], signal.SIGKILL)
+        wait_status("tracker", lambda st: st.pid != pids["tracker"], 30.0)  # respawned by the launch
+        send(range(24, len(video)))
+        while (item := reader.recv(1.0)) is not None:  # the pipeline's last answers
+            live.append(item.msg)
+    camera.close()
+    assert stop_process(recorder, timeout_s=30.0) == 0
+    assert wait_status("tracker", lambda st: st.counters.get("resumed") == 1).counters["references"] == 0
+    stop_process(launch, timeout_s=30.0)
+    recorded = [m for _, m, _ in read_bag(bag, topics=["/slip"])]
+    replayed = _replay(spawn, bag, [str(REPO / "launch" / "replay.yaml"), "fast:=true", "sync_topic:=/slip"],
+                       {"/slip": {recorded[-1].stamp_ns}})["/slip"]
+    starts = {name: sorted({int(s.window_stamps_ns[0]) for s in states})
+              for name, states in (("live", live), ("replayed", replayed))}
+    print(f"grasp starts on /slip around the tracker's kill ({len(live)} live states, {len(replayed)} replayed): "
+          f"live at frames {[stamps.index(s) for s in starts['live']]}, replayed at frames "
+          f"{[stamps.index(s) for s in starts['replayed']]}")
+    assert starts == {"live": [stamps[REFERENCE_FRAME]], "replayed": [stamps[REFERENCE_FRAME]]}
