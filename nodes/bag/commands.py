@@ -73,6 +73,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "recorded TOPIC answered (the tracker's /markers; a live pipeline under load drops frames, "
                         "and a replay of every frame judges more), synced on TOPIC unless --sync-topic is given; "
                         "repeated, paired in order with --sync-on")
+    p.add_argument("--reference-frame", type=int, default=1, metavar="N",
+                   help="with --as-recorded-by: the replay tracker's reference_frame; of a live camera's frames "
+                        "before the first answered one, the N last are played, so that it takes its reference "
+                        "at the frame the live tracker took it (default 1, the tracker's)")
     p.add_argument("--name", default="bag_play", help="node name")
     p.set_defaults(func=_play)
 
@@ -139,7 +143,7 @@ def _play(args: argparse.Namespace) -> int:
               "start_paused": args.start_paused, "wait_for_subscribers": not args.no_wait_for_subscribers,
               "subscriber_timeout_s": args.wait_timeout, "sync_topic": args.sync_topic, "sync_on": args.sync_on,
               "sync_window": args.sync_window, "sync_timeout_s": args.sync_timeout,
-              "as_recorded_by": args.as_recorded_by, "keyboard": True}
+              "as_recorded_by": args.as_recorded_by, "reference_frame": args.reference_frame, "keyboard": True}
     node = BagPlay(args.name, params, remap=parse_remaps(args.remap))  # its params' check opens the bag (once):
     require_forwarder()  # a bad one is reported before the bus is checked
     node.spin()

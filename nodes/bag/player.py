@@ -23,7 +23,9 @@ a live run under load drops frames (at the tracker), and a replay of every recor
 live run did not: every later P(slip) of the grasp differs. Given the recorded topic on which a stage
 answered each frame it took (the tracker's `/markers`, which `fv bag record -a` records), only the frames
 the live pipeline took are played (`live_frames`; the others counted in `frames_left_out`), with flow
-control on that topic unless `sync_topic` names another, so that the replay drops none itself.
+control on that topic unless `sync_topic` names another, so that the replay drops none itself. Of a live
+camera's frames before the first answer (the live tracker's reference frame), the `reference_frame` last are
+played: the replay's tracker, which counts the frames it sees, takes its reference at the same frame.
 
 A recording made before a recorder got only running publishers' latched messages as it began
 (`nodes.latched_cache`; its metadata lacks the entry that says so) may hold an earlier session's,
@@ -86,6 +88,8 @@ class BagPlayParams:
     recorded topic on which a stage answered them live (e.g. /markers; a list paired with `sync_on` as
     `sync_topic` is; without `sync_on`, each with the one Image topic played in its namespace,
     `camera_answered_on`), also the sync topic when `sync_topic` is "". "" = every frame.
+    reference_frame: as_recorded_by, the replay tracker's `reference_frame`: how many of a live camera's
+    frames before the first answered one are played (the last ones), so that it takes its reference there.
     keyboard: space/enter on the terminal toggles pause (when stdin is a terminal).
     """
 
@@ -107,6 +111,7 @@ class BagPlayParams:
     sync_window: int = 1
     sync_timeout_s: float = 2.0
     as_recorded_by: str | list[str] = ""
+    reference_frame: int = 1
     keyboard: bool = False
 
     def __post_init__(self) -> None:
@@ -118,6 +123,8 @@ class BagPlayParams:
             raise ValueError("start_offset_s, duration_s, subscriber_timeout_s and start_timeout_s must be >= 0")
         if self.sync_window < 1 or self.sync_timeout_s <= 0:
             raise ValueError("sync_window must be >= 1 and sync_timeout_s > 0")
+        if self.reference_frame < 0:
+            raise ValueError(f"reference_frame {self.reference_frame} must be >= 0")
         waiting = topic_list(self.sync_on)
         for name, noun in (("sync_topic", "sync topic"), ("as_recorded_by", "as_recorded_by topic")):
             answers = topic_list(getattr(self, name))
@@ -180,41 +187,36 @@ def gone_at_start(bag: BagReader, topics: list[str]) -> set[tuple[str, str, int,
     return gone
 
 
-@dataclass(frozen=True)
-class LiveFrames:
-    """Which frames of a recorded camera topic a live pipeline took (`live_frames`): those stamped as in
-    `taken` (ns), and the frames of a live camera (no `frame_index`) stamped before `before_ns`."""
-
-    taken: frozenset[int]
-    before_ns: int
-
-    def took(self, header: dict) -> bool:
-        """Whether the frame of message header `header` (an Image's: its stamp_ns, and its frame_index among its
-        fields where recorded) was taken."""
-        stamp = header["stamp_ns"]
-        live = header["fields"].get("frame_index", -1) < 0  # a recording made before Images had one: a live camera's
-        return stamp in self.taken or live and stamp < self.before_ns
-
-
-def live_frames(bag: BagReader, images: str, answers: str) -> LiveFrames:
-    """The frames of `images` that the live pipeline recorded in `bag` took, from its answers on `answers` (a
-    stage's output stamped as each frame it answered: the tracker's /markers) and the frames the stage left
-    unanswered on purpose (each camera's frames before the tracker's reference...). Where the bag holds the
-    stage's `unanswered` notices (`unanswered_topic`; `fv bag record -a` records them only when named), those
-    of `images` say which. Else a video's frames, which carry their number (`frame_index`), are taken where
-    answered: a tracker's frames before a pass's reference change nothing when left out. A live camera's are
-    numbered by the frames the tracker has seen, which takes its reference at number `reference_frame`: its
-    frames before the first answer are all taken (those the live tracker did not see cannot be told).
-    BagError when `answers` holds no message."""
+def live_frames(bag: BagReader, images: str, answers: str, reference_frame: int) -> frozenset[int]:
+    """The stamps (ns) of the frames of `images` to play as the live pipeline recorded in `bag` took them, from
+    its answers on `answers` (a stage's output stamped as each frame it answered: the tracker's /markers) and
+    the frames the stage left unanswered on purpose (each camera's frames before the tracker's reference...).
+    Where the bag holds the stage's `unanswered` notices (`unanswered_topic`; `fv bag record -a` records them
+    only when named), those of `images` say which. Else a video's frames, which carry their number
+    (`frame_index`), are taken where answered: a tracker's frames before a pass's reference change nothing
+    when left out. A live camera's are numbered by the frames the tracker has seen, and its first answer is
+    the live tracker's reference frame: of the frames before it, the `reference_frame` last are taken (all,
+    where the bag holds fewer), so that the replay's tracker, of that `reference_frame`, takes its reference
+    there too. The live tracker may have missed some of them (it keeps only its latest frame): with all of
+    them played, the replay's took its reference at an earlier frame, and every state differed. BagError when
+    `answers` holds no message."""
     answered = frozenset(split_payload(m.payload, m.topic)[0]["stamp_ns"] for m in bag.messages([answers]))
     if not answered:
         raise BagError(bag.path, f"holds no message on {answers!r} (as_recorded_by): no frame of {images!r} "
                                  "was answered live")
     notices = unanswered_topic(answers)
-    if notices not in bag.topics():
-        return LiveFrames(answered, min(answered))
-    noticed = (m.decode() for m in bag.messages([notices]))
-    return LiveFrames(answered | {n.stamp_ns for n in noticed if n.topic == images}, 0)
+    if notices in bag.topics():
+        noticed = (m.decode() for m in bag.messages([notices]))
+        return answered | {n.stamp_ns for n in noticed if n.topic == images}
+    first = min(answered)
+    before: collections.deque[int] = collections.deque(maxlen=reference_frame)  # a live camera's, the last ones
+    for m in bag.messages([images]):
+        header = split_payload(m.payload, m.topic)[0]
+        if header["stamp_ns"] >= first:
+            break
+        if header["fields"].get("frame_index", -1) < 0:  # a recording made before Images had one: a live camera's
+            before.append(header["stamp_ns"])
+    return answered | frozenset(before)
 
 
 def camera_answered_on(answers: str, images: list[str]) -> str:
@@ -268,7 +270,7 @@ class BagPlay(Node):
             self.sync_on = [camera_answered_on(answers, images) for answers in self.recorded_by]
         else:
             self.sync_on = images[:1]
-        self.live = {topic: live_frames(self.bag, topic, answers)
+        self.live = {topic: live_frames(self.bag, topic, answers, p.reference_frame)
                      for topic, answers in zip(self.sync_on, self.recorded_by)}
         self.gone_at_start = gone_at_start(self.bag, self.played_topics)
         if self.gone_at_start:
@@ -401,7 +403,7 @@ class BagPlay(Node):
             header, frames = split_payload(m.payload, m.topic)
         except msgs.MessageError as exc:
             raise BagError(self.params.path, f"message at log time {m.log_time_ns} ns: {exc}") from None
-        if m.topic in self.live and not self.live[m.topic].took(header):
+        if m.topic in self.live and header["stamp_ns"] not in self.live[m.topic]:
             self.counters["frames_left_out"] += 1
             return
         self._pub.publish_raw(self.out_topic[m.topic], m.node, m.latched, frames)

@@ -355,20 +355,28 @@ def _live_session(folder: Path, frame_index: Callable[[int], int], notices: bool
     write_bag(folder, sorted(messages, key=lambda m: m[3]))
 
 
-@pytest.mark.parametrize("frame_index, notices, played", [
-    (lambda i: i, False, ANSWERED),  # a video's frames: those answered (each pass numbered, its reference by number)
-    (lambda i: -1, False, [0, 1, *ANSWERED]),  # a live camera's: also all before the first answer (counted)
-    (lambda i: -1, True, [0, *ANSWERED]),  # the notices recorded: also the frames the tracker said it left
-], ids=["video", "live camera", "notices recorded"])
+@pytest.mark.parametrize("frame_index, notices, reference_frame, played", [
+    (lambda i: i, False, 1, ANSWERED),  # a video's frames: those answered (each pass numbered, its reference by number)
+    (lambda i: -1, False, 1, [1, *ANSWERED]),  # a live camera's: also the reference_frame last before the first answer
+    (lambda i: -1, False, 0, ANSWERED),
+    (lambda i: -1, False, 3, [0, 1, *ANSWERED]),  # all there are
+    (lambda i: -1, True, 1, [0, *ANSWERED]),  # the notices recorded: also the frames the tracker said it left
+], ids=["video", "live camera", "live camera, reference_frame 0", "live camera, reference_frame 3",
+        "notices recorded"])
 def test_as_recorded_by_plays_the_frames_the_live_pipeline_took(bus: BusAddress, tmp_path: Path, frame_index,
-                                                                notices: bool, played: list[int]) -> None:
+                                                                notices: bool, reference_frame: int,
+                                                                played: list[int]) -> None:
     """`as_recorded_by` /markers: of a live run that dropped frames, only the frames the live pipeline took are
-    played, each once the pipeline has answered the one before on /markers (none lost)."""
+    played, each once the pipeline has answered the one before on /markers (none lost). Of a live camera's
+    frames before the first answer (the live reference frame), every one was played: the live tracker had
+    missed frame 1 (frame 2, the 2nd it saw, was its reference: reference_frame 1), and the replay's took its
+    reference at frame 1. Now the reference_frame last are."""
     _live_session(tmp_path / "b", frame_index, notices)
     seen: list[int] = []
     done = threading.Event()
     consumer = _answer_slowly(bus, "/camera/image", "/markers", 0.0, seen, done)
-    node = BagPlay("play", {"path": str(tmp_path / "b"), "fast": True, "as_recorded_by": "/markers"}, address=bus)
+    node = BagPlay("play", {"path": str(tmp_path / "b"), "fast": True, "as_recorded_by": "/markers",
+                            "reference_frame": reference_frame}, address=bus)
     in_thread(node).join(20)
     done.set()
     consumer.join(5)
@@ -385,6 +393,8 @@ def test_as_recorded_by_refuses_a_bag_without_the_live_answers(bus: BusAddress, 
     with pytest.raises(ValueError, match="one recorded topic per as_recorded_by topic"):
         BagPlay("p", {"path": "x", "as_recorded_by": ["/left/markers", "/right/markers"],
                       "sync_on": "/left/camera/image"})
+    with pytest.raises(ValueError, match="reference_frame -1 must be >= 0"):
+        BagPlay("p", {"path": "x", "as_recorded_by": "/markers", "reference_frame": -1})
 
 
 def test_as_recorded_by_chooses_the_camera_of_its_namespace(bus: BusAddress, tmp_path: Path) -> None:
@@ -405,7 +415,7 @@ def test_as_recorded_by_chooses_the_camera_of_its_namespace(bus: BusAddress, tmp
     try:
         assert node.sync_on == ["/right/camera/image"]
         assert node.played_topics == ["/left/camera/image", "/right/camera/image", "/left/markers"]
-        assert node.live["/right/camera/image"].taken == {T0_NS + i * 10_000_000 + 3_000_000 for i in (1, 3, 5)}
+        assert node.live["/right/camera/image"] == {T0_NS + i * 10_000_000 + 3_000_000 for i in (1, 3, 5)}
     finally:
         node.close()
     node = BagPlay("play", {"path": str(tmp_path / "pair"), "as_recorded_by": "/right/markers",

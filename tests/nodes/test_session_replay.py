@@ -40,15 +40,22 @@ LIVE_RUNS = 3
 REFERENCE_FRAME = 1  # the launch files' reference_frame: each pass's frames before it are left unanswered
 
 
-def _live_drops(bag: Path, streams: dict[str, str]) -> dict[str, list[int]]:
+def _live_drops(bag: Path, streams: dict[str, str], live_camera: bool = False) -> dict[str, list[int]]:
     """The frames the live run recorded in ``bag`` dropped, as {camera topic: frame_index of each}, for each
     camera topic of ``streams`` (camera topic -> the slip topic that answers it): frames from
-    REFERENCE_FRAME on in their pass, stamped up to the last recorded state, without a state."""
+    REFERENCE_FRAME on in their pass, stamped up to the last recorded state, without a state. With
+    ``live_camera`` (frames without frame_index, numbered as the tracker sees them), as many numbers from 0 as
+    the tracker missed of the frames before the first state (its reference frame): all but the
+    REFERENCE_FRAME it counted before its reference (which ones it saw cannot be told)."""
     drops: dict[str, list[int]] = {}
     for images, slips in streams.items():
         answered = {m.stamp_ns for _, m, _ in read_bag(bag, topics=[slips])}
-        dropped = [m.frame_index for _, m, _ in read_bag(bag, topics=[images])
-                   if m.frame_index >= REFERENCE_FRAME and m.stamp_ns <= max(answered) and m.stamp_ns not in answered]
+        frames = [m for _, m, _ in read_bag(bag, topics=[images])]
+        if live_camera:
+            dropped = list(range(sum(m.stamp_ns < min(answered) for m in frames) - REFERENCE_FRAME))
+        else:
+            dropped = [m.frame_index for m in frames if m.frame_index >= REFERENCE_FRAME
+                       and m.stamp_ns <= max(answered) and m.stamp_ns not in answered]
         if dropped:
             drops[images] = dropped
     return drops
@@ -104,13 +111,16 @@ def _replay(spawn, bag: Path, launch_args: list[str], awaited: dict[str, set[int
     return got
 
 
-def _assert_replayed_as_live(recorded: list[SlipState], replayed: list[SlipState], topic: str) -> None:
-    """Every live state of ``topic`` replayed at the same stamp, with the same grasp start and P(slip)."""
+def _assert_replayed_as_live(recorded: list[SlipState], replayed: list[SlipState], topic: str,
+                             grasps: int = 3) -> None:
+    """Every live state of ``topic`` replayed at the same stamp, with the same grasp start and P(slip); the live
+    states of ``grasps`` grasps (the first, the reset's and the loop's; a live camera's frames, without
+    frame_index, start none at the loop)."""
     live = {s.stamp_ns: s for s in recorded}
     again = {s.stamp_ns: s for s in replayed}
     assert sorted(again) == sorted(live), f"{topic}: {len(live)} live states, {len(again)} replayed"
-    grasps = len({int(s.window_stamps_ns[0]) for s in recorded})
-    assert grasps == 3, f"{topic}: {grasps} grasps, not 3 (the first, the reset's and the loop's)"
+    starts = len({int(s.window_stamps_ns[0]) for s in recorded})
+    assert starts == grasps, f"{topic}: {starts} grasps, not {grasps}"
     for stamp, state in live.items():
         assert int(again[stamp].window_stamps_ns[0]) == int(state.window_stamps_ns[0]), topic
         assert again[stamp].probability == pytest.approx(state.probability, abs=1e-4), topic
@@ -177,11 +187,14 @@ def _launch_arg(name: str, topics: list[str]) -> str:
     return f"{name}:={topics[0]}" if len(topics) == 1 else f"{name}:=[{','.join(topics)}]"
 
 
-def _record_stalls(spawn, bag: Path, videos: dict[str, Path], nodes: list[str], answers: list[str]) -> None:
+def _record_stalls(spawn, bag: Path, videos: dict[str, Path], nodes: list[str], answers: list[str],
+                   live_camera: bool = False) -> None:
     """Record (`fv bag record -a`) a live session of the running pipeline nodes ``nodes`` with a camera per
     topic of ``videos`` (image topic -> video) played as PASS_FRAMES at 25 fps, the trackers among ``nodes``
     stalled while it sends the frames of STALLS, a /tracker/reset after frame RESET_AFTER, until the
-    pipeline's ``answers`` fall silent."""
+    pipeline's ``answers`` fall silent. With ``live_camera``, the frames carry no frame_index (a live camera's),
+    and the trackers are also stalled while it sends the first 3 (they miss 1 or 2 of them)."""
+    stalls = [range(3), *STALLS] if live_camera else STALLS
     recorder = spawn("bag", "record", "-a", "-x", "^/status$", "--compression", "none", "-o", str(bag))
     pids = {node: wait_status(node, timeout_s=90.0).pid for node in ["bag_record", *nodes]}
     trackers = [pid for node, pid in pids.items() if node.endswith("tracker")]
@@ -193,13 +206,14 @@ def _record_stalls(spawn, bag: Path, videos: dict[str, Path], nodes: list[str], 
     with TopicReader(answers) as reader:
         for k, index in enumerate(PASS_FRAMES):
             time.sleep(max(0.0, start + k * CAMERA_PERIOD_S - time.monotonic()))
-            if any(k == stall[0] for stall in STALLS):
+            if any(k == stall[0] for stall in stalls):
                 for pid in trackers:
                     os.kill(pid, signal.SIGSTOP)
             for topic, video in frames.items():
                 camera.publish(topic, Image(stamp_ns=t0_ns + int(k * CAMERA_PERIOD_S * 1e9), frame_id="camera",
-                                            encoding="bgr8", data=video[index], frame_index=index))
-            if any(k == stall[-1] for stall in STALLS):
+                                            encoding="bgr8", data=video[index],
+                                            frame_index=-1 if live_camera else index))
+            if any(k == stall[-1] for stall in stalls):
                 time.sleep(CAMERA_PERIOD_S / 2)  # the frame on its way to the trackers
                 for pid in trackers:
                     os.kill(pid, signal.SIGCONT)
@@ -213,10 +227,12 @@ def _record_stalls(spawn, bag: Path, videos: dict[str, Path], nodes: list[str], 
     assert stop_process(recorder, timeout_s=30.0) == 0
 
 
-def _session_that_dropped_frames(bus: Bus, spawn, isd_data: Path, folder: Path, namespaces: list[str]) -> dict:
-    """The states of a live session recorded in ``folder``/session (`_record_stalls`) of the pipeline under each
-    of ``namespaces`` (`_pipeline_launch`), the cameras those of peanuts 8, as {slip topic: its states}; again,
-    on a new forwarder, while a camera's tracker dropped no frame, LIVE_RUNS runs at most."""
+def _session_that_dropped_frames(bus: Bus, spawn, isd_data: Path, folder: Path, namespaces: list[str],
+                                 live_camera: bool = False) -> dict:
+    """The states of a live session recorded in ``folder``/session (`_record_stalls`, ``live_camera`` or not) of
+    the pipeline under each of ``namespaces`` (`_pipeline_launch`), the cameras those of peanuts 8, as {slip
+    topic: its states}; again, on a new forwarder, while a camera's tracker dropped no frame (`_live_drops`),
+    LIVE_RUNS runs at most."""
     prefixes = [f"/{ns}" if ns else "" for ns in namespaces]
     videos = {f"{p}/camera/image": isd_data / GRASP / f"camera_{2 * k}.avi" for k, p in enumerate(prefixes)}
     slips = {f"{p}/camera/image": f"{p}/slip" for p in prefixes}
@@ -227,9 +243,9 @@ def _session_that_dropped_frames(bus: Bus, spawn, isd_data: Path, folder: Path, 
             bus.stop_forwarder()  # no latched message of the run before is left on the bus
             bus.start_forwarder()
         launch = spawn("launch", str(_pipeline_launch(folder, namespaces)))
-        _record_stalls(spawn, folder / "session", videos, nodes, list(slips.values()))
+        _record_stalls(spawn, folder / "session", videos, nodes, list(slips.values()), live_camera)
         stop_process(launch, timeout_s=30.0)
-        drops = _live_drops(folder / "session", slips)
+        drops = _live_drops(folder / "session", slips, live_camera)
         if set(drops) == set(videos):
             return {t: [m for _, m, _ in read_bag(folder / "session", topics=[t])] for t in slips.values()}
     raise AssertionError(f"in each of {LIVE_RUNS} live runs a tracker dropped no frame; the last, {drops}")
@@ -259,6 +275,18 @@ def test_a_session_whose_tracker_dropped_frames_replays_as_live_as_recorded_by_i
     again = {s.stamp_ns: s.probability for s in every_frame["/slip"]}
     same = [s for s in recorded["/slip"] if abs(again.get(s.stamp_ns, -1.0) - s.probability) <= 1e-4]
     assert len(every_frame["/slip"]) > len(recorded["/slip"]) > len(same), "the replay of every frame"
+
+
+def test_a_live_camera_session_whose_tracker_missed_a_frame_before_its_reference_replays_as_live(
+        bus, spawn, isd_data: Path, tmp_path: Path) -> None:
+    """A live camera's frames (no frame_index), the tracker stalled while the first 3 came: it missed 1 or 2 of
+    them, and took its reference at the 2nd frame it saw (reference_frame 1). `as_recorded_by` played every
+    frame before the first answer: the replay's tracker took its reference at the bag's frame 1, and the
+    states differed (64 replayed for 63 live). Now it plays the reference_frame frames before the first
+    answer, and every live state comes back."""
+    recorded = _session_that_dropped_frames(bus, spawn, isd_data, tmp_path, [""], live_camera=True)
+    as_live = _replay_as_recorded(spawn, tmp_path / "session", "replay.yaml", recorded, as_recorded_by=True)
+    _assert_replayed_as_live(recorded["/slip"], as_live["/slip"], "/slip", grasps=2)
 
 
 def test_a_two_finger_session_whose_trackers_dropped_frames_replays_as_live(bus, spawn, isd_data: Path,
