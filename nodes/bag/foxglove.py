@@ -12,6 +12,12 @@ records and attachments (the launch file) are copied.
   smaller, but its 8x8 blocks and ringing around the dots are not what was recorded; "raw"
   ``foxglove.RawImage`` {timestamp, frame_id, width, height, encoding (mono8 / bgr8 / rgb8, as
   recorded), step (bytes per row), data (rows of pixels)}.
+- `CameraInfo` topics in Foxglove's ``foxglove.CameraCalibration`` {timestamp, frame_id, width, height,
+  distortion_model, D, K, R, P}, which its Image and 3D panels project and undistort with:
+  `DISTORTION_MODELS` names our models as Foxglove does ("fisheye", OpenCV's fisheye model, is
+  "kannala_brandt" with D = k1..k4; "pinhole", frames the camera node undistorted, is "plumb_bob" with D
+  = (k1, k2, p1, p2, k3) all 0); K the recorded 3x3 matrix, R the identity, P = [K | 0], each a flat
+  row-major list. rms_px, seq, pub_time and node have no place in it (the channel keeps the node).
 - every other type with schema ``fv.<Type>`` made from its message definition: {timestamp (stamp_ns),
   pub_time (pub_ns), seq, frame_id, node, then each field}. Times are {sec, nsec}, as in Foxglove's
   schemas (an int64 of ns is past the 2**53 up to which a JSON number is exact in Foxglove). A list or
@@ -36,7 +42,7 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 import msgs
-from msgs import Image, Message
+from msgs import CameraInfo, Image, Message
 from msgs.camera import ENCODING_CHANNELS
 from msgs.wire import scalar_defaults
 from nodes.bag.codec import META_LATCHED, META_NODE
@@ -80,6 +86,29 @@ RAW_IMAGE_SCHEMA = _object("foxglove.RawImage", "A raw image", {
     "step": {"type": "integer", "minimum": 0, "description": "Byte length of a single row"},
     "data": {**BASE64, "description": "Raw image data"}})
 
+
+
+def _numbers(description: str, count: int | None = None) -> dict[str, Any]:
+    """Schema of a JSON array of numbers, of exactly `count` items when given."""
+    sized = {} if count is None else {"minItems": count, "maxItems": count}
+    return {"type": "array", "items": {"type": "number"}, **sized, "description": description}
+
+
+CAMERA_CALIBRATION_SCHEMA = _object("foxglove.CameraCalibration", "Camera calibration parameters", {
+    "timestamp": {**TIME_SCHEMA, "description": "Timestamp of calibration data"},
+    "frame_id": {"type": "string", "description": "Frame of reference for the camera"},
+    "width": {"type": "integer", "minimum": 0, "description": "Image width"},
+    "height": {"type": "integer", "minimum": 0, "description": "Image height"},
+    "distortion_model": {"type": "string", "description": "Name of distortion model"},
+    "D": _numbers("Distortion parameters"),
+    "K": _numbers("Intrinsic camera matrix (3x3 row-major matrix)", 9),
+    "R": _numbers("Rectification matrix (3x3 row-major matrix)", 9),
+    "P": _numbers("Projection/camera matrix (3x4 row-major matrix)", 12)})
+# CameraInfo.model: Foxglove's distortion_model and how many coefficients it takes. Foxglove's schema documents
+# plumb_bob (k1, k2, p1, p2, k3), rational_polynomial and kannala_brandt (k1..k4, "matches the OpenCV fisheye
+# model"); ROS calls the latter "equidistant", a name Foxglove's schema does not list.
+DISTORTION_MODELS: dict[str, tuple[str, int]] = {"fisheye": ("kannala_brandt", 4), "pinhole": ("plumb_bob", 5)}
+
 SCALAR_TYPES: tuple[tuple[type, str], ...] = (  # bool before int: a bool is an int in Python
     (bool, "boolean"), (int, "integer"), (float, "number"), (str, "string"), (list, "string"), (dict, "string"))
 
@@ -116,7 +145,7 @@ def _array_schema(type_name: str, name: str, spec: msgs.ArraySpec) -> dict[str, 
 
 
 def message_schema(type_name: str) -> dict[str, Any]:
-    """The JSON Schema of a registered message type other than Image (see the module's docstring)."""
+    """The ``fv.<Type>`` JSON Schema of a registered message type (see the module's docstring)."""
     cls = msgs.message_type(type_name)
     properties: dict[str, dict[str, Any]] = {
         "timestamp": {**TIME_SCHEMA, "description": "stamp_ns: capture time of the data"},
@@ -141,12 +170,43 @@ def _array(values: np.ndarray) -> list | dict[str, list]:
 
 
 def message_json(msg: Message) -> dict[str, Any]:
-    """The JSON object of a message of any type but Image."""
+    """The ``fv.<Type>`` JSON object of a message of any type but Image."""
     out: dict[str, Any] = {"timestamp": foxglove_time(msg.stamp_ns), "pub_time": foxglove_time(msg.pub_ns),
                            "seq": msg.seq, "frame_id": msg.frame_id, "node": msg.node}
     out.update({name: cell(value) for name, value in msg.scalar_fields().items()})
     out.update({name: _array(getattr(msg, name)) for name in msg.ARRAYS})
     return out
+
+
+def calibration_json(info: CameraInfo) -> dict[str, Any]:
+    """The foxglove.CameraCalibration object of a CameraInfo (see the module's docstring); ValueError for a
+    "pinhole" one whose D is not zeros, which would be a distortion Foxglove's plumb_bob cannot hold as it is."""
+    name, count = DISTORTION_MODELS[info.model]
+    if info.model == "pinhole" and np.any(info.D):
+        raise ValueError(f"CameraInfo of {info.frame_id!r}: model 'pinhole' with D {info.D.tolist()}, not zeros")
+    D = np.zeros(count)
+    D[:len(info.D)] = info.D
+    return {"timestamp": foxglove_time(info.stamp_ns), "frame_id": info.frame_id, "width": info.width,
+            "height": info.height, "distortion_model": name, "D": D.tolist(), "K": info.K.reshape(-1).tolist(),
+            "R": np.eye(3).reshape(-1).tolist(), "P": np.hstack([info.K, np.zeros((3, 1))]).reshape(-1).tolist()}
+
+
+def export_schema(type_name: str, images: str) -> dict[str, Any]:
+    """The JSON Schema a registered message type is exported with; images: one of IMAGE_KINDS."""
+    if type_name == Image.TYPE:
+        return RAW_IMAGE_SCHEMA if images == "raw" else COMPRESSED_IMAGE_SCHEMA
+    if type_name == CameraInfo.TYPE:
+        return CAMERA_CALIBRATION_SCHEMA
+    return message_schema(type_name)
+
+
+def export_json(msg: Message, images: str) -> dict[str, Any]:
+    """The JSON object a message is exported as, which `export_schema` describes."""
+    if isinstance(msg, Image):
+        return image_json(msg, images)
+    if isinstance(msg, CameraInfo):
+        return calibration_json(msg)
+    return message_json(msg)
 
 
 def image_json(img: Image, kind: str) -> dict[str, Any]:
@@ -177,10 +237,7 @@ class _FoxgloveWriter:
 
     def _schema(self, type_name: str) -> int:
         if type_name not in self._schemas:
-            if type_name == Image.TYPE:
-                schema = RAW_IMAGE_SCHEMA if self.images == "raw" else COMPRESSED_IMAGE_SCHEMA
-            else:
-                schema = message_schema(type_name)
+            schema = export_schema(type_name, self.images)
             self._schemas[type_name] = self.writer.register_schema(
                 schema["title"], SCHEMA_ENCODING, json.dumps(schema).encode())
         return self._schemas[type_name]
@@ -202,7 +259,7 @@ class _FoxgloveWriter:
             self.writer.add_attachment(att.log_time_ns, att.log_time_ns, att.name, att.media_type, att.data)
 
     def write(self, rec: BagMessage, msg: Message) -> None:
-        obj = image_json(msg, self.images) if isinstance(msg, Image) else message_json(msg)
+        obj = export_json(msg, self.images)
         data = json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
         self.writer.add_message(self._channel(rec, msg.TYPE), rec.log_time_ns, data, rec.publish_time_ns,
                                 rec.sequence)

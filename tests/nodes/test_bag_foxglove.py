@@ -15,7 +15,7 @@ import pytest
 from mcap.reader import make_reader
 
 import msgs
-from msgs import ContactSummary, DisplacementField, Image, MarkerArray, NodeStatus, SlipState
+from msgs import CameraInfo, ContactSummary, DisplacementField, Image, MarkerArray, NodeStatus, SlipState
 from nodes.bag import foxglove
 from nodes.bag.export import export
 from nodes.bag.reader import BagError, BagReader
@@ -30,8 +30,8 @@ JSON_TYPES: dict[str, Any] = {
 
 
 def conforms(value: Any, schema: dict[str, Any], path: str = "$") -> list[str]:
-    """Where `value` breaks `schema` (type, one or a list; properties; required; items; minimum; maximum;
-    contentEncoding base64): [] when it does not."""
+    """Where `value` breaks `schema` (type, one or a list; properties; required; items; minItems; maxItems;
+    minimum; maximum; contentEncoding base64): [] when it does not."""
     types = schema.get("type", [])
     types = [types] if isinstance(types, str) else types
     if types and not any(JSON_TYPES[t](value) for t in types):
@@ -42,8 +42,10 @@ def conforms(value: Any, schema: dict[str, Any], path: str = "$") -> list[str]:
         for name, sub in schema.get("properties", {}).items():
             if name in value:
                 problems += conforms(value[name], sub, f"{path}.{name}")
-    if isinstance(value, list) and "items" in schema:
-        for i, item in enumerate(value):
+    if isinstance(value, list):
+        if not schema.get("minItems", 0) <= len(value) <= schema.get("maxItems", math.inf):
+            problems.append(f"{path}: {len(value)} items, not [{schema.get('minItems')}, {schema.get('maxItems')}]")
+        for i, item in enumerate(value if "items" in schema else []):
             problems += conforms(item, schema["items"], f"{path}[{i}]")
     if JSON_TYPES["number"](value):
         if value < schema.get("minimum", -math.inf) or value > schema.get("maximum", math.inf):
@@ -101,6 +103,7 @@ def test_the_checkers_find_what_breaks_a_schema() -> None:
     assert conforms({**good, "window_stamps_ns": [1.5]}, schema) == ["$.window_stamps_ns[0]: 1.5 is not integer"]
     assert conforms({k: v for k, v in good.items() if k != "slip"}, schema) == ["$.slip: missing"]
     assert conforms({"data": "no base64!"}, foxglove.COMPRESSED_IMAGE_SCHEMA)[-1] == "$.data: not base64"
+    assert conforms({"K": [1.0] * 8}, foxglove.CAMERA_CALIBRATION_SCHEMA)[-1] == "$.K: 8 items, not [9, 9]"
     assert foxglove_loads(schema) == []
     nested = {"type": "array", "items": {"type": "array", "items": {"type": "number"}}}
     assert foxglove_loads({**schema, "properties": {"a": nested, "b": {"type": ["number", "null"]},
@@ -167,7 +170,7 @@ def test_every_topic_is_json_that_its_schema_describes_at_the_recorded_times(bag
         reader = make_reader(f)
         assert {m.name: m.metadata for m in reader.iter_metadata()} == {"fv_recording": {"host": "test"}}
         assert [(a.name, a.data) for a in reader.iter_attachments()] == [("launch.yaml", b"nodes: []\n")]
-    assert schemas == {"/camera/info": "fv.CameraInfo", "/camera/image": "foxglove.CompressedImage",
+    assert schemas == {"/camera/info": "foxglove.CameraCalibration", "/camera/image": "foxglove.CompressedImage",
                        "/bgr8/image": "foxglove.CompressedImage", "/rgb8/image": "foxglove.CompressedImage",
                        "/field": "fv.DisplacementField", "/slip": "fv.SlipState", "/markers": "fv.MarkerArray",
                        "/contact": "fv.ContactSummary", "/status": "fv.NodeStatus"}
@@ -227,10 +230,47 @@ def test_every_message_type_has_a_schema_its_messages_meet() -> None:
     for type_name in msgs.known_types():
         if type_name == Image.TYPE:
             continue
-        schema = foxglove.message_schema(type_name)
-        assert schema["title"] == f"fv.{type_name}"
+        schema = foxglove.export_schema(type_name, "png")
+        assert schema["title"] == ("foxglove.CameraCalibration" if type_name == CameraInfo.TYPE else f"fv.{type_name}")
         assert foxglove_loads(schema) == []
-        assert conforms(foxglove.message_json(msgs.message_type(type_name)()), schema) == []
+        assert conforms(foxglove.export_json(msgs.message_type(type_name)(), "png"), schema) == []
+
+
+def test_camera_info_is_a_foxglove_camera_calibration(tmp_path: Path) -> None:
+    """A fisheye and an undistorted camera's CameraInfo come out as Foxglove's CameraCalibration, field by
+    field: distortion model and coefficients as Foxglove names them, K row-major, R the identity, P = [K | 0]."""
+    K = np.array([[310.5, 0.0, 161.25], [0.0, 305.0, 118.75], [0.0, 0.0, 1.0]])
+    fisheye = CameraInfo(stamp_ns=T0_NS + 1_500_000_001, frame_id="left_cam", model="fisheye", width=320,
+                         height=240, K=K, D=np.array([0.05, -0.01, 0.002, -0.0003]), rms_px=0.4)
+    pinhole = CameraInfo(stamp_ns=T0_NS + 7, frame_id="right_cam", model="pinhole", width=160, height=120,
+                         K=K / 2 + np.diag([0, 0, 0.5]))
+    write_bag(tmp_path / "cams", [("/left/camera/info", True, fisheye, T0_NS), ("/right/camera/info", True, pinhole,
+                                                                                   T0_NS + 1)])
+    count, out = export(tmp_path / "cams", None, tmp_path / "cams.mcap")
+    exported = {c.topic: (s, obj) for s, c, _m, obj in read_export(out)}
+    assert count == 2 and set(exported) == {"/left/camera/info", "/right/camera/info"}
+    for topic, info, model, D in (("/left/camera/info", fisheye, "kannala_brandt", [0.05, -0.01, 0.002, -0.0003]),
+                                  ("/right/camera/info", pinhole, "plumb_bob", [0.0] * 5)):
+        schema, obj = exported[topic]
+        described = json.loads(schema.data)
+        assert schema.name == described["title"] == "foxglove.CameraCalibration"
+        assert foxglove_loads(described) == [] and conforms(obj, described) == []
+        assert obj == {"timestamp": {"sec": info.stamp_ns // 10**9, "nsec": info.stamp_ns % 10**9},
+                       "frame_id": info.frame_id, "width": info.width, "height": info.height,
+                       "distortion_model": model, "D": D, "K": [info.K[r, c] for r in range(3) for c in range(3)],
+                       "R": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                       "P": [*info.K[0], 0.0, *info.K[1], 0.0, *info.K[2], 0.0]}, topic
+    assert exported["/left/camera/info"][1]["K"][:3] == [310.5, 0.0, 161.25]  # row-major: fx, 0, cx
+
+
+def test_a_pinhole_camera_info_with_distortion_is_refused(tmp_path: Path) -> None:
+    """plumb_bob's coefficients are not our four: a "pinhole" CameraInfo is undistorted, D zeros, and one
+    that is not stops the export by name rather than lose its distortion."""
+    bent = CameraInfo(stamp_ns=T0_NS, frame_id="cam", model="pinhole", width=32, height=24, D=np.array([0.1, 0, 0, 0]))
+    write_bag(tmp_path / "bent", [("/camera/info", True, bent, T0_NS)])
+    with pytest.raises(ValueError, match=r"CameraInfo of 'cam': model 'pinhole' with D \[0.1, 0.0, 0.0, 0.0\]"):
+        export(tmp_path / "bent", None, tmp_path / "bent.mcap")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bent"]
 
 
 def test_the_command_picks_topics_and_refuses_bad_input(bag: Path, tmp_path: Path,
