@@ -195,14 +195,49 @@ def test_a_full_disk_ends_the_recording_with_the_command_that_keeps_it(bus: BusA
     assert report.messages > 5 and BagReader(tmp_path / "kept.mcap").message_count == report.messages
 
 
-def test_record_play_record_round_trip_with_recorded_timing(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
+# Timing of a played recording, as the player sent it (its publisher's calls, timed in the test's process): the
+# times it was recorded again at add the forwarder's and the recorder's delays, which beside a busy machine (two busy
+# loops, other work, load average 10 on 2 cores) put whole fifths of the recording 50 to 150 ms late, a timed player
+# or not. Load delays a send (the player wakes late), never hastens it: against the player's schedule, a message's
+# send time less its recorded time is a constant plus its lateness, which `lateness_ms` gives against the least late
+# message. The least late message of each fifth of the recording (its floor) goes on time on a timed player, as long
+# as one message a fifth (280 ms) is not held up. A player off the schedule sends early somewhere, which lifts the
+# floors elsewhere: played evenly spaced, the 4 to 25 ms intervals drawn here put a floor 36 ms up, played 2 % fast
+# 22 ms, as fast as possible 1,086 ms (computed from the intervals; measured: 22 and 968 ms). The median bounds a
+# player that keeps to the schedule only now and then (one that looks at its clock every 100 ms: 52 ms). The player
+# as it is, 6 runs beside two busy loops (load average 7 to 9): highest floor 0.01 to 0.15 ms, median 0.06 to 3.5 ms;
+# its times as recorded again were off by a median interval of 1.2 to 7.5 ms, which failed the 2 ms bound this
+# test held on them before.
+FLOOR_STRETCHES = 5
+MAX_FLOOR_MS = 10.0
+MAX_MEDIAN_LATE_MS = 25.0
+
+
+def lateness_ms(recorded_ns: list[int], played_ns: list[int]) -> np.ndarray:
+    """(N,) ms: how late each of N messages was played, against the least late one (0), from its recorded
+    log time and the time it was played at (any clock)."""
+    offset = np.asarray(played_ns, np.int64) - np.asarray(recorded_ns, np.int64)
+    return (offset - offset.min()) / 1e6
+
+
+def test_record_play_record_round_trip_with_recorded_timing(bus: BusAddress, spawn: Spawn, tmp_path: Path,
+                                                            monkeypatch: pytest.MonkeyPatch) -> None:
     rng = np.random.default_rng(5)
     dt_ns = list(rng.integers(4_000_000, 25_000_000, 100))
     original = write_bag(tmp_path / "one", sample_messages(100, rng, (120, 160), dt_ns))
     rec = spawn("bag", "record", "-a", "-x", "^/status$", "-o", str(tmp_path / "two"))
-    play = spawn("bag", "play", str(original.output), "--wait-timeout", "20")
-    assert play.wait(60) == 0, play.stderr.read()
-    assert "frames/s" in play.stderr.read()
+    sent_ns: dict[str, list[int]] = {}
+    publish_raw = PublisherSocket.publish_raw
+
+    def timed(pub: PublisherSocket, topic: str, *args: object) -> None:
+        sent_ns.setdefault(topic, []).append(time.monotonic_ns())
+        publish_raw(pub, topic, *args)
+
+    monkeypatch.setattr(PublisherSocket, "publish_raw", timed)
+    node = BagPlay("play", {"path": str(original.output), "subscriber_timeout_s": 20.0}, address=bus)
+    thread = in_thread(node)
+    thread.join(60)
+    assert not thread.is_alive() and node.error is None
     assert stop(rec) == 0
     one, two = BagReader(original.output), BagReader(tmp_path / "two")
     a, b = list(one.messages()), list(two.messages())
@@ -210,13 +245,12 @@ def test_record_play_record_round_trip_with_recorded_timing(bus: BusAddress, spa
     assert sorted((key(m), m.payload, m.publish_time_ns, m.node, m.latched) for m in a) == \
            sorted((key(m), m.payload, m.publish_time_ns, m.node, m.latched) for m in b)
     assert {t: i.latched for t, i in two.topics().items()}["/camera/info"]
-    # The intervals are drawn from 4 to 25 ms: played evenly spaced they would be off by 5.6 ms (median), played as
-    # fast as possible by 13 ms. A timed player is off by 0.2 to 0.3 ms here; 2 ms leaves room for a loaded machine
-    # (1 ms failed about one run in eight beside other tests).
+    assert {topic: len(times) for topic, times in sent_ns.items()} == {t: i.count for t, i in one.topics().items()}
     for topic in ("/camera/image", "/slip"):
-        rec_t = np.diff([m.log_time_ns for m in a if m.topic == topic]) / 1e6
-        play_t = np.diff([m.log_time_ns for m in b if m.topic == topic]) / 1e6
-        assert np.median(np.abs(play_t - rec_t)) < 2.0, f"{topic}: intervals off by {np.abs(play_t - rec_t)}"
+        late_ms = lateness_ms([m.log_time_ns for m in a if m.topic == topic], sent_ns[topic])
+        floors = [round(float(part.min()), 2) for part in np.array_split(late_ms, FLOOR_STRETCHES)]
+        assert max(floors) < MAX_FLOOR_MS, f"{topic}: the earliest message of each stretch went {floors} ms late"
+        assert np.median(late_ms) < MAX_MEDIAN_LATE_MS, f"{topic}: messages went {late_ms} ms late"
 
 
 def _answer_slowly(bus: BusAddress, image_topic: str, answer_topic: str, work_s: float, seen: list[int],
