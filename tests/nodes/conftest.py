@@ -140,17 +140,27 @@ def run_fv(*args: str, timeout_s: float = 10.0) -> subprocess.CompletedProcess:
                           timeout=timeout_s)
 
 
-def wait_for(predicate: Callable[[], object], timeout_s: float, what: str, period_s: float = 0.01,
-             between: Callable[[], object] | None = None) -> float:
-    """Call `predicate` every `period_s` until it returns a true value; the seconds that took. After each
-    false answer `between` is called, if given (a message published until it is heard). AssertionError
-    "`what`: not within `timeout_s` s" when `timeout_s` has passed without."""
-    t0 = time.monotonic()
+def poll_until(predicate: Callable[[], object], timeout_s: float, period_s: float = 0.01,
+               between: Callable[[], object] | None = None) -> bool:
+    """Call `predicate` every `period_s` until it returns a true value (True) or `timeout_s` has passed without
+    (False: the caller asserts what it expected, with what it saw). After each false answer `between` is called,
+    if given (a message published until it is heard)."""
+    deadline = time.monotonic() + timeout_s
     while not predicate():
-        assert time.monotonic() - t0 < timeout_s, f"{what}: not within {timeout_s} s"
+        if time.monotonic() >= deadline:
+            return False
         if between is not None:
             between()
         time.sleep(period_s)
+    return True
+
+
+def wait_for(predicate: Callable[[], object], timeout_s: float, what: str, period_s: float = 0.01,
+             between: Callable[[], object] | None = None) -> float:
+    """`poll_until` that must succeed: the seconds it took; AssertionError "`what`: not within `timeout_s` s"
+    when `timeout_s` has passed without."""
+    t0 = time.monotonic()
+    assert poll_until(predicate, timeout_s, period_s, between), f"{what}: not within {timeout_s} s"
     return time.monotonic() - t0
 
 

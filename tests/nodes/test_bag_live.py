@@ -42,7 +42,7 @@ from nodes.forwarder import ensure_forwarder
 from nodes.launch_file import load_launch
 from nodes.node import Node
 from nodes.params import ParamError
-from tests.nodes.conftest import hangup_as_from_a_terminal, wait_for, wait_status
+from tests.nodes.conftest import hangup_as_from_a_terminal, poll_until, wait_for, wait_status
 from tests.nodes.test_bag import T0_NS, frames_of, sample_messages, write_bag
 
 REPO = Path(__file__).resolve().parents[2]
@@ -181,10 +181,8 @@ def test_a_full_disk_ends_the_recording_with_the_command_that_keeps_it(bus: BusA
     rng = np.random.default_rng(4)
     try:
         wait_subscribed(pub, ["/camera/image"])
-        deadline = time.monotonic() + 20.0
-        while rec.poll() is None and time.monotonic() < deadline:
-            pub.publish("/camera/image", Image(stamp_ns=time.time_ns(), data=rng.integers(0, 255, (120, 160), np.uint8)))
-            time.sleep(0.01)
+        poll_until(lambda: rec.poll() is not None, 20.0, between=lambda: pub.publish(
+            "/camera/image", Image(stamp_ns=time.time_ns(), data=rng.integers(0, 255, (120, 160), np.uint8))))
     finally:
         pub.close()
     assert rec.wait(10) == 1

@@ -19,7 +19,7 @@ from msgs import CameraInfo, NodeStatus, SlipState
 from nodes.bus import PublisherSocket, SeqTracker, TopicReader, envelope, parse_envelope
 from nodes.endpoints import BUS_ENV, CURVE_ENV, bus_address, make_keys, secure_server
 from nodes.forwarder import Forwarder, ensure_forwarder, ping
-from tests.nodes.conftest import REPO, Bus, run_fv, wait_for
+from tests.nodes.conftest import REPO, Bus, poll_until, run_fv, wait_for
 
 
 def _publish_until(stop: threading.Event, sock: PublisherSocket, items: list[tuple[str, object]],
@@ -146,9 +146,7 @@ def test_a_gone_publisher_s_latched_message_reaches_only_those_who_ask(bus: Bus)
         thread = threading.Thread(target=asking.spin, kwargs={"install_signals": False}, daemon=True)
         thread.start()
         try:
-            deadline = time.monotonic() + 5.0
-            while len(heard) < 2 and time.monotonic() < deadline:
-                time.sleep(0.05)
+            poll_until(lambda: len(heard) >= 2, 5.0, period_s=0.05)
         finally:
             asking.stop()
             thread.join(5.0)
@@ -502,9 +500,7 @@ def test_client_timeout_callback_and_type_check(bus: Bus) -> None:
     with listen("/slip", got.append, SlipState):
         stop = threading.Event()
         thread = _publish_until(stop, pub, [("/slip", SlipState(slip=True))])
-        deadline = time.monotonic() + 3.0
-        while len(got) < 3 and time.monotonic() < deadline:
-            time.sleep(0.02)
+        poll_until(lambda: len(got) >= 3, 3.0, period_s=0.02)
         assert wait_for_message("/slip", SlipState, timeout_s=2.0).slip
         with subscribe("/slip", CameraInfo) as wrong:  # dropped and counted: it raised TypeError
             assert wrong.recv(0.5) is None and wrong.wrong_type >= 1
@@ -602,9 +598,8 @@ def test_client_drops_and_counts_messages_of_another_type(bus: Bus, caplog: pyte
     assert pub.wait_connected(2.0)
     with listen("/mixed/slip", lambda m: got.append(m.probability), SlipState) as listener, \
             subscribe("/mixed/slip", timeout_s=2.0) as states, TopicReader(["/mixed/slip"]) as probe:
-        deadline = time.monotonic() + 3.0
-        while probe.recv(0.05) is None and time.monotonic() < deadline:  # until every subscription is up
-            pub.publish("/mixed/slip", SlipState(probability=0.0))
+        poll_until(lambda: probe.recv(0.05) is not None, 3.0, period_s=0.0,  # until every subscription is up
+                   between=lambda: pub.publish("/mixed/slip", SlipState(probability=0.0)))
         while states.recv(0.2) is not None:
             pass
         got.clear()
@@ -612,9 +607,7 @@ def test_client_drops_and_counts_messages_of_another_type(bus: Bus, caplog: pyte
             pub.publish("/mixed/slip", msg)
         assert [s.probability for s in (next(iter(states)), next(iter(states)))] == [0.1, 0.2]
         assert states.wrong_type == 2
-        deadline = time.monotonic() + 3.0
-        while len(got) < 2 and time.monotonic() < deadline:
-            time.sleep(0.02)
+        poll_until(lambda: len(got) >= 2, 3.0, period_s=0.02)
         assert got == [0.1, 0.2] and listener.wrong_type == 2 and listener._thread.is_alive()
     pub.close()
     drops = [r.getMessage() for r in caplog.records if "dropped a NodeStatus" in r.getMessage()]

@@ -29,7 +29,7 @@ from nodes.exit_codes import CONFIG, OK, TEMPFAIL
 from nodes.forwarder import ping
 from nodes.launch_file import LaunchError, load_launch, parse_arg_overrides
 from nodes.launcher import START_TRIES, Launch
-from tests.nodes.conftest import REPO, Bus, children_of, kill_group, pid_alive, run_fv, wait_status
+from tests.nodes.conftest import REPO, Bus, children_of, kill_group, pid_alive, poll_until, run_fv, wait_status
 from tests.nodes.test_bag import write_bag
 
 GOOD_NODE = "  - kind: talker\n    name: t\n"
@@ -544,13 +544,15 @@ def test_a_node_that_cannot_start_ends_the_launch(bus_env: Bus, spawn, tmp_path:
                                       "    respawn_delay: 0.1\n  - kind: listener\n")
     error = "crop [0.499, 0.499, 0.499, 0.499] leaves nothing of a 160x120 frame"
     statuses = []
+
+    def keep_status() -> None:
+        item = reader.recv(0.1)
+        if item is not None and item.msg.node == "launch_l":
+            statuses.append(item.msg)
+
     with TopicReader(["/status"]) as reader:
         proc = spawn("launch", str(path), stdout=subprocess.PIPE, text=True)
-        deadline = time.monotonic() + 60.0
-        while proc.poll() is None and time.monotonic() < deadline:
-            item = reader.recv(0.1)
-            if item is not None and item.msg.node == "launch_l":
-                statuses.append(item.msg)
+        poll_until(lambda: proc.poll() is not None, 60.0, period_s=0.0, between=keep_status)
     assert proc.wait(5.0) == CONFIG
     out = proc.stdout.read()
     assert out.count("[launch] started camera (camera)") == starts, out
@@ -667,10 +669,7 @@ def _talker_wrapped(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, shell: str)
 
 def _said(out: io.StringIO, text: str, timeout_s: float) -> bool:
     """Poll the launch's output until it holds `text`."""
-    deadline = time.monotonic() + timeout_s
-    while text not in out.getvalue() and time.monotonic() < deadline:
-        time.sleep(0.05)
-    return text in out.getvalue()
+    return poll_until(lambda: text in out.getvalue(), timeout_s, period_s=0.05)
 
 
 def test_a_node_not_ready_is_up_once_what_it_waits_for_comes(bus_env: Bus, tmp_path: Path,
@@ -727,10 +726,8 @@ def test_ctrl_c_stops_everything_within_2s(bus_env: Bus, spawn) -> None:
 
 def _gone(pids: list[int], timeout_s: float) -> list[int]:
     """Poll until none of `pids` is alive; the ones still alive after `timeout_s`."""
-    deadline = time.monotonic() + timeout_s
-    while (alive := [p for p in pids if pid_alive(p)]) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    return alive
+    poll_until(lambda: not any(map(pid_alive, pids)), timeout_s, period_s=0.05)
+    return [p for p in pids if pid_alive(p)]
 
 
 def _kill(pids: list[int]) -> None:

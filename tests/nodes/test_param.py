@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import time
 
 import pytest
 
@@ -19,7 +18,7 @@ from nodes.param_service import param_topics
 from nodes.params import ParamError
 from nodes.registry import NODES, node_class
 from nodes.slip_fusion import SlipFusion
-from tests.nodes.conftest import run_fv, spinning, wait_status
+from tests.nodes.conftest import poll_until, run_fv, spinning, wait_status
 from tests.nodes.test_slip_detector_node import _field, _reference
 
 FUSION = "left_slip_fusion"  # as `fv launch` names the node slip_fusion in the namespace `left`
@@ -124,9 +123,7 @@ def test_a_malformed_request_is_counted_and_the_node_runs_on(fusion) -> None:
     sock = PublisherSocket("test_bad_requests")
     try:
         assert sock.wait_connected(5.0)
-        deadline = time.monotonic() + 10.0
-        while not sock.has_subscribers(set_topic) and time.monotonic() < deadline:
-            time.sleep(0.01)
+        poll_until(lambda: sock.has_subscribers(set_topic), 10.0)
         sock.publish_raw(set_topic, "test_bad_requests", False, [b"\xc1 not msgpack"])
         sock.publish(set_topic, SlipState(stamp_ns=1))  # a message of another type
         with TopicReader([state_topic]) as reader:
@@ -163,9 +160,7 @@ def test_a_new_threshold_decides_the_next_window_of_a_running_slip_detector(bus)
         with spinning(node), TopicReader(["/slip"]) as reader:
             assert pub.wait_connected(5.0)
             wait_status("slip_detector", timeout_s=30.0)  # its model loaded
-            deadline = time.monotonic() + 10.0
-            while not pub.has_subscribers("/field") and time.monotonic() < deadline:
-                time.sleep(0.01)
+            poll_until(lambda: pub.has_subscribers("/field"), 10.0)
             pub.publish("/markers/reference", _reference(900_000_000, 640), latched=True)  # subscribed before /field
             for _ in range(node.classifier.config.window - 1):
                 pub.publish("/field", _field(next(stamps), 0.5))

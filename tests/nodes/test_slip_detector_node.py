@@ -18,7 +18,7 @@ from nodes.bus import PublisherSocket, TopicReader
 from nodes.cli import build_parser
 from nodes.shipped_models import model_path, shipped_models
 from tests.conftest import dots_image, write_raw_mini
-from tests.nodes.conftest import EVERY_FRAME_FPS, REPO, wait_status
+from tests.nodes.conftest import EVERY_FRAME_FPS, REPO, poll_until, wait_status
 
 
 def _field(stamp_ns: int, value: float, grid: int = 30) -> DisplacementField:
@@ -83,11 +83,8 @@ def test_decisions_per_field_with_window_stamps(bus, spawn) -> None:
     pub = PublisherSocket("test_fields")
     assert pub.wait_connected(5.0)
     with TopicReader(["/slip"]) as reader:
-        deadline = time.monotonic() + 10.0
-        while not pub.has_subscribers("/field") and time.monotonic() < deadline:
-            time.sleep(0.05)
-        while not pub.has_subscribers("/markers/reference") and time.monotonic() < deadline:
-            time.sleep(0.05)
+        poll_until(lambda: pub.has_subscribers("/field") and pub.has_subscribers("/markers/reference"), 10.0,
+                   period_s=0.05)
         pub.publish("/markers/reference", _reference(900_000_000, 320), latched=True)
         time.sleep(0.3)
         stamps = [1_000_000_000 + i * 66_000_000 for i in range(14)]

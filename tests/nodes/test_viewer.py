@@ -24,7 +24,7 @@ from msgs import ContactSummary, DisplacementField, Image, MarkerArray, Message,
 from nodes.bus import PublisherSocket
 from nodes.launch_file import load_launch
 from nodes.viewer import ViewerNode, ViewerParams
-from tests.nodes.conftest import REPO, Bus, wait_for
+from tests.nodes.conftest import REPO, Bus, poll_until, wait_for
 from tests.nodes.headless_browser import HeadlessChromium
 
 T0_NS = 1_700_000_000_000_000_000
@@ -102,13 +102,14 @@ def get(viewer: ViewerNode, path: str) -> tuple[int, str, bytes]:
 
 
 def wait_state(viewer: ViewerNode, predicate, timeout_s: float = 5.0) -> dict:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        state = json.loads(get(viewer, "/state.json")[2])
-        if predicate(state):
-            return state
-        assert time.monotonic() < deadline, f"state never matched: {state}"
-        time.sleep(0.05)
+    last: dict[str, dict] = {}
+
+    def matched() -> bool:
+        last["state"] = json.loads(get(viewer, "/state.json")[2])
+        return predicate(last["state"])
+
+    assert poll_until(matched, timeout_s, period_s=0.05), f"state never matched: {last['state']}"
+    return last["state"]
 
 
 def test_viewer_serves_the_page_state_and_pictures(viewer: ViewerNode, pipeline: PublisherSocket) -> None:
