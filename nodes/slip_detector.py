@@ -174,6 +174,7 @@ class SlipDetectorNode(Node):
         self.images: collections.OrderedDict[int, Image] = collections.OrderedDict()  # by stamp, oldest first
         self.grasp_start_ns: int | None = None
         self.next_grasps: dict[int, int] = {}  # reference stamp -> markers of grasps to take over at their first fields
+        self.first_field_ns: int | None = None  # stamp of the grasp's first field given to the judge
         self.last_field_ns: int | None = None  # stamp of the grasp's last field given to the judge
         self.reference_markers = 0
         self.slow_gaps_before = 0  # the judge's slow gaps before the current grasp
@@ -284,7 +285,7 @@ class SlipDetectorNode(Node):
         self.slow_gaps_before = self.judge.slow_gaps
         self.judge.reset()
         self.judged = None
-        self.last_field_ns = None
+        self.first_field_ns = self.last_field_ns = None
         self.slip = False
         self.counters["grasps"] += 1
 
@@ -293,9 +294,11 @@ class SlipDetectorNode(Node):
         its P(slip). ValueError for a field of another grid than `real_trials.FIELD_GRID`; left out and
         counted: a field before the grasp's reference (before_grasp), one stamped at or before the grasp's
         last field (out_of_order_fields), one without its image (unmatched_fields); ValueError for mono8 images.
-        A field of the reference frame's own stamp after later ones is that frame played again (`fv bag play
-        --loop` of a recording whose frames carry no `frame_index`): the grasp is judged again from it, as a
-        new grasp (its fields were all left out as out of order)."""
+        A field stamped at or before the grasp's first one judged, after later ones, is the recording played
+        again (`fv bag play --loop` of a recording whose frames carry no `frame_index`): the grasp is judged
+        again from it, as a new grasp (its fields were all left out as out of order). That first field is the
+        reference frame's, or, where the recording began after the tracker took its reference (which the
+        replay's tracker resumes, stamped before the recording), the recording's first."""
         require_grid(msg, self.field_grid)
         due = [stamp for stamp in self.next_grasps if stamp <= msg.stamp_ns]
         if due:  # the latest reference at or before this field's frame; those before it had no field
@@ -307,8 +310,8 @@ class SlipDetectorNode(Node):
         if self.grasp_start_ns is None or msg.stamp_ns < self.grasp_start_ns:
             self.counters["before_grasp"] += 1  # no reference yet, or a field of the grasp before the current one
             return
-        if msg.stamp_ns == self.grasp_start_ns and self.last_field_ns is not None:
-            self.log.info("the grasp's reference frame again (a recording played again): its grasp is judged anew")
+        if self.first_field_ns is not None and msg.stamp_ns <= self.first_field_ns:
+            self.log.info("the grasp's first frame again (a recording played again): its grasp is judged anew")
             self.start_grasp()
         if self.last_field_ns is not None and msg.stamp_ns <= self.last_field_ns:  # judged after it, out of order
             self.counters["out_of_order_fields"] += 1
@@ -329,6 +332,8 @@ class SlipDetectorNode(Node):
         if image.encoding == "mono8":
             raise ValueError("the trial model needs colour camera images (bgr8 or rgb8), got mono8: "
                              "set the camera's encoding param")
+        if self.first_field_ns is None:
+            self.first_field_ns = msg.stamp_ns
         self.last_field_ns = msg.stamp_ns
         takes = self.judge.takes(msg.stamp_ns)
         self.counters["slow_gaps"] = self.judge.slow_gaps
