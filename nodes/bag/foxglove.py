@@ -87,7 +87,6 @@ RAW_IMAGE_SCHEMA = _object("foxglove.RawImage", "A raw image", {
     "data": {**BASE64, "description": "Raw image data"}})
 
 
-
 def _numbers(description: str, count: int | None = None) -> dict[str, Any]:
     """Schema of a JSON array of numbers, of exactly `count` items when given."""
     sized = {} if count is None else {"minItems": count, "maxItems": count}
@@ -104,10 +103,10 @@ CAMERA_CALIBRATION_SCHEMA = _object("foxglove.CameraCalibration", "Camera calibr
     "K": _numbers("Intrinsic camera matrix (3x3 row-major matrix)", 9),
     "R": _numbers("Rectification matrix (3x3 row-major matrix)", 9),
     "P": _numbers("Projection/camera matrix (3x4 row-major matrix)", 12)})
-# CameraInfo.model: Foxglove's distortion_model and how many coefficients it takes. Foxglove's schema documents
+# CameraInfo.model (msgs.camera.CAMERA_MODELS) -> Foxglove's distortion_model. Foxglove's schema documents
 # plumb_bob (k1, k2, p1, p2, k3), rational_polynomial and kannala_brandt (k1..k4, "matches the OpenCV fisheye
 # model"); ROS calls the latter "equidistant", a name Foxglove's schema does not list.
-DISTORTION_MODELS: dict[str, tuple[str, int]] = {"fisheye": ("kannala_brandt", 4), "pinhole": ("plumb_bob", 5)}
+DISTORTION_MODELS: dict[str, str] = {"fisheye": "kannala_brandt", "pinhole": "plumb_bob"}
 
 SCALAR_TYPES: tuple[tuple[type, str], ...] = (  # bool before int: a bool is an int in Python
     (bool, "boolean"), (int, "integer"), (float, "number"), (str, "string"), (list, "string"), (dict, "string"))
@@ -180,14 +179,17 @@ def message_json(msg: Message) -> dict[str, Any]:
 
 def calibration_json(info: CameraInfo) -> dict[str, Any]:
     """The foxglove.CameraCalibration object of a CameraInfo (see the module's docstring); ValueError for a
-    "pinhole" one whose D is not zeros, which would be a distortion Foxglove's plumb_bob cannot hold as it is."""
-    name, count = DISTORTION_MODELS[info.model]
+    "pinhole" one whose D is not zeros, which would be a distortion Foxglove's plumb_bob cannot hold as it is,
+    and for a K or D that is not finite (JSON has no NaN, and Foxglove's numbers take no null)."""
+    for field in ("K", "D"):
+        if not np.isfinite(getattr(info, field)).all():
+            raise ValueError(f"CameraInfo of {info.frame_id!r}: {field} {getattr(info, field).tolist()} is not finite")
     if info.model == "pinhole" and np.any(info.D):
         raise ValueError(f"CameraInfo of {info.frame_id!r}: model 'pinhole' with D {info.D.tolist()}, not zeros")
-    D = np.zeros(count)
-    D[:len(info.D)] = info.D
+    D = info.D.tolist() if info.model == "fisheye" else [0.0] * 5  # plumb_bob's five, all 0: undistorted frames
     return {"timestamp": foxglove_time(info.stamp_ns), "frame_id": info.frame_id, "width": info.width,
-            "height": info.height, "distortion_model": name, "D": D.tolist(), "K": info.K.reshape(-1).tolist(),
+            "height": info.height, "distortion_model": DISTORTION_MODELS[info.model], "D": D,
+            "K": info.K.reshape(-1).tolist(),
             "R": np.eye(3).reshape(-1).tolist(), "P": np.hstack([info.K, np.zeros((3, 1))]).reshape(-1).tolist()}
 
 
@@ -278,7 +280,10 @@ def export_foxglove(bag: BagReader, topics: list[str] | None, output: Path, imag
             out = _FoxgloveWriter(stream, images)
             out.copy_records(bag)
             for rec, msg in bag.decoded(topics):
-                out.write(rec, msg)
+                try:
+                    out.write(rec, msg)
+                except ValueError as exc:  # a message Foxglove's type cannot hold: named by its place in the bag
+                    raise ValueError(f"{rec.topic} at log time {rec.log_time_ns} ns: {exc}") from None
                 count += 1
             out.writer.finish()
         return count

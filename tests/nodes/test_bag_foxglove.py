@@ -273,6 +273,25 @@ def test_a_pinhole_camera_info_with_distortion_is_refused(tmp_path: Path) -> Non
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bent"]
 
 
+def test_a_camera_info_that_is_not_finite_is_refused_by_its_place(tmp_path: Path) -> None:
+    """JSON has no NaN, and Foxglove's CameraCalibration numbers take no null: a K with NaN stopped the export
+    with json's "Out of range float values are not JSON compliant", naming nothing. Now the topic, log time,
+    camera and field are named, and nothing is written."""
+    nan_k = CameraInfo(stamp_ns=T0_NS, frame_id="cam", model="fisheye", width=32, height=24,
+                       K=np.array([[np.nan, 0, 16], [0, 30, 12], [0, 0, 1]]))
+    write_bag(tmp_path / "nan", [("/camera/info", True, nan_k, T0_NS + 5)])
+    with pytest.raises(ValueError, match=rf"^/camera/info at log time {T0_NS + 5} ns: CameraInfo of 'cam': K "
+                                         r"\[\[nan, 0.0, 16.0\], .* is not finite$"):
+        export(tmp_path / "nan", None, tmp_path / "nan.mcap")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["nan"]
+
+
+def test_every_camera_model_has_a_foxglove_distortion_model() -> None:
+    from msgs.camera import CAMERA_MODELS
+    from nodes.bag.foxglove import DISTORTION_MODELS
+    assert set(DISTORTION_MODELS) == set(CAMERA_MODELS)
+
+
 def test_the_command_picks_topics_and_refuses_bad_input(bag: Path, tmp_path: Path,
                                                          capsys: pytest.CaptureFixture) -> None:
     out = tmp_path / "out.mcap"  # .mcap: foxglove without --format
