@@ -73,7 +73,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "recorded TOPIC answered (the tracker's /markers; a live pipeline under load drops frames, "
                         "and a replay of every frame judges more), synced on TOPIC unless --sync-topic is given; "
                         "repeated, paired in order with --sync-on")
-    p.add_argument("--reference-frame", type=int, default=1, metavar="N",
+    p.add_argument("--reference-frame", type=int, metavar="N",
                    help="with --as-recorded-by: the replay tracker's reference_frame; of a live camera's frames "
                         "before the first answered one, the N last are played, so that it takes its reference "
                         "at the frame the live tracker took it (default 1, the tracker's)")
@@ -138,12 +138,15 @@ def _play(args: argparse.Namespace) -> int:
     from nodes.bag.player import BagPlay
     from nodes.core_commands import parse_remaps
     from nodes.topic_tools import require_forwarder
+    if args.reference_frame is not None and not args.as_recorded_by:  # it would change nothing, silently
+        raise ValueError("--reference-frame acts only with --as-recorded-by")
     params = {"path": args.bag, "rate": args.rate, "loop": args.loop, "start_offset_s": args.start_offset,
               "duration_s": args.duration, "topics": args.topics, "fast": args.fast,
               "start_paused": args.start_paused, "wait_for_subscribers": not args.no_wait_for_subscribers,
               "subscriber_timeout_s": args.wait_timeout, "sync_topic": args.sync_topic, "sync_on": args.sync_on,
               "sync_window": args.sync_window, "sync_timeout_s": args.sync_timeout,
-              "as_recorded_by": args.as_recorded_by, "reference_frame": args.reference_frame, "keyboard": True}
+              "as_recorded_by": args.as_recorded_by, "reference_frame": 1 if args.reference_frame is None else args.reference_frame,
+              "keyboard": True}
     node = BagPlay(args.name, params, remap=parse_remaps(args.remap))  # its params' check opens the bag (once):
     require_forwarder()  # a bad one is reported before the bus is checked
     node.spin()

@@ -194,12 +194,14 @@ def live_frames(bag: BagReader, images: str, answers: str, reference_frame: int)
     Where the bag holds the stage's `unanswered` notices (`unanswered_topic`; `fv bag record -a` records them
     only when named), those of `images` say which. Else a video's frames, which carry their number
     (`frame_index`), are taken where answered: a tracker's frames before a pass's reference change nothing
-    when left out. A live camera's are numbered by the frames the tracker has seen, and its first answer is
-    the live tracker's reference frame: of the frames before it, the `reference_frame` last are taken (all,
-    where the bag holds fewer), so that the replay's tracker, of that `reference_frame`, takes its reference
-    there too. The live tracker may have missed some of them (it keeps only its latest frame): with all of
-    them played, the replay's took its reference at an earlier frame, and every state differed. BagError when
-    `answers` holds no message."""
+    when left out. A live camera's are numbered by the frames the tracker has seen, and in a recording begun
+    before the live tracker's reference its first answer is that reference frame: of the frames before it, the
+    `reference_frame` last are taken (all, where the bag holds fewer), so that the replay's tracker, of that
+    `reference_frame`, takes its reference there too. The live tracker may have missed some of them (it keeps
+    only its latest frame): with all of them played, the replay's took its reference at an earlier frame, and
+    every state differed. (In a recording begun after the reference, frames before the first answer were
+    dropped live; the `reference_frame` last are played all the same, and the replay's tracker, resuming the
+    recorded reference, answers them.) BagError when `answers` holds no message."""
     answered = frozenset(split_payload(m.payload, m.topic)[0]["stamp_ns"] for m in bag.messages([answers]))
     if not answered:
         raise BagError(bag.path, f"holds no message on {answers!r} (as_recorded_by): no frame of {images!r} "

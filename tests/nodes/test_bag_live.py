@@ -430,6 +430,12 @@ def test_as_recorded_by_refuses_a_bag_without_the_live_answers(bus: BusAddress, 
         BagPlay("p", {"path": "x", "as_recorded_by": "/markers", "reference_frame": -1})
 
 
+def test_reference_frame_without_as_recorded_by_is_refused(capsys: pytest.CaptureFixture) -> None:
+    """`fv bag play --reference-frame N` acts only with --as-recorded-by: alone it was ignored, silently."""
+    assert main(["bag", "play", "no_such_bag", "--reference-frame", "2"]) == 2
+    assert capsys.readouterr().err.strip().endswith("--reference-frame acts only with --as-recorded-by")
+
+
 def test_as_recorded_by_chooses_the_camera_of_its_namespace(bus: BusAddress, tmp_path: Path) -> None:
     """A two-finger bag: `as_recorded_by` /right/markers alone chose the first Image topic, /left/camera/image,
     filtered it by the right camera's answers and played the right camera whole. Now it chooses the right

@@ -304,8 +304,8 @@ def test_a_tracker_respawned_mid_grasp_goes_on_with_the_grasp_live_and_replayed(
     as it was taken, stamped at its frame: /slip goes on with the grasp under way (its grasp start,
     window_stamps_ns[0], stays at the reference frame). Stamped at the respawned tracker's first frame, it
     started a new grasp there. A recording begun after the reference, replayed (replay.yaml), tracks against
-    the recorded reference and judges the grasp from where it started live (it started at the bag's first
-    frame)."""
+    the recorded reference and labels its grasp as started where it started live (window_stamps_ns[0]; it is
+    judged from the bag's first frame on, the frames before are not in the recording)."""
     video = list(read_frames(isd_data / GRASP / "camera_0.avi"))
     bag = tmp_path / "session"
     launch = spawn("launch", str(_pipeline_launch(tmp_path, [""])))
