@@ -194,14 +194,15 @@ def live_frames(bag: BagReader, images: str, answers: str, reference_frame: int)
     Where the bag holds the stage's `unanswered` notices (`unanswered_topic`; `fv bag record -a` records them
     only when named), those of `images` say which. Else a video's frames, which carry their number
     (`frame_index`), are taken where answered: a tracker's frames before a pass's reference change nothing
-    when left out. A live camera's are numbered by the frames the tracker has seen, and in a recording begun
+    when left out. A live camera's are numbered by the frames the tracker has seen. In a recording begun
     before the live tracker's reference its first answer is that reference frame: of the frames before it, the
     `reference_frame` last are taken (all, where the bag holds fewer), so that the replay's tracker, of that
     `reference_frame`, takes its reference there too. The live tracker may have missed some of them (it keeps
     only its latest frame): with all of them played, the replay's took its reference at an earlier frame, and
-    every state differed. (In a recording begun after the reference, frames before the first answer were
-    dropped live; the `reference_frame` last are played all the same, and the replay's tracker, resuming the
-    recorded reference, answers them.) BagError when `answers` holds no message."""
+    every state differed. A recording begun after it holds the tracker's reference (`answers`/reference,
+    latched) stamped before its first frame (`recorded_before`): its frames before the first answer were
+    dropped live, and none is taken (played, the replay's tracker, resuming that reference, tracked and
+    answered them, and every later state differed). BagError when `answers` holds no message."""
     answered = frozenset(split_payload(m.payload, m.topic)[0]["stamp_ns"] for m in bag.messages([answers]))
     if not answered:
         raise BagError(bag.path, f"holds no message on {answers!r} (as_recorded_by): no frame of {images!r} "
@@ -218,7 +219,22 @@ def live_frames(bag: BagReader, images: str, answers: str, reference_frame: int)
             break
         if header["fields"].get("frame_index", -1) < 0:  # a recording made before Images had one: a live camera's
             before.append(header["stamp_ns"])
+    if before and recorded_before(bag, f"{answers}/reference", images):
+        return answered
     return answered | frozenset(before)
+
+
+def recorded_before(bag: BagReader, reference: str, images: str) -> bool:
+    """Whether `bag` holds a message on `reference` (the tracker's latched reference) stamped before the first
+    frame on `images`, not an earlier session's (`gone_at_start`): the live tracker had its reference when the
+    recording began."""
+    if reference not in bag.topics():
+        return False
+    first_frame = next(bag.messages([images]))
+    first_ns = split_payload(first_frame.payload, first_frame.topic)[0]["stamp_ns"]
+    earlier = gone_at_start(bag, [images, reference])
+    return any(split_payload(m.payload, m.topic)[0]["stamp_ns"] < first_ns
+               for m in bag.messages([reference]) if message_id(m) not in earlier)
 
 
 def camera_answered_on(answers: str, images: list[str]) -> str:

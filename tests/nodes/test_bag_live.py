@@ -375,36 +375,46 @@ def test_fast_play_syncs_each_finger_on_its_own_answers(bus: BusAddress, spawn: 
 ANSWERED = [2, 3, 5, 6, 8, 9]  # of frames 0 .. 9: 0 before the tracker's reference, 1, 4 and 7 dropped live
 
 
-def _live_session(folder: Path, frame_index: Callable[[int], int], notices: bool) -> None:
-    """A bag of a live run: frames 0 .. 9 on /camera/image (frame_index(i) each), /markers answering ANSWERED, and
-    with ``notices`` the recorded `unanswered` notices: the tracker's of frame 0, another stage's of frame 4."""
+def _live_session(folder: Path, frame_index: Callable[[int], int], notices: bool,
+                  reference_ns: int | None) -> None:
+    """A bag of a live run: frames 0 .. 9 on /camera/image (frame_index(i) each), /markers answering ANSWERED, the
+    tracker's /markers/reference (latched) stamped at T0_NS + ``reference_ns`` when given, and with ``notices``
+    the recorded `unanswered` notices: the tracker's of frame 0, another stage's of frame 4."""
     stamp = [T0_NS + i * 10_000_000 for i in range(10)]
     messages = [("/camera/image", False, Image(stamp_ns=stamp[i], data=np.zeros((4, 4), np.uint8),
                                                frame_index=frame_index(i)), stamp[i]) for i in range(10)]
     messages += [("/markers", False, MarkerArray(stamp_ns=stamp[i]), stamp[i] + 1) for i in ANSWERED]
+    if reference_ns is not None:  # logged as a recorder gets a latched message: at once, or as it is taken
+        messages.append(("/markers/reference", True, MarkerArray(stamp_ns=T0_NS + reference_ns),
+                         T0_NS + max(reference_ns, 0)))
     if notices:
         messages += [("/unanswered", False, Unanswered(stamp_ns=stamp[0], topic="/camera/image"), stamp[0] + 1),
                      ("/unanswered", False, Unanswered(stamp_ns=stamp[4], topic="/field"), stamp[4] + 1)]
     write_bag(folder, sorted(messages, key=lambda m: m[3]))
 
 
-@pytest.mark.parametrize("frame_index, notices, reference_frame, played", [
-    (lambda i: i, False, 1, ANSWERED),  # a video's frames: those answered (each pass numbered, its reference by number)
-    (lambda i: -1, False, 1, [1, *ANSWERED]),  # a live camera's: also the reference_frame last before the first answer
-    (lambda i: -1, False, 0, ANSWERED),
-    (lambda i: -1, False, 3, [0, 1, *ANSWERED]),  # all there are
-    (lambda i: -1, True, 1, [0, *ANSWERED]),  # the notices recorded: also the frames the tracker said it left
-], ids=["video", "live camera", "live camera, reference_frame 0", "live camera, reference_frame 3",
-        "notices recorded"])
+@pytest.mark.parametrize("frame_index, notices, reference_frame, reference_ns, played", [
+    (lambda i: i, False, 1, None, ANSWERED),  # a video's frames: those answered (each pass, its reference by number)
+    (lambda i: -1, False, 1, None, [1, *ANSWERED]),  # a live camera's: also the reference_frame last before the first
+    (lambda i: -1, False, 1, 20_000_000, [1, *ANSWERED]),  # answer, its reference frame (the reference's stamp)
+    (lambda i: -1, False, 0, None, ANSWERED),
+    (lambda i: -1, False, 3, None, [0, 1, *ANSWERED]),  # all there are
+    (lambda i: -1, False, 1, -500_000_000, ANSWERED),  # the recording began after the live reference
+    (lambda i: -1, True, 1, None, [0, *ANSWERED]),  # the notices recorded: also the frames the tracker said it left
+], ids=["video", "live camera", "live camera, its reference recorded", "live camera, reference_frame 0",
+        "live camera, reference_frame 3", "live camera, recorded after its reference", "notices recorded"])
 def test_as_recorded_by_plays_the_frames_the_live_pipeline_took(bus: BusAddress, tmp_path: Path, frame_index,
                                                                 notices: bool, reference_frame: int,
+                                                                reference_ns: int | None,
                                                                 played: list[int]) -> None:
     """`as_recorded_by` /markers: of a live run that dropped frames, only the frames the live pipeline took are
     played, each once the pipeline has answered the one before on /markers (none lost). Of a live camera's
     frames before the first answer (the live reference frame), every one was played: the live tracker had
     missed frame 1 (frame 2, the 2nd it saw, was its reference: reference_frame 1), and the replay's took its
-    reference at frame 1. Now the reference_frame last are."""
-    _live_session(tmp_path / "b", frame_index, notices)
+    reference at frame 1. Now the reference_frame last are, and none where the recording began after the
+    live tracker took its reference (recorded, stamped before the first frame): the live tracker dropped them,
+    and the replay's, resuming that reference, answered them."""
+    _live_session(tmp_path / "b", frame_index, notices, reference_ns)
     seen: list[int] = []
     done = threading.Event()
     consumer = _answer_slowly(bus, "/camera/image", "/markers", 0.0, seen, done)
@@ -413,7 +423,8 @@ def test_as_recorded_by_plays_the_frames_the_live_pipeline_took(bus: BusAddress,
     in_thread(node).join(20)
     done.set()
     consumer.join(5)
-    assert node.played_topics == ["/camera/image"]  # not the live answers the player waits for from the pipeline
+    recorded_reference = [] if reference_ns is None else ["/markers/reference"]  # for the tracker's recorded_reference
+    assert node.played_topics == ["/camera/image", *recorded_reference]  # not the live answers the player awaits
     assert seen == played and node.error is None
     assert node.counters["frames_left_out"] == 10 - len(played) and node.counters["sync_timeouts"] == 0
 
