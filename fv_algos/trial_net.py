@@ -32,6 +32,7 @@ from fv_algos.real_trials import (CAMERAS, FIELD_GRID, Trial, TrialFields, Video
                                   require_frames)
 from fv_algos.slip.classifier import read_torch_file
 from fv_algos.slip.evaluate import classification_metrics
+from fv_algos.slip.train import MAX_LR
 from fv_algos.trial_eval import fold_summary, map_folds, object_folds
 
 DESCRIPTORS = (
@@ -156,7 +157,7 @@ class TrialNetConfig:
             f"0 <= start_swap <= 1 (got {self.start_swap})": 0 <= self.start_swap <= 1,
             f"reference_frame >= 0 (got {self.reference_frame})": self.reference_frame >= 0,
             f"a finite fps > 0 (got {self.fps})": 0 < self.fps < float("inf"),
-            f"a finite lr > 0 (got {self.lr})": 0 < self.lr < float("inf"),
+            f"0 < lr < {MAX_LR:.3g} (got {self.lr}; AdamW's first step, 10 lr, is a float32)": 0 < self.lr < MAX_LR,
         }
         broken = [rule for rule, ok in rules.items() if not ok]
         if broken:

@@ -50,6 +50,7 @@ from fv_algos.slip.models import (
 from fv_algos.slip.windows import SPLIT_KINDS, SequenceSet, Split, load_sequences, make_windows, split_windows, with_extra_training
 
 PAPER_LR = 1e-5
+MAX_LR = float(np.finfo(np.float32).max) / 10  # Adam's first step is 10 lr (its bias correction), in float32
 SCHEDULES = ("cosine", "constant")
 CHECKPOINT_NAME = "checkpoint.pt"
 METRICS_NAME = "metrics.json"
@@ -97,8 +98,9 @@ class TrainConfig:
         for name in ("steps", "batch_size", "eval_every", "eval_windows"):
             if getattr(self, name) < 1:
                 raise ValueError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
-        if not (np.isfinite(self.lr) and self.lr > 0):
-            raise ValueError(f"TrainConfig.lr must be finite and > 0, got {self.lr}")
+        if not 0 < self.lr < MAX_LR:  # (NaN fails both)
+            raise ValueError(f"TrainConfig.lr must be > 0 and below {MAX_LR:.3g} (Adam's first step, 10 lr, is a "
+                             f"float32), got {self.lr}")
         if self.schedule not in SCHEDULES:
             raise ValueError(f"TrainConfig.schedule must be one of {SCHEDULES}, got {self.schedule!r}")
         if self.warmup_steps < 0:

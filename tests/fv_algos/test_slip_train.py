@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import os
 import pickle
+import re
 from dataclasses import replace
 import subprocess
 import sys
@@ -120,8 +121,18 @@ def test_resume_with_other_model_config_names_the_mismatch(split: Split, tmp_pat
 def test_data_model_mismatch_is_rejected(split: Split) -> None:
     with pytest.raises(ValueError, match="model expects 5 frames"):
         train(_config(model=ModelConfig(hidden=8, window=5, grid=8)), split)
-    with pytest.raises(ValueError, match="lr"):
-        _config(lr=float("nan"))
+    for lr in (float("nan"), 0.0, float("inf"), 1e38):  # 1e38: torch's "value cannot be converted to type float"
+        with pytest.raises(ValueError, match=rf"TrainConfig.lr must be > 0 and below 3.4e\+37 .*, got {re.escape(str(lr))}$"):
+            _config(lr=lr)
+
+
+def test_the_largest_lr_allowed_trains_into_the_divergence_guard(split: Split) -> None:
+    """Just below the bound, Adam's first step is a float32: training runs (a diverging run stops by name)."""
+    from fv_algos.slip.train import MAX_LR
+    try:
+        train(_config(lr=MAX_LR * 0.999, steps=3, eval_every=1, warmup_steps=0), split)
+    except ValueError as error:
+        assert "training diverged" in str(error)
 
 
 def test_checkpoint_round_trip_and_classifier(split: Split, tmp_path: Path) -> None:

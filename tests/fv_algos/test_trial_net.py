@@ -100,6 +100,8 @@ def test_trial_net_learns_a_burst_whatever_the_length_and_round_trips(tmp_path: 
         TrialNetConfig(reference_frame=-1)
     with pytest.raises(ValueError, match="finite fps > 0"):
         TrialNetConfig(fps=0.0)
+    with pytest.raises(ValueError, match=r"0 < lr < 3.4e\+37 \(got 1e\+38; AdamW's first step"):
+        TrialNetConfig(lr=1e38)  # torch's "value cannot be converted to type float without overflow" at its step
 
 
 def test_descriptors_are_clamped_to_the_range_of_the_training_frames() -> None:
