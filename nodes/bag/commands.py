@@ -53,7 +53,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-l", "--loop", action="store_true", help="start over at the end")
     p.add_argument("--start-offset", type=float, default=0.0, metavar="S", help="skip the first S seconds")
     p.add_argument("--duration", type=float, default=0.0, metavar="S", help="play only S seconds (0 = all)")
-    p.add_argument("--topics", nargs="+", default=[], help="recorded topics to play (default: all but the bus's plumbing, param and unanswered topics, and the answers --sync-topic awaits)")
+    p.add_argument("--topics", nargs="+", default=[],
+                   help="recorded topics to play (default: all but the bus's plumbing, param and unanswered topics, "
+                        "and the answers --sync-topic awaits)")
     p.add_argument("--remap", action="append", default=[], metavar="FROM:=TO", help="rename a topic")
     p.add_argument("-p", "--start-paused", action="store_true", help="wait for space/enter or SIGUSR1")
     p.add_argument("--fast", action="store_true", help="as fast as possible (batch processing)")
@@ -145,8 +147,9 @@ def _play(args: argparse.Namespace) -> int:
               "start_paused": args.start_paused, "wait_for_subscribers": not args.no_wait_for_subscribers,
               "subscriber_timeout_s": args.wait_timeout, "sync_topic": args.sync_topic, "sync_on": args.sync_on,
               "sync_window": args.sync_window, "sync_timeout_s": args.sync_timeout,
-              "as_recorded_by": args.as_recorded_by, "reference_frame": 1 if args.reference_frame is None else args.reference_frame,
-              "keyboard": True}
+              "as_recorded_by": args.as_recorded_by, "keyboard": True}
+    if args.reference_frame is not None:  # else the player's default, the tracker's
+        params["reference_frame"] = args.reference_frame
     node = BagPlay(args.name, params, remap=parse_remaps(args.remap))  # its params' check opens the bag (once):
     require_forwarder()  # a bad one is reported before the bus is checked
     node.spin()

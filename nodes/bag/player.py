@@ -203,7 +203,7 @@ def live_frames(bag: BagReader, images: str, answers: str, reference_frame: int)
     latched) stamped before its first frame (`recorded_before`): its frames before the first answer were
     dropped live, and none is taken (played, the replay's tracker, resuming that reference, tracked and
     answered them, and every later state differed). BagError when `answers` holds no message."""
-    answered = frozenset(split_payload(m.payload, m.topic)[0]["stamp_ns"] for m in bag.messages([answers]))
+    answered = frozenset(_stamp_ns(m) for m in bag.messages([answers]))
     if not answered:
         raise BagError(bag.path, f"holds no message on {answers!r} (as_recorded_by): no frame of {images!r} "
                                  "was answered live")
@@ -212,29 +212,33 @@ def live_frames(bag: BagReader, images: str, answers: str, reference_frame: int)
         noticed = (m.decode() for m in bag.messages([notices]))
         return answered | {n.stamp_ns for n in noticed if n.topic == images}
     first = min(answered)
+    first_frame_ns: int | None = None
     before: collections.deque[int] = collections.deque(maxlen=reference_frame)  # a live camera's, the last ones
     for m in bag.messages([images]):
         header = split_payload(m.payload, m.topic)[0]
+        first_frame_ns = header["stamp_ns"] if first_frame_ns is None else first_frame_ns
         if header["stamp_ns"] >= first:
             break
         if header["fields"].get("frame_index", -1) < 0:  # a recording made before Images had one: a live camera's
             before.append(header["stamp_ns"])
-    if before and recorded_before(bag, f"{answers}/reference", images):
+    if before and recorded_before(bag, f"{answers}/reference", images, first_frame_ns):
         return answered
     return answered | frozenset(before)
 
 
-def recorded_before(bag: BagReader, reference: str, images: str) -> bool:
-    """Whether `bag` holds a message on `reference` (the tracker's latched reference) stamped before the first
-    frame on `images`, not an earlier session's (`gone_at_start`): the live tracker had its reference when the
-    recording began."""
+def recorded_before(bag: BagReader, reference: str, images: str, first_frame_ns: int) -> bool:
+    """Whether `bag` holds a message on `reference` (the tracker's latched reference) stamped before
+    `first_frame_ns`, its first frame's on `images`, not an earlier session's (`gone_at_start`): the live
+    tracker had its reference when the recording began."""
     if reference not in bag.topics():
         return False
-    first_frame = next(bag.messages([images]))
-    first_ns = split_payload(first_frame.payload, first_frame.topic)[0]["stamp_ns"]
     earlier = gone_at_start(bag, [images, reference])
-    return any(split_payload(m.payload, m.topic)[0]["stamp_ns"] < first_ns
-               for m in bag.messages([reference]) if message_id(m) not in earlier)
+    return any(_stamp_ns(m) < first_frame_ns for m in bag.messages([reference]) if message_id(m) not in earlier)
+
+
+def _stamp_ns(m: BagMessage) -> int:
+    """The capture stamp (ns) in the header of the recorded message `m`."""
+    return split_payload(m.payload, m.topic)[0]["stamp_ns"]
 
 
 def camera_answered_on(answers: str, images: list[str]) -> str:
