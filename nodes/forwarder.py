@@ -37,6 +37,7 @@ log = logging.getLogger("fv.forwarder")
 FWD_HWM = 200
 ANSWER_WAIT_S = 2.0  # how long a ping waits for a forwarder's answer by default, and at least over TCP
 AUTHORIZED_CHECK_S = 1.0  # how often a TCP forwarder looks for changed client keys in authorized/
+START_TIMEOUT_S = 30.0  # how long a started forwarder process may take to answer (its Python start, loaded host)
 
 
 class ForwarderRunning(RuntimeError):
@@ -242,7 +243,7 @@ def ping(address: BusAddress | None = None, timeout_s: float = ANSWER_WAIT_S) ->
         sock.close(linger=0)
 
 
-def ensure_forwarder(address: BusAddress | None = None, timeout_s: float = 5.0,
+def ensure_forwarder(address: BusAddress | None = None, timeout_s: float = START_TIMEOUT_S,
                      stop: threading.Event | None = None) -> subprocess.Popen | None:
     """Start a forwarder process unless one answers; returns it (the caller stops it; it also stops
     when the caller dies: `nodes.parent_death`) or None when one was already running. Once `stop` is set, none
@@ -250,7 +251,9 @@ def ensure_forwarder(address: BusAddress | None = None, timeout_s: float = 5.0,
     start. A launch stopped as it looked for a forwarder started one, waited for its answer, then stopped it:
     0.5 to 0.7 s before its stop began. A forwarder that listens on the bus is waited for as long as `ping`
     waits (a killed one's socket file is told at once): a quick look of 0.3 s missed a serving one on a loaded
-    host, and the forwarder started then could not take the bus's lock ("exited with code 2 at start")."""
+    host, and the forwarder started then could not take the bus's lock ("exited with code 2 at start"). One that
+    starts is waited for up to `timeout_s`: a Python process's start, 0.6 s here, took over 5 s on a loaded
+    host (a test run beside two others), and the launch failed ("did not answer within 5.0 s")."""
     address = address or bus_address()
     stop = stop or threading.Event()
     if ping(address) is not None:
