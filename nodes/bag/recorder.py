@@ -1,12 +1,20 @@
 """The `bag_record` node (also `fv bag record`): bus topics into an MCAP bag.
 
-One thread receives raw frames (`TopicReader.recv_raw`, nothing decoded but the small
-header) and hands them to `BagWriter` with log_time = receive time. Every
-`flush_period_s` the open chunk is closed and synced, so a crash or `kill -9` loses at
-most that period of data. Latched `CameraInfo` messages are also stored as a YAML
+Two threads. The receive thread only takes raw frames from the socket (`TopicReader.recv_raw`, nothing
+decoded but the small header), stamps each with log_time = the wall time it took it, and hands it to the
+writer thread through a `Backlog`; the writer thread stores them with `BagWriter` (compression, chunks) and
+every `flush_period_s` closes the open chunk and syncs it. Log times so stay what they were at receipt while
+the writer compresses, writes or fsyncs: with one thread, messages waited in the socket meanwhile and were
+stamped late (beside two busy loops, up to 540 ms late: README, Bags).
+
+A crash or `kill -9` loses what is not yet flushed: the chunk in progress (at most `flush_period_s` of
+messages) and the backlog, which holds at most `flush_period_s` of them too: a writer further behind drops
+newly received messages, counted per topic (counters["dropped"], the summary, the ``fv_recording_end``
+record) and warned by topic name. Latched `CameraInfo` messages are also stored as a YAML
 attachment ``calibration/<topic>.yaml``; files named in `attach` (the launch file...)
 are attached at the start of every split file. On stop the receive queue is drained of the
-messages published before the stop, totals go into a ``fv_recording_end`` metadata record and one summary line is logged.
+messages published before the stop, the writer writes all of them, totals go into a ``fv_recording_end``
+metadata record and one summary line is logged.
 """
 from __future__ import annotations
 
@@ -27,6 +35,7 @@ import yaml
 
 import msgs
 from msgs import CameraInfo, MessageError
+from nodes.bag.backlog import Backlog, Stamped
 from nodes.bag.codec import LATCHED_ENTRY, LATCHED_OF_RUNNING, RECORDING_END_META, RECORDING_META
 from nodes.bag.writer import COMPRESSIONS, DEFAULT_CHUNK_B, BagWriter
 from nodes.bus import ALL_TOPICS, SeqTracker, TopicReader
@@ -34,6 +43,7 @@ from nodes.node import Node, is_plumbing_topic
 
 DRAIN_IDLE_S = 0.1  # on stop, keep receiving until the queue stays empty this long, a message published
 DRAIN_MAX_S = 2.0   # after the stop comes (a live bus is never quiet), or this long at most
+RECV_WAIT_S = 0.1   # the receive thread looks for a stop at least this often
 
 
 @dataclass
@@ -44,11 +54,12 @@ class BagRecordParams:
     topics / all_topics / regex: record these topics, every topic, or the topics whose
     name contains a match of `regex`; exclude_regex removes matching topics from any of them.
     compression: chunk compression, "zstd", "lz4" or "none". chunk_size_b: chunk size
-    in bytes; flush_period_s: the open chunk is closed and synced at least this often.
+    in bytes; flush_period_s: the open chunk is closed and synced at least this often, and the writer
+    thread may be this far behind the receive thread before newly received messages are dropped.
     max_bag_size_b / max_bag_duration_s: split into a new file at this size / span (0 = off).
     attach: files stored as attachments (launch file, calibration...).
     fsync: force data to the disk at each flush (survives a power cut, not only a crash).
-    queue_depth: messages the receive queue holds while the writer is busy.
+    queue_depth: messages the socket's receive queue holds, and the backlog to the writer thread at most.
     """
 
     output: str = ""
@@ -128,8 +139,13 @@ class BagRecord(Node):
         self._gaps: dict[str, SeqTracker] = {}
         wanted = [ALL_TOPICS] if (p.all_topics or p.regex) else sorted(self._only)
         self._reader = TopicReader(wanted, self.address, self.ctx, hwm=p.queue_depth)
-        self._thread = threading.Thread(target=self._run_recording, name=f"{self.name}-record", daemon=True)
-        self._thread.start()
+        self._backlog = Backlog(p.flush_period_s, p.queue_depth)
+        self._write_failed = threading.Event()
+        self._receive_thread = threading.Thread(target=self._run_receiving, name=f"{self.name}-receive",
+                                                daemon=True)
+        self._write_thread = threading.Thread(target=self._run_writing, name=f"{self.name}-write", daemon=True)
+        self._receive_thread.start()
+        self._write_thread.start()
         self.log.info("recording %s into %s", self._selection(), output)
 
     def _selection(self) -> str:
@@ -162,20 +178,26 @@ class BagRecord(Node):
         return (self.params.all_topics
                 or bool(self._include is not None and self._include.search(topic)))
 
-    def _record(self, topic: str, node: str, latched: bool, frames: list[Any], log_time_ns: int,
-                published_by_ns: int | None = None) -> bool:
-        """Write one received message; False (not written) when it was published after
-        `published_by_ns` (a wall time in ns: the stop, while draining)."""
+    def _receive(self, topic: str, node: str, latched: bool, frames: list[Any], published_by_ns: int | None) -> bool:
+        """Stamp one received message and queue it for the writer; False (not queued) when it was published
+        after `published_by_ns` (a wall time in ns: the stop, while draining)."""
+        log_time_ns = time.time_ns()
         if not self._selected(topic):
             return True
         header = msgs.decode_header(frames[0], topic)
         if published_by_ns is not None and header["pub_ns"] > published_by_ns:
             return False
-        self.writer.write(topic, node, latched, frames, log_time_ns, header)
-        self._gaps.setdefault(topic, SeqTracker()).accept(topic, node, header["seq"], latched)
-        if header["type"] == CameraInfo.TYPE:
-            self._attach_calibration(topic, frames)
+        if not self._backlog.put(Stamped(topic, node, latched, frames, header, log_time_ns)):
+            self.warn(f"dropping messages of {topic}: the writer is over {self.params.flush_period_s} s behind "
+                      f"({self._backlog.dropped[topic]} dropped so far)", kind=f"dropped {topic}")
         return True
+
+    def _record(self, m: Stamped) -> None:
+        """Write one stamped message, count its gaps, attach its calibration."""
+        self.writer.write(m.topic, m.node, m.latched, m.frames, m.log_time_ns, m.header)
+        self._gaps.setdefault(m.topic, SeqTracker()).accept(m.topic, m.node, m.header["seq"], m.latched)
+        if m.header["type"] == CameraInfo.TYPE:
+            self._attach_calibration(m.topic, m.frames)
 
     def _attach_calibration(self, topic: str, frames: list[Any]) -> None:
         try:
@@ -187,35 +209,56 @@ class BagRecord(Node):
             self._calibrations[topic] = text
             self.writer.attach(f"calibration/{topic.strip('/').replace('/', '_')}.yaml", text, "application/yaml")
 
-    def _run_recording(self) -> None:
-        """The recording thread: receive, write, flush every period, drain and close."""
+    def _run_receiving(self) -> None:
+        """The receive thread: stamp and queue until the stop, drain, then close the socket and the backlog."""
+        try:
+            while not self.stopped:
+                raw = self._reader.recv_raw(RECV_WAIT_S)
+                if raw is not None and not self._receive(*raw, published_by_ns=self.stop_ns):
+                    break  # the stop came while it waited: a message published after it is not recorded
+            # the stop's time, not the time this thread saw it: on a loaded machine one more message came between
+            stopped_ns, drain_until = self.stop_ns or time.time_ns(), time.monotonic() + DRAIN_MAX_S
+            while (not self._write_failed.is_set() and time.monotonic() < drain_until
+                   and (raw := self._reader.recv_raw(DRAIN_IDLE_S)) is not None):
+                if not self._receive(*raw, published_by_ns=stopped_ns):
+                    break
+        except Exception as exc:
+            self._failed(exc)
+        finally:
+            self._reader.close()
+            self._backlog.close()
+
+    def _run_writing(self) -> None:
+        """The writer thread: write what the backlog holds, flush every period; once it is finished (or the
+        writing failed) and the receive thread has ended, close the bag."""
         period = self.params.flush_period_s
         try:
             next_flush = time.monotonic() + period
-            while not self.stopped:
-                raw = self._reader.recv_raw(max(0.0, next_flush - time.monotonic()))
-                if raw is not None and not self._record(*raw, time.time_ns(), published_by_ns=self.stop_ns):
-                    break  # the stop came while it waited: a message published after it is not recorded
+            while not self._backlog.finished:
+                stamped = self._backlog.get(max(0.0, next_flush - time.monotonic()))
+                if stamped is not None:
+                    self._record(stamped)
                 if time.monotonic() >= next_flush:
                     self.writer.flush()
                     self._update_counters()
                     next_flush = time.monotonic() + period
-            # the stop's time, not the time this thread saw it: on a loaded machine one more message came between
-            stopped_ns, drain_until = self.stop_ns or time.time_ns(), time.monotonic() + DRAIN_MAX_S
-            while time.monotonic() < drain_until and (raw := self._reader.recv_raw(DRAIN_IDLE_S)) is not None:
-                if not self._record(*raw, time.time_ns(), published_by_ns=stopped_ns):
-                    break
         except Exception as exc:  # disk full, permissions...: stop the node, keep what was written
-            self.state, self.message = "error", f"recording failed: {type(exc).__name__}: {exc}"
-            self.log.error("%s", self.message)
-            self.stop()
+            self._write_failed.set()
+            self._failed(exc)
         finally:
+            self._receive_thread.join()
             self._finish()
+
+    def _failed(self, exc: Exception) -> None:
+        """Stop the node for a recording error, named in its status and the log."""
+        self.state, self.message = "error", f"recording failed: {type(exc).__name__}: {exc}"
+        self.log.error("%s", self.message)
+        self.stop()
 
     def _update_counters(self) -> None:
         self.counters.update(recorded=sum(s.count for s in self.writer.stats.values()), gaps=self.total_gaps,
-                             malformed=self._reader.malformed, bytes=self.writer.size_b,
-                             files=len(self.writer.files))
+                             malformed=self._reader.malformed, dropped=self._backlog.total_dropped,
+                             bytes=self.writer.size_b, files=len(self.writer.files))
 
     @property
     def total_gaps(self) -> int:
@@ -224,12 +267,12 @@ class BagRecord(Node):
     def _finish(self) -> None:
         """Close the bag with its totals; a bag that cannot be finished (the disk full) is named, with
         the command that indexes what reached it."""
-        self._reader.close()
         stats = self.writer.stats
         try:
             self.writer.add_metadata(RECORDING_END_META, {
                 "end_time_ns": str(time.time_ns()), "messages": str(sum(s.count for s in stats.values())),
                 "gaps": str(self.total_gaps), "malformed": str(self._reader.malformed),
+                "dropped": json.dumps(self._backlog.dropped),
                 "per_topic": json.dumps({t: {"count": s.count, "gaps": self._gaps[t].gaps, "first_ns": s.first_ns,
                                              "last_ns": s.last_ns} for t, s in stats.items()})})
             self.writer.close()
@@ -242,17 +285,24 @@ class BagRecord(Node):
         self.log.info("%s", self.summary_line())
 
     def summary_line(self) -> str:
-        """One line: messages (rate, gaps) per topic, size, duration, files."""
-        stats = self.writer.stats
+        """One line: messages (gaps, drops) per topic, size, duration, files."""
+        stats, dropped = self.writer.stats, self._backlog.dropped
         first = min((s.first_ns for s in stats.values()), default=0)
         last = max((s.last_ns for s in stats.values()), default=0)
         span_s = max((last - first) / 1e9, 1e-9)
-        topics = ", ".join(f"{t} {s.count}" + (f" ({self._gaps[t].gaps} missing)" if self._gaps[t].gaps else "")
-                           for t, s in sorted(stats.items()))
+
+        def losses(topic: str) -> str:
+            gaps = self._gaps[topic].gaps if topic in self._gaps else 0
+            words = ([f"{gaps} missing"] if gaps else []) + ([f"{dropped[topic]} dropped"] if topic in dropped else [])
+            return f" ({', '.join(words)})" if words else ""
+
+        topics = ", ".join(f"{t} {stats[t].count if t in stats else 0}{losses(t)}"
+                           for t in sorted(stats.keys() | dropped.keys()))
         return (f"recorded {sum(s.count for s in stats.values())} messages in {span_s if stats else 0:.1f} s "
                 f"to {self.writer.output} ({len(self.writer.files)} file(s), {self.writer.size_b / 1e6:.1f} MB): "
-                f"{topics or 'nothing'}; missing by seq {self.total_gaps}, malformed {self._reader.malformed}")
+                f"{topics or 'nothing'}; missing by seq {self.total_gaps}, malformed {self._reader.malformed}, "
+                f"dropped {self._backlog.total_dropped}")
 
     def teardown(self) -> None:
-        if getattr(self, "_thread", None) is not None:
-            self._thread.join()
+        if getattr(self, "_write_thread", None) is not None:
+            self._write_thread.join()

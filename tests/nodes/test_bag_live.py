@@ -678,6 +678,83 @@ def test_recording_stops_at_the_stop_on_a_live_bus(bus: BusAddress, tmp_path: Pa
     assert last_ns <= stop_ns, f"recorded {(last_ns - stop_ns) / 1e6:.0f} ms of messages published after the stop"
 
 
+def _stall_a_flush(monkeypatch: pytest.MonkeyPatch, stall_s: float) -> tuple[threading.Event, list[tuple[int, int]]]:
+    """`BagWriter.flush` held up `stall_s` once (an fsync a slow disk holds up), at its first call after the
+    returned event is set; the list gets that stall's (start, end) wall times in ns."""
+    arm, stalls = threading.Event(), []
+    flush = BagWriter.flush
+
+    def stalling_flush(self: BagWriter) -> None:
+        if arm.is_set() and not stalls:
+            start = time.time_ns()
+            time.sleep(stall_s)
+            stalls.append((start, time.time_ns()))
+        flush(self)
+
+    monkeypatch.setattr(BagWriter, "flush", stalling_flush)
+    return arm, stalls
+
+
+def _record_through_a_stall(node: BagRecord, bus: BusAddress, arm: threading.Event,
+                            stalls: list[tuple[int, int]]) -> int:
+    """Run the recorder `node` while `/a` is published every 10 ms from before the stall to after it, then stop
+    it; the number of messages published."""
+    thread = in_thread(node)
+    pub = PublisherSocket("src", bus)
+    try:
+        wait_subscribed(pub, ["/a"])
+        arm.set()
+        wait_for(lambda: stalls, 20.0, "a stalled flush", between=lambda: pub.publish("/a", SlipState()))
+        for _ in range(10):
+            pub.publish("/a", SlipState())
+            time.sleep(0.01)
+        published = pub.publish("/a", SlipState()) + 1
+    finally:
+        pub.close()
+        node.stop()
+        thread.join(10)
+    return published
+
+
+def test_messages_received_while_a_flush_stalls_keep_their_receive_time(bus: BusAddress, tmp_path: Path,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """One thread received and wrote: a message that came while the writer compressed, wrote or synced waited in
+    the socket and was stamped (its log time) when the writer was done, however long before it had come
+    (measured beside two busy loops: up to 540 ms late, README). Here a flush stalls 0.8 s; every message published
+    in its first half was stamped after it ended, 0.4 to 0.8 s late. They now keep the time they came."""
+    stall_s = 0.8
+    arm, stalls = _stall_a_flush(monkeypatch, stall_s)
+    node = BagRecord("rec", {"output": str(tmp_path / "stall"), "topics": ["/a"], "flush_period_s": 1.0},
+                     address=bus)
+    _record_through_a_stall(node, bus, arm, stalls)
+    (start_ns, end_ns), = stalls
+    early = [m for m in BagReader(tmp_path / "stall").messages(["/a"])
+             if start_ns <= m.publish_time_ns <= start_ns + stall_s / 2 * 1e9]
+    assert len(early) >= 5, f"{len(early)} messages published in the stall's first half"
+    late_ms = [(m.log_time_ns - m.publish_time_ns) / 1e6 for m in early if m.log_time_ns >= end_ns]
+    assert not late_ms, (f"{len(late_ms)} of {len(early)} messages published in the first half of a {stall_s} s "
+                         f"flush stall were stamped after it, {min(late_ms):.0f} to {max(late_ms):.0f} ms late")
+    assert node.counters["dropped"] == 0 and node.state == "ok"
+
+
+def test_a_writer_more_than_a_flush_period_behind_drops_and_names_what_it_dropped(
+        bus: BusAddress, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """What waits for the writer is what a crash loses: it holds at most `flush_period_s` of messages. A flush
+    stalled five periods drops what comes once the oldest waiting one is a period old, counted and named by
+    topic; every message published is either in the bag or counted as dropped."""
+    arm, stalls = _stall_a_flush(monkeypatch, 1.5)
+    node = BagRecord("rec", {"output": str(tmp_path / "behind"), "topics": ["/a"], "flush_period_s": 0.3},
+                     address=bus)
+    published = _record_through_a_stall(node, bus, arm, stalls)
+    bag = BagReader(tmp_path / "behind")
+    dropped = json.loads(bag.metadata()["fv_recording_end"]["dropped"])
+    assert dropped.keys() == {"/a"} and dropped["/a"] > 0 and node.counters["dropped"] == dropped["/a"]
+    assert bag.topics()["/a"].count + dropped["/a"] == published
+    assert node.state == "warn" and "dropped" in node.message and "/a" in node.message, node.message
+    assert f"{dropped['/a']} dropped)" in node.summary_line() and node.summary_line().endswith(
+        f"dropped {dropped['/a']}")
+
+
 def _record_published(node: BagRecord, bus: BusAddress, topics: tuple[str, ...], count: int,
                       latched: tuple[str, CameraInfo] | None = None) -> None:
     """Run the recorder `node` while `SlipState(stamp_ns=i)` is published on every one of `topics` for i < `count`,
