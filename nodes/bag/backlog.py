@@ -1,14 +1,12 @@
 """`Backlog`: the messages the recorder's receive thread has stamped and its writer thread has yet to write.
 
-Bounded, so that a writer that falls behind the bus (a disk slower than the stream, a stalled fsync) cannot
-pile up more than a crash may lose: a message that arrives while the oldest one waiting was received more than
-`max_age_s` ago, or while `max_count` wait, is dropped (the newest goes, the backlog keeps its order) and
-counted under its topic in `dropped`.
+Bounded, as the socket's receive queue it empties is (`queue_depth`): a writer that falls behind the bus (a
+disk slower than the stream) cannot fill the memory. A message that arrives while `max_count` wait is dropped
+(the newest goes, the backlog keeps its order) and counted under its topic in `dropped`.
 """
 from __future__ import annotations
 
 import threading
-import time
 from collections import deque
 from dataclasses import dataclass
 from typing import Any
@@ -30,28 +28,25 @@ class Stamped:
 class Backlog:
     """A bounded FIFO from one receiving thread to one writing thread.
 
-    max_age_s: the oldest waiting message may have been received at most this long ago (monotonic s) for a
-    new one to be taken. max_count: at most this many wait.
+    max_count: at most this many wait.
     """
 
-    def __init__(self, max_age_s: float, max_count: int) -> None:
-        if not max_age_s > 0 or max_count <= 0:
-            raise ValueError(f"max_age_s ({max_age_s}) and max_count ({max_count}) must be > 0")
-        self.max_age_s = max_age_s
+    def __init__(self, max_count: int) -> None:
+        if max_count <= 0:
+            raise ValueError(f"max_count ({max_count}) must be > 0")
         self.max_count = max_count
         self.dropped: dict[str, int] = {}
-        self._items: deque[tuple[float, Stamped]] = deque()  # (monotonic receive time s, message)
+        self._items: deque[Stamped] = deque()
         self._cond = threading.Condition()
         self._closed = False
 
     def put(self, item: Stamped) -> bool:
         """Queue `item`; False when it is dropped (counted) because the writer is too far behind."""
-        now = time.monotonic()
         with self._cond:
-            if len(self._items) >= self.max_count or (self._items and now - self._items[0][0] > self.max_age_s):
+            if len(self._items) >= self.max_count:
                 self.dropped[item.topic] = self.dropped.get(item.topic, 0) + 1
                 return False
-            self._items.append((now, item))
+            self._items.append(item)
             self._cond.notify()
             return True
 
@@ -59,7 +54,7 @@ class Backlog:
         """The oldest waiting message, or None when none comes within `timeout_s` or the backlog is finished."""
         with self._cond:
             self._cond.wait_for(lambda: self._items or self._closed, timeout_s)
-            return self._items.popleft()[1] if self._items else None
+            return self._items.popleft() if self._items else None
 
     def close(self) -> None:
         """No more messages will come: `finished` once the waiting ones are taken."""

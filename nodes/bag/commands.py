@@ -41,8 +41,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd", help="chunk compression")
     p.add_argument("--chunk-size", type=parse_size, default="1M", help="chunk size (default 1M)")
     p.add_argument("--flush-period", type=float, default=0.5, metavar="S",
-                   help="close and sync the open chunk at least this often; the writer may fall this far behind "
-                        "before it drops messages (a crash loses the open chunk and that backlog)")
+                   help="close and sync the open chunk at least this often (a crash loses the open chunk and "
+                        "what waits for the writer)")
     p.add_argument("--attach", action="append", default=[], metavar="FILE", help="store a file (launch file...)")
     p.add_argument("--no-fsync", action="store_true", help="do not force data to the disk at each flush")
     p.add_argument("--name", default="bag_record", help="node name")

@@ -8,9 +8,10 @@ the writer compresses, writes or fsyncs: with one thread, messages waited in the
 stamped late (beside two busy loops, up to 540 ms late: README, Bags).
 
 A crash or `kill -9` loses what is not yet flushed: the chunk in progress (at most `flush_period_s` of
-messages) and the backlog, which holds at most `flush_period_s` of them too: a writer further behind drops
-newly received messages, counted per topic (counters["dropped"], the summary, the ``fv_recording_end``
-record) and warned by topic name. Latched `CameraInfo` messages are also stored as a YAML
+messages) and the backlog, as it lost the socket's queue before. The backlog holds at most `queue_depth`
+messages, as that queue does: a writer further behind (a disk slower than the stream) drops newly received
+messages, counted per topic (counters["dropped"], the summary, the ``fv_recording_end`` record) and warned by
+topic name, where the socket dropped them silently (seen only as gaps in seq). Latched `CameraInfo` messages are also stored as a YAML
 attachment ``calibration/<topic>.yaml``; files named in `attach` (the launch file...)
 are attached at the start of every split file. On stop the receive queue is drained of the
 messages published before the stop, the writer writes all of them, totals go into a ``fv_recording_end``
@@ -54,12 +55,12 @@ class BagRecordParams:
     topics / all_topics / regex: record these topics, every topic, or the topics whose
     name contains a match of `regex`; exclude_regex removes matching topics from any of them.
     compression: chunk compression, "zstd", "lz4" or "none". chunk_size_b: chunk size
-    in bytes; flush_period_s: the open chunk is closed and synced at least this often, and the writer
-    thread may be this far behind the receive thread before newly received messages are dropped.
+    in bytes; flush_period_s: the open chunk is closed and synced at least this often.
     max_bag_size_b / max_bag_duration_s: split into a new file at this size / span (0 = off).
     attach: files stored as attachments (launch file, calibration...).
     fsync: force data to the disk at each flush (survives a power cut, not only a crash).
-    queue_depth: messages the socket's receive queue holds, and the backlog to the writer thread at most.
+    queue_depth: messages the socket's receive queue holds, and the backlog to the writer thread at most
+    (more are dropped, counted and named).
     """
 
     output: str = ""
@@ -139,7 +140,7 @@ class BagRecord(Node):
         self._gaps: dict[str, SeqTracker] = {}
         wanted = [ALL_TOPICS] if (p.all_topics or p.regex) else sorted(self._only)
         self._reader = TopicReader(wanted, self.address, self.ctx, hwm=p.queue_depth)
-        self._backlog = Backlog(p.flush_period_s, p.queue_depth)
+        self._backlog = Backlog(p.queue_depth)
         self._write_failed = threading.Event()
         self._receive_thread = threading.Thread(target=self._run_receiving, name=f"{self.name}-receive",
                                                 daemon=True)
@@ -188,8 +189,8 @@ class BagRecord(Node):
         if published_by_ns is not None and header["pub_ns"] > published_by_ns:
             return False
         if not self._backlog.put(Stamped(topic, node, latched, frames, header, log_time_ns)):
-            self.warn(f"dropping messages of {topic}: the writer is over {self.params.flush_period_s} s behind "
-                      f"({self._backlog.dropped[topic]} dropped so far)", kind=f"dropped {topic}")
+            self.warn(f"dropping messages of {topic}: the writer is {self.params.queue_depth} messages behind "
+                      f"(queue_depth; {self._backlog.dropped[topic]} dropped so far)", kind=f"dropped {topic}")
         return True
 
     def _record(self, m: Stamped) -> None:

@@ -737,13 +737,14 @@ def test_messages_received_while_a_flush_stalls_keep_their_receive_time(bus: Bus
     assert node.counters["dropped"] == 0 and node.state == "ok"
 
 
-def test_a_writer_more_than_a_flush_period_behind_drops_and_names_what_it_dropped(
+def test_a_writer_more_than_queue_depth_behind_drops_and_names_what_it_dropped(
         bus: BusAddress, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """What waits for the writer is what a crash loses: it holds at most `flush_period_s` of messages. A flush
-    stalled five periods drops what comes once the oldest waiting one is a period old, counted and named by
-    topic; every message published is either in the bag or counted as dropped."""
+    """At most `queue_depth` messages wait for the writer, as in the socket's queue, which dropped the rest
+    unnamed. A flush stalled 1.5 s while 100 messages a second come, 50 at most waiting: what comes beyond them
+    is dropped, counted and named by topic; every message published is either in the bag or counted as
+    dropped."""
     arm, stalls = _stall_a_flush(monkeypatch, 1.5)
-    node = BagRecord("rec", {"output": str(tmp_path / "behind"), "topics": ["/a"], "flush_period_s": 0.3},
+    node = BagRecord("rec", {"output": str(tmp_path / "behind"), "topics": ["/a"], "queue_depth": 50},
                      address=bus)
     published = _record_through_a_stall(node, bus, arm, stalls)
     bag = BagReader(tmp_path / "behind")
