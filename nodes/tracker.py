@@ -34,7 +34,17 @@ the frame it was taken from: the slip detector goes on with the grasp under way 
 where the live one did), where a copy stamped at this process's first frame started a new grasp. A
 reference stamped after that frame belongs to another stream (e.g. the live session a bus still
 holds, when a recording of it is replayed), and one from before the launch to an earlier session (a
-forwarder left running keeps it): neither is resumed."""
+forwarder left running keeps it): neither is resumed.
+
+Nor is a reference published before the last /tracker/reset, whose new grasp the restarted tracker starts
+at its first frame: the previous process took the reset but was killed before its next frame (it says so
+latched, on `markers/reset`, for its next process), or the reset came while no process ran
+(`nodes.client.reset_grasp` latches it: the forwarder keeps it once its publisher is gone). A reset
+published before this process started (latched) that comes before it has a reference starts no grasp
+by itself: with nothing to resume, frame `reference_frame` is the reference, as at any start (the
+forwarder may keep an earlier session's). Resets and references are compared by their publish time
+(`pub_ns`): the robot's host and the tracker's must agree on the time within a frame's interval. A
+replay's tracker takes no gone publisher's reset: its resets are played from the bag."""
 from __future__ import annotations
 
 import time
@@ -45,7 +55,7 @@ import numpy as np
 from fv_algos.field import MAX_MARKERS
 from fv_algos.perception import Perception, PerceptionParams, resumable_reference
 from fv_algos.visualize import as_bgr
-from msgs import Image, MarkerArray
+from msgs import Image, MarkerArray, Message, SlipState
 from nodes.node import Node, launch_started_ns
 
 PRESETS = ("paper", "default", "fastest")
@@ -98,12 +108,17 @@ class TrackerNode(Node):
         self.inherited: MarkerArray | None = None
         self.inherited_from = ""  # whose reference `inherited` is, for the log
         self.first_stamp_ns: int | None = None  # stamp of the first frame this process sees
+        self.reset_ns = 0  # pub_ns of the newest /tracker/reset known: a reference published before it is not resumed
         self.markers_pub = self.publisher("markers", MarkerArray)
         self.reference_pub = self.publisher("markers/reference", MarkerArray, latched=True)
+        self.reset_pub = self.publisher("markers/reset", SlipState, latched=True)  # the last reset taken
         self.subscribe("camera/image", Image, self.on_image, depth=1, stale_after_s=p.input_timeout_s or None,
                        answered_by=self.markers_pub)
-        self.subscribe("/tracker/reset", None, self.on_reset, depth=1)
+        # subscribed before the reference, the resets kept latched reach this process first; a replay's come
+        # from its bag (bag_play is there), and a gone one is a live session's that the bus still holds
+        self.subscribe("/tracker/reset", None, self.on_reset, depth=None, gone=p.resume and not p.recorded_reference)
         if p.resume:
+            self.subscribe("markers/reset", SlipState, self.on_reset_taken, depth=None, gone=True)
             self.subscribe("markers/reference", MarkerArray, self.on_reference, depth=1, gone=True)
         if p.recorded_reference:
             self.subscribe(p.recorded_reference, MarkerArray, self.on_recorded_reference, depth=1)
@@ -118,17 +133,30 @@ class TrackerNode(Node):
             self.log.warning("%d frame(s) came and none was tracked: no reference was taken (reference_frame "
                              "%d)", self.frames_seen, self.params.reference_frame)
 
-    def on_reset(self, _msg) -> None:
-        self.new_grasp()
-        self.take_next = True
+    def on_reset(self, msg: Message) -> None:
+        """/tracker/reset: a new grasp from the next frame, said (latched) on `markers/reset` for this tracker's
+        next process (`on_reset_taken`). One published before this process started that comes before it has
+        a reference (a latched one, `nodes.client.reset_grasp`'s, sent before this process ran) starts none
+        here: it only keeps a reference published before it from being resumed (module doc)."""
+        self.reset_ns = max(self.reset_ns, msg.pub_ns)
+        if msg.pub_ns < self.started_ns and not (self.counters["references"] or self.counters["resumed"]):
+            return
+        self.new_grasp(take_next=True)
+        self.reset_pub.publish(SlipState(stamp_ns=msg.stamp_ns, frame_id=msg.frame_id))
 
-    def new_grasp(self) -> None:
+    def on_reset_taken(self, msg: SlipState) -> None:
+        """A /tracker/reset a previous process of this node took (`markers/reset`, latched): a reference it
+        published before it (before its next frame came) is not resumed."""
+        if msg.node == self.name:
+            self.reset_ns = max(self.reset_ns, msg.pub_ns)
+
+    def new_grasp(self, take_next: bool = False) -> None:
         """Take a new reference (neither the previous process's nor the recording's) at frame
-        `reference_frame` of the stream, or at the next frame after /tracker/reset (`take_next`)."""
+        `reference_frame` of the stream, or with `take_next` (after /tracker/reset) at the next frame."""
         self.needs_reference = True
         self.resume_until = 0.0
         self.inherited = None
-        self.take_next = False
+        self.take_next = take_next
 
     def frame_number(self, msg: Image) -> int:
         """The number of `msg` in its camera's stream (0 first): its frame_index when the camera gives one,
@@ -189,6 +217,11 @@ class TrackerNode(Node):
                               1e-9 * (msg.stamp_ns - self.inherited.stamp_ns))
                 self.inherited = None
         if self.needs_reference:
+            if self.inherited is not None and self.inherited.pub_ns < self.reset_ns:
+                self.log.info("%s reference is not resumed: it was published %.3f s before the last "
+                              "/tracker/reset, which this frame's reference follows", self.inherited_from,
+                              1e-9 * (self.reset_ns - self.inherited.pub_ns))
+                self.new_grasp(take_next=True)
             old = self.inherited
             resume = (old is not None and (old.width, old.height) == (msg.width, msg.height)
                       and old.stamp_ns <= self.first_stamp_ns)  # a reference stamped later is another stream's

@@ -126,6 +126,46 @@ def test_tracker_of_a_new_launch_takes_its_own_reference(bus, spawn, monkeypatch
     camera.close()
 
 
+@pytest.mark.parametrize("reset_while", ["up", "down"])
+def test_a_tracker_respawned_after_a_reset_takes_a_new_reference(bus, spawn, reset_while: str) -> None:
+    """/tracker/reset came (a gripper's message, not latched) and the tracker was killed (kill -9) before
+    its next frame (`up`), or `reset_grasp()` came while it was down (`down`): the respawned tracker resumed
+    its previous process's reference, the grasp before's, and the new grasp was judged against it. Its first
+    frame is now the new grasp's reference."""
+    import os
+    import signal
+
+    from msgs import SlipState
+    from nodes.bus import PublisherSocket
+    from nodes.client import reset_grasp
+    from tests.nodes.conftest import wait_for, wait_status
+
+    camera = PublisherSocket("fake_camera", bus.address)
+    gripper = PublisherSocket("gripper", bus.address)
+    assert camera.wait_connected(2.0) and gripper.wait_connected(2.0)
+    with TopicReader(["/markers", "/markers/reference", "/markers/reset"]) as reader:
+        first = spawn("node", "tracker")
+        _frames_until(camera, reader, dots_image(0.0), _is_reference)
+        if reset_while == "up":
+            wait_for(lambda: gripper.has_subscribers("/tracker/reset"), 5.0, "the tracker subscribed")
+            gripper.publish("/tracker/reset", SlipState(stamp_ns=time.time_ns()))
+            while (item := reader.recv(5.0)) is not None and item.topic != "/markers/reset":
+                pass
+            assert item is not None, "the tracker never took the reset"
+        os.killpg(first.pid, signal.SIGKILL)
+        first.wait(10.0)
+        if reset_while == "down":
+            reset_grasp()
+        restarted_ns = time.time_ns()
+        spawn("node", "tracker")
+        m = _frames_until(camera, reader, dots_image(3.0), _markers_after(restarted_ns)).msg
+    assert np.abs(m.cur_px[m.valid] - m.ref_px[m.valid]).max() < 0.3  # its own reference: the sheared frame
+    status = wait_status("tracker", lambda st: st.counters.get("references") == 1)
+    assert status.counters["resumed"] == 0
+    camera.close()
+    gripper.close()
+
+
 def _skin_at_rest() -> np.ndarray:
     """A simulated camera frame (H, W) uint8 of the skin at rest, its markers undeformed."""
     from fv_algos.sim.scene import scene_from_dict
@@ -239,7 +279,7 @@ def test_a_frame_of_another_size_is_dropped_until_a_new_reference() -> None:
     into a wrong field taken as valid (8 of 70 markers valid, |d| 35 px with the skin at rest). It is now
     dropped, warned and counted; after /tracker/reset a frame of the new size is the reference."""
     import cv2
-    from msgs import Image
+    from msgs import Image, SlipState
     rest = _skin_at_rest()
     big = cv2.resize(rest, (rest.shape[1] * 2, rest.shape[0] * 2))
     with _tracker({"reference_frame": 0, "resume": False}) as (node, references, markers):
@@ -248,7 +288,7 @@ def test_a_frame_of_another_size_is_dropped_until_a_new_reference() -> None:
         assert len(markers) == 1 and node.counters["other_size"] == 1 and node.state == "warn"
         h, w = rest.shape[:2]
         assert f"a {2 * w}x{2 * h} frame, but the reference is {w}x{h}" in node.message
-        node.on_reset(None)
+        node.on_reset(SlipState())
         node.on_image(Image(stamp_ns=3, encoding="mono8", data=big))
         assert len(references) == 2 and (references[-1].width, references[-1].height) == (2 * w, 2 * h)
         assert len(markers) == 2 and node.state == "ok" and markers[-1].valid.all()
@@ -384,6 +424,36 @@ def test_a_resumed_reference_is_published_as_it_was_taken() -> None:
         for name in ("ref_px", "cur_px", "valid", "frames_since_seen"):
             np.testing.assert_array_equal(getattr(again, name), getattr(taken, name))
         assert markers[0].stamp_ns == 5 and np.abs(markers[0].cur_px - markers[0].ref_px)[markers[0].valid].max() > 1
+
+
+def test_a_reset_from_before_the_process_keeps_only_an_older_reference_from_being_resumed() -> None:
+    """A /tracker/reset published before a tracker process started (latched: `reset_grasp`'s) that reaches it
+    before it has a reference keeps a previous process's reference published before that reset from being
+    resumed (the frame is the new grasp's reference), and not one published after it (the grasp it started
+    goes on). With nothing to resume it starts no grasp: frame 0 (reference_frame 1) is not the reference,
+    as at any start, where it had been taken on a reset the forwarder kept from a session before."""
+    from fv_algos.perception import Perception
+    from msgs import Image, SlipState
+    rest = _skin_at_rest()
+    sheared = np.roll(rest, 2, axis=1)
+    taken = Perception().reset(rest).reference_px
+    for reset_after_reference in (False, True):
+        with _tracker({"resume_wait_s": 0.0}) as (node, references, markers):
+            node.launch_ns = 0
+            node.on_reset(SlipState(pub_ns=node.started_ns - (1 if reset_after_reference else 3), node="robot_reset"))
+            node.on_reference(_reference_of(taken, rest, node.started_ns - 2))
+            node.on_image(Image(stamp_ns=5, encoding="mono8", data=sheared))
+            assert (node.counters["resumed"], node.counters["references"]) == (
+                (0, 1) if reset_after_reference else (1, 0)), reset_after_reference
+            assert len(references) == 1 and references[0].stamp_ns == (5 if reset_after_reference else 1)
+            shift = np.abs(markers[0].cur_px - markers[0].ref_px)[markers[0].valid].max()
+            assert (shift < 0.3) == reset_after_reference, shift
+    with _tracker({"resume_wait_s": 0.0}) as (node, references, markers):
+        node.on_reset(SlipState(pub_ns=node.started_ns - 1, node="robot_reset"))
+        node.on_image(Image(stamp_ns=1, encoding="mono8", data=rest))
+        assert not references and not markers
+        node.on_image(Image(stamp_ns=2, encoding="mono8", data=rest))
+        assert len(references) == 1 and references[0].stamp_ns == 2
 
 
 @pytest.mark.parametrize("ref, says", [
