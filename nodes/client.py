@@ -392,12 +392,8 @@ def advertise(topic: str, *, name: str | None = None, latched: bool = False, con
 
 def reset_grasp(*, connect_timeout_s: float = 2.0, address: BusAddress | None = None) -> None:
     """Start a new grasp: one message on /tracker/reset (call it when the gripper closes). Every
-    tracker takes its next frame as the reference; the slip detectors judge the grasp from there. The
-    message is latched: the forwarder keeps it once this publisher is gone, so that a tracker respawned
-    after it, also one that was down as it came, does not resume the grasp before's reference
-    (`nodes.tracker`)."""
-    with advertise(RESET_TOPIC, name="robot_reset", latched=True, connect_timeout_s=connect_timeout_s,
-                   address=address) as pub:
+    tracker takes its next frame as the reference; the slip detectors judge the grasp from there."""
+    with advertise(RESET_TOPIC, name="robot_reset", connect_timeout_s=connect_timeout_s, address=address) as pub:
         pub.publish(SlipState(stamp_ns=time.time_ns()))
 
 

@@ -383,8 +383,10 @@ class Launch:
         if self._forwarder_retry_at is None or now < self._forwarder_retry_at or self._stop.is_set():
             return
         try:
-            proc = ensure_forwarder(self._address)
+            proc = ensure_forwarder(self._address, stop=self._stop)
         except RuntimeError as exc:
+            if self._stop.is_set():  # the launch is stopping: no forwarder is wanted any more
+                return
             self.say(f"forwarder restart failed: {exc}; retrying in {FORWARDER_RETRY_S:g} s")
             self._forwarder_retry_at = time.monotonic() + FORWARDER_RETRY_S
             return

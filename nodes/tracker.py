@@ -36,15 +36,11 @@ reference stamped after that frame belongs to another stream (e.g. the live sess
 holds, when a recording of it is replayed), and one from before the launch to an earlier session (a
 forwarder left running keeps it): neither is resumed.
 
-Nor is a reference published before the last /tracker/reset, whose new grasp the restarted tracker starts
-at its first frame: the previous process took the reset but was killed before its next frame (it says so
-latched, on `markers/reset`, for its next process), or the reset came while no process ran
-(`nodes.client.reset_grasp` latches it: the forwarder keeps it once its publisher is gone). A reset
-published before this process started (latched) that comes before it has a reference starts no grasp
-by itself: with nothing to resume, frame `reference_frame` is the reference, as at any start (the
-forwarder may keep an earlier session's). Resets and references are compared by their publish time
-(`pub_ns`): the robot's host and the tracker's must agree on the time within a frame's interval. A
-replay's tracker takes no gone publisher's reset: its resets are played from the bag."""
+Nor is a reference its previous process published before taking a /tracker/reset and being killed before
+its next frame: every reset a tracker takes is said, latched, on its own `markers/reset`, and its next
+process (in this launch) starts the new grasp at its first frame. A reset sent while no process of the
+tracker runs reaches none (the bus keeps no message that is not latched, and /tracker/reset is not:
+latched, a looped replay played its recorded reset once)."""
 from __future__ import annotations
 
 import time
@@ -108,17 +104,15 @@ class TrackerNode(Node):
         self.inherited: MarkerArray | None = None
         self.inherited_from = ""  # whose reference `inherited` is, for the log
         self.first_stamp_ns: int | None = None  # stamp of the first frame this process sees
-        self.reset_ns = 0  # pub_ns of the newest /tracker/reset known: a reference published before it is not resumed
+        self.reset_ns = 0  # pub_ns of the previous process's last reset taken: a reference it published before is not resumed
         self.markers_pub = self.publisher("markers", MarkerArray)
         self.reference_pub = self.publisher("markers/reference", MarkerArray, latched=True)
         self.reset_pub = self.publisher("markers/reset", SlipState, latched=True)  # the last reset taken
         self.subscribe("camera/image", Image, self.on_image, depth=1, stale_after_s=p.input_timeout_s or None,
                        answered_by=self.markers_pub)
-        # subscribed before the reference, the resets kept latched reach this process first; a replay's come
-        # from its bag (bag_play is there), and a gone one is a live session's that the bus still holds
-        self.subscribe("/tracker/reset", None, self.on_reset, depth=None, gone=p.resume and not p.recorded_reference)
-        if p.resume:
-            self.subscribe("markers/reset", SlipState, self.on_reset_taken, depth=None, gone=True)
+        self.subscribe("/tracker/reset", None, self.on_reset, depth=1)
+        if p.resume:  # subscribed before the reference: the previous process's last reset comes first
+            self.subscribe("markers/reset", SlipState, self.on_reset_taken, depth=1, gone=True)
             self.subscribe("markers/reference", MarkerArray, self.on_reference, depth=1, gone=True)
         if p.recorded_reference:
             self.subscribe(p.recorded_reference, MarkerArray, self.on_recorded_reference, depth=1)
@@ -135,19 +129,16 @@ class TrackerNode(Node):
 
     def on_reset(self, msg: Message) -> None:
         """/tracker/reset: a new grasp from the next frame, said (latched) on `markers/reset` for this tracker's
-        next process (`on_reset_taken`). One published before this process started that comes before it has
-        a reference (a latched one, `nodes.client.reset_grasp`'s, sent before this process ran) starts none
-        here: it only keeps a reference published before it from being resumed (module doc)."""
-        self.reset_ns = max(self.reset_ns, msg.pub_ns)
-        if msg.pub_ns < self.started_ns and not (self.counters["references"] or self.counters["resumed"]):
-            return
+        next process (`on_reset_taken`)."""
         self.new_grasp(take_next=True)
         self.reset_pub.publish(SlipState(stamp_ns=msg.stamp_ns, frame_id=msg.frame_id))
 
     def on_reset_taken(self, msg: SlipState) -> None:
-        """A /tracker/reset a previous process of this node took (`markers/reset`, latched): a reference it
-        published before it (before its next frame came) is not resumed."""
-        if msg.node == self.name:
+        """A /tracker/reset a previous process of this node took in this launch (`markers/reset`, latched): a
+        reference it published before it (before its next frame came) is not resumed. One of an earlier
+        launch (a forwarder left running keeps it, e.g. the live session's, as its recording is replayed)
+        is not this grasp's."""
+        if msg.node == self.name and self.launch_ns <= msg.pub_ns < self.started_ns:
             self.reset_ns = max(self.reset_ns, msg.pub_ns)
 
     def new_grasp(self, take_next: bool = False) -> None:
@@ -218,8 +209,8 @@ class TrackerNode(Node):
                 self.inherited = None
         if self.needs_reference:
             if self.inherited is not None and self.inherited.pub_ns < self.reset_ns:
-                self.log.info("%s reference is not resumed: it was published %.3f s before the last "
-                              "/tracker/reset, which this frame's reference follows", self.inherited_from,
+                self.log.info("%s reference is not resumed: it was published %.3f s before the "
+                              "/tracker/reset that process took last; this frame is the new grasp's reference", self.inherited_from,
                               1e-9 * (self.reset_ns - self.inherited.pub_ns))
                 self.new_grasp(take_next=True)
             old = self.inherited

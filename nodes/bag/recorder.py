@@ -188,7 +188,8 @@ class BagRecord(Node):
         header = msgs.decode_header(frames[0], topic)
         if published_by_ns is not None and header["pub_ns"] > published_by_ns:
             return False
-        if not self._backlog.put(Stamped(topic, node, latched, frames, header, log_time_ns)):
+        if not self._backlog.put(Stamped(topic, node, latched, frames, header, log_time_ns)) \
+                and not self._write_failed.is_set():  # a failed writer's error stays the node's state
             self.warn(f"dropping messages of {topic}: the writer is {self.params.queue_depth} messages behind "
                       f"(queue_depth; {self._backlog.dropped[topic]} dropped so far)", kind=f"dropped {topic}")
         return True

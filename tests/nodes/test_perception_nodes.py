@@ -126,18 +126,15 @@ def test_tracker_of_a_new_launch_takes_its_own_reference(bus, spawn, monkeypatch
     camera.close()
 
 
-@pytest.mark.parametrize("reset_while", ["up", "down"])
-def test_a_tracker_respawned_after_a_reset_takes_a_new_reference(bus, spawn, reset_while: str) -> None:
-    """/tracker/reset came (a gripper's message, not latched) and the tracker was killed (kill -9) before
-    its next frame (`up`), or `reset_grasp()` came while it was down (`down`): the respawned tracker resumed
-    its previous process's reference, the grasp before's, and the new grasp was judged against it. Its first
-    frame is now the new grasp's reference."""
+def test_a_tracker_respawned_after_a_reset_takes_a_new_reference(bus, spawn) -> None:
+    """/tracker/reset came and the tracker was killed (kill -9) before its next frame: the respawned tracker
+    resumed its previous process's reference, the grasp before's, and the new grasp was judged against it.
+    Its first frame is now the new grasp's reference."""
     import os
     import signal
 
     from msgs import SlipState
     from nodes.bus import PublisherSocket
-    from nodes.client import reset_grasp
     from tests.nodes.conftest import wait_for, wait_status
 
     camera = PublisherSocket("fake_camera", bus.address)
@@ -146,16 +143,13 @@ def test_a_tracker_respawned_after_a_reset_takes_a_new_reference(bus, spawn, res
     with TopicReader(["/markers", "/markers/reference", "/markers/reset"]) as reader:
         first = spawn("node", "tracker")
         _frames_until(camera, reader, dots_image(0.0), _is_reference)
-        if reset_while == "up":
-            wait_for(lambda: gripper.has_subscribers("/tracker/reset"), 5.0, "the tracker subscribed")
-            gripper.publish("/tracker/reset", SlipState(stamp_ns=time.time_ns()))
-            while (item := reader.recv(5.0)) is not None and item.topic != "/markers/reset":
-                pass
-            assert item is not None, "the tracker never took the reset"
+        wait_for(lambda: gripper.has_subscribers("/tracker/reset"), 5.0, "the tracker subscribed")
+        gripper.publish("/tracker/reset", SlipState(stamp_ns=time.time_ns()))
+        while (item := reader.recv(5.0)) is not None and item.topic != "/markers/reset":
+            pass
+        assert item is not None, "the tracker never took the reset"
         os.killpg(first.pid, signal.SIGKILL)
         first.wait(10.0)
-        if reset_while == "down":
-            reset_grasp()
         restarted_ns = time.time_ns()
         spawn("node", "tracker")
         m = _frames_until(camera, reader, dots_image(3.0), _markers_after(restarted_ns)).msg
@@ -426,34 +420,34 @@ def test_a_resumed_reference_is_published_as_it_was_taken() -> None:
         assert markers[0].stamp_ns == 5 and np.abs(markers[0].cur_px - markers[0].ref_px)[markers[0].valid].max() > 1
 
 
-def test_a_reset_from_before_the_process_keeps_only_an_older_reference_from_being_resumed() -> None:
-    """A /tracker/reset published before a tracker process started (latched: `reset_grasp`'s) that reaches it
-    before it has a reference keeps a previous process's reference published before that reset from being
-    resumed (the frame is the new grasp's reference), and not one published after it (the grasp it started
-    goes on). With nothing to resume it starts no grasp: frame 0 (reference_frame 1) is not the reference,
-    as at any start, where it had been taken on a reset the forwarder kept from a session before."""
+def test_the_previous_process_s_last_reset_keeps_only_an_older_reference_from_being_resumed() -> None:
+    """The reset a previous process of the tracker took in this launch (`markers/reset`) keeps a reference that
+    process published before it from being resumed (the first frame is the new grasp's reference), and not one
+    published after it (the grasp it started goes on). One of an earlier launch (a forwarder left running keeps
+    the live session's as its recording is replayed) or of another node changes nothing: the replay's tracker
+    refused the recording's reference for a live tracker's reset."""
     from fv_algos.perception import Perception
     from msgs import Image, SlipState
     rest = _skin_at_rest()
     sheared = np.roll(rest, 2, axis=1)
     taken = Perception().reset(rest).reference_px
-    for reset_after_reference in (False, True):
-        with _tracker({"resume_wait_s": 0.0}) as (node, references, markers):
-            node.launch_ns = 0
-            node.on_reset(SlipState(pub_ns=node.started_ns - (1 if reset_after_reference else 3), node="robot_reset"))
-            node.on_reference(_reference_of(taken, rest, node.started_ns - 2))
+    cases = [(3, "tracker", "previous", False), (1, "tracker", "previous", True), (3, "left_tracker", "previous", True),
+             (-1, "tracker", "recording", True)]  # reset's pub_ns after the launch, its node, whose reference
+    for reset_ns, node_name, whose, resumed in cases:
+        with _tracker({"resume_wait_s": 0.0, "recorded_reference": "recorded/markers/reference"}) as (
+                node, references, markers):
+            node.launch_ns = node.started_ns - 10
+            node.on_reset_taken(SlipState(pub_ns=node.launch_ns + reset_ns, node=node_name))
+            if whose == "previous":
+                node.on_reference(_reference_of(taken, rest, node.launch_ns + 2))
+            else:  # recorded in a session before this launch
+                node.on_recorded_reference(_reference_of(taken, rest, node.launch_ns - 100))
             node.on_image(Image(stamp_ns=5, encoding="mono8", data=sheared))
-            assert (node.counters["resumed"], node.counters["references"]) == (
-                (0, 1) if reset_after_reference else (1, 0)), reset_after_reference
-            assert len(references) == 1 and references[0].stamp_ns == (5 if reset_after_reference else 1)
+            case = (reset_ns, node_name, whose)
+            assert (node.counters["resumed"], node.counters["references"]) == ((1, 0) if resumed else (0, 1)), case
+            assert len(references) == 1 and references[0].stamp_ns == (1 if resumed else 5), case
             shift = np.abs(markers[0].cur_px - markers[0].ref_px)[markers[0].valid].max()
-            assert (shift < 0.3) == reset_after_reference, shift
-    with _tracker({"resume_wait_s": 0.0}) as (node, references, markers):
-        node.on_reset(SlipState(pub_ns=node.started_ns - 1, node="robot_reset"))
-        node.on_image(Image(stamp_ns=1, encoding="mono8", data=rest))
-        assert not references and not markers
-        node.on_image(Image(stamp_ns=2, encoding="mono8", data=rest))
-        assert len(references) == 1 and references[0].stamp_ns == 2
+            assert (shift > 1) == resumed, (case, shift)
 
 
 @pytest.mark.parametrize("ref, says", [
