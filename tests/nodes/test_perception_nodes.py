@@ -69,6 +69,15 @@ def _is_reference(item) -> bool:
     return item.topic == "/markers/reference"
 
 
+def _took_its_own_reference(m: MarkerArray) -> None:
+    """`m`, the first markers of a tracker started on a sheared skin, are on its own reference (the sheared
+    frame), and it took one reference and resumed none."""
+    from tests.nodes.conftest import wait_status
+    assert np.abs(m.cur_px[m.valid] - m.ref_px[m.valid]).max() < 0.3
+    status = wait_status("tracker", lambda st: st.counters.get("references") == 1)
+    assert status.counters["resumed"] == 0
+
+
 def test_restarted_tracker_adopts_the_previous_reference(bus, spawn) -> None:
     """A tracker respawned while the skin is sheared must go on measuring against the
     undeformed reference of its previous process, not take the sheared frame as rest. A tracker
@@ -96,10 +105,7 @@ def test_restarted_tracker_adopts_the_previous_reference(bus, spawn) -> None:
         spawn("node", "tracker")
         recorded = iter(range(reference.stamp_ns - 10**9, reference.stamp_ns))  # a recording from before it
         item = _frames_until(camera, reader, dots_image(3.0), _markers_after(restarted_ns), lambda: next(recorded))
-    m = item.msg
-    assert np.abs(m.cur_px[m.valid] - m.ref_px[m.valid]).max() < 0.3  # the replayed frame itself is the reference
-    status = wait_status("tracker", lambda st: st.counters.get("references") == 1)
-    assert status.counters["resumed"] == 0
+    _took_its_own_reference(item.msg)  # the replayed frame itself
     camera.close()
 
 
@@ -108,7 +114,7 @@ def test_tracker_of_a_new_launch_takes_its_own_reference(bus, spawn, monkeypatch
     started by a later `fv launch` does not resume it, even with the skin at rest or sheared."""
     from nodes.bus import PublisherSocket
     from nodes.node import LAUNCH_ENV
-    from tests.nodes.conftest import kill_group, wait_status
+    from tests.nodes.conftest import kill_group
 
     camera = PublisherSocket("fake_camera", bus.address)
     assert camera.wait_connected(2.0)
@@ -120,9 +126,7 @@ def test_tracker_of_a_new_launch_takes_its_own_reference(bus, spawn, monkeypatch
         monkeypatch.setenv(LAUNCH_ENV, str(launched_ns))  # what `fv launch` gives its nodes
         spawn("node", "tracker")
         m = _frames_until(camera, reader, dots_image(3.0), _markers_after(launched_ns)).msg
-    assert np.abs(m.cur_px[m.valid] - m.ref_px[m.valid]).max() < 0.3  # its own reference: the sheared frame
-    status = wait_status("tracker", lambda st: st.counters.get("references") == 1)
-    assert status.counters["resumed"] == 0
+    _took_its_own_reference(m)
     camera.close()
 
 
@@ -135,7 +139,7 @@ def test_a_tracker_respawned_after_a_reset_takes_a_new_reference(bus, spawn) -> 
 
     from msgs import SlipState
     from nodes.bus import PublisherSocket
-    from tests.nodes.conftest import wait_for, wait_status
+    from tests.nodes.conftest import wait_for
 
     camera = PublisherSocket("fake_camera", bus.address)
     gripper = PublisherSocket("gripper", bus.address)
@@ -153,9 +157,7 @@ def test_a_tracker_respawned_after_a_reset_takes_a_new_reference(bus, spawn) -> 
         restarted_ns = time.time_ns()
         spawn("node", "tracker")
         m = _frames_until(camera, reader, dots_image(3.0), _markers_after(restarted_ns)).msg
-    assert np.abs(m.cur_px[m.valid] - m.ref_px[m.valid]).max() < 0.3  # its own reference: the sheared frame
-    status = wait_status("tracker", lambda st: st.counters.get("references") == 1)
-    assert status.counters["resumed"] == 0
+    _took_its_own_reference(m)
     camera.close()
     gripper.close()
 
