@@ -268,21 +268,23 @@ class BagRecord(Node):
 
     def _finish(self) -> None:
         """Close the bag with its totals; a bag that cannot be finished (the disk full) is named, with
-        the command that indexes what reached it."""
+        the command that indexes what reached it. After a split whose new file could not be opened (the
+        node's error) there is none to close: the files before it are finished."""
         stats = self.writer.stats
-        try:
-            self.writer.add_metadata(RECORDING_END_META, {
-                "end_time_ns": str(time.time_ns()), "messages": str(sum(s.count for s in stats.values())),
-                "gaps": str(self.total_gaps), "malformed": str(self._reader.malformed),
-                "dropped": json.dumps(self._backlog.dropped),
-                "per_topic": json.dumps({t: {"count": s.count, "gaps": self._gaps[t].gaps, "first_ns": s.first_ns,
-                                             "last_ns": s.last_ns} for t, s in stats.items()})})
-            self.writer.close()
-        except OSError as exc:
-            unfinished = self.writer.files[-1] if self.writer.files else self.writer.output
-            self.state, self.message = "error", f"could not finish {unfinished}: {exc.strerror or exc}"
-            self.log.error("%s; what was flushed is kept: run `fv bag recover %s` to index it", self.message,
-                           unfinished)
+        if self.writer.is_open:
+            try:
+                self.writer.add_metadata(RECORDING_END_META, {
+                    "end_time_ns": str(time.time_ns()), "messages": str(sum(s.count for s in stats.values())),
+                    "gaps": str(self.total_gaps), "malformed": str(self._reader.malformed),
+                    "dropped": json.dumps(self._backlog.dropped),
+                    "per_topic": json.dumps({t: {"count": s.count, "gaps": self._gaps[t].gaps, "first_ns": s.first_ns,
+                                                 "last_ns": s.last_ns} for t, s in stats.items()})})
+                self.writer.close()
+            except OSError as exc:
+                unfinished = self.writer.files[-1] if self.writer.files else self.writer.output
+                self.state, self.message = "error", f"could not finish {unfinished}: {exc.strerror or exc}"
+                self.log.error("%s; what was flushed is kept: run `fv bag recover %s` to index it", self.message,
+                               unfinished)
         self._update_counters()
         self.log.info("%s", self.summary_line())
 

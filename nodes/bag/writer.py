@@ -192,6 +192,11 @@ class BagWriter:
             os.fsync(self._stream.fileno())
 
     @property
+    def is_open(self) -> bool:
+        """Whether a file is open for writing: False once closed, or when the split into a new file failed."""
+        return self._writer is not None
+
+    @property
     def size_b(self) -> int:
         """Bytes written so far over all files."""
         done = sum(p.stat().st_size for p in self.files[:-1])

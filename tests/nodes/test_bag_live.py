@@ -1035,3 +1035,37 @@ def test_a_node_process_sends_what_it_published_before_it_exits(bus: BusAddress,
         assert play.wait(60) == 0, play.stderr.read()
         got = sum(1 for _ in iter(lambda: reader.recv(2.0), None))
     assert got == images
+
+
+def test_a_split_whose_new_file_cannot_be_opened_ends_in_a_named_error_and_a_summary(
+        bus: BusAddress, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A recording split by size whose next file cannot be opened (permissions, a full disk): the node's error
+    names it, the files before it are kept, and the recording ends with its summary. It ended in the writer
+    thread's AssertionError ('writer is closed', a traceback) and no summary."""
+    import nodes.bag.writer as writer_module
+    opened, open_mcap = [], writer_module.open_mcap
+
+    def second_open_fails(path: Path, *args: object) -> object:
+        opened.append(path)
+        if len(opened) > 1:
+            raise PermissionError(13, "Permission denied", str(path))
+        return open_mcap(path, *args)
+
+    monkeypatch.setattr(writer_module, "open_mcap", second_open_fails)
+    died: list = []
+    monkeypatch.setattr(threading, "excepthook", died.append)
+    node = BagRecord("rec", {"output": str(tmp_path / "split"), "topics": ["/a"], "max_bag_size_b": 4000,
+                             "compression": "none"}, address=bus)
+    thread = in_thread(node)
+    pub = PublisherSocket("src", bus)
+    try:
+        wait_subscribed(pub, ["/a"])
+        poll_until(lambda: not thread.is_alive(), 20.0, between=lambda: pub.publish("/a", SlipState()))
+    finally:
+        pub.close()
+        node.stop()
+        thread.join(10)
+    assert not died, died[0].exc_value
+    assert node.state == "error" and "Permission denied" in node.message, node.message
+    assert len(opened) == 2 and BagReader(opened[0]).topics()["/a"].count == node.counters["recorded"] > 0
+    assert node.summary_line().startswith(f"recorded {node.counters['recorded']} messages")
