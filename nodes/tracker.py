@@ -21,9 +21,7 @@ so a reference it holds from before its first frame is the one the live tracker 
 against, also when that frame is the first of a respawned camera, whose seq starts again at 0. A
 recording whose first frame is numbered no more than `reference_frame` in its video (frame_index: the
 video's first frames, or a loop's next pass) holds the frame the live tracker took its reference
-from, and the replay takes its own there: the one recorded before is the previous pass's. So does a
-tracker respawned at such a frame (killed as a looped video started its next pass): its previous
-process's reference is the pass before's.
+from, and the replay takes its own there: the one recorded before is the previous pass's.
 
 A tracker that restarts (respawned after a crash) while the skin may be deformed must not
 take a deformed frame as the reference: with `resume`, it first waits up to
@@ -106,7 +104,6 @@ class TrackerNode(Node):
         self.inherited: MarkerArray | None = None
         self.inherited_from = ""  # whose reference `inherited` is, for the log
         self.first_stamp_ns: int | None = None  # stamp of the first frame this process sees
-        self.first_index = -1  # its frame_index (-1: none yet, or a live camera's)
         self.reset_ns = 0  # pub_ns of the previous process's last reset taken: a reference it published before is not resumed
         self.markers_pub = self.publisher("markers", MarkerArray)
         self.reference_pub = self.publisher("markers/reference", MarkerArray, latched=True)
@@ -151,14 +148,6 @@ class TrackerNode(Node):
         self.resume_until = 0.0
         self.inherited = None
         self.take_next = take_next
-
-    @property
-    def at_pass_start(self) -> bool:
-        """Whether the first frame this process saw is numbered no more than `reference_frame` in its video
-        (frame_index): the start of the video or of a loop's next pass, whose reference is yet to be taken (a
-        process that took it would have seen this frame). A reference from before it, a previous process's or a
-        recording's, is an earlier pass's."""
-        return 0 <= self.first_index <= self.params.reference_frame
 
     def frame_number(self, msg: Image) -> int:
         """The number of `msg` in its camera's stream (0 first): its frame_index when the camera gives one,
@@ -211,14 +200,13 @@ class TrackerNode(Node):
         self.last_index = msg.frame_index
         if self.first_stamp_ns is None:
             self.first_stamp_ns = msg.stamp_ns
-            self.first_index = msg.frame_index
-            if self.at_pass_start:
-                self.resume_until = 0.0  # nothing to wait for: this pass's reference is taken here
-        if self.needs_reference and self.inherited is not None and self.at_pass_start:
-            self.log.info("%s reference is not resumed: this process starts at frame %d of its video, at or before "
-                          "the reference frame (%d), so it is an earlier pass's and the reference is taken there",
-                          self.inherited_from, self.first_index, self.params.reference_frame)
-            self.inherited = None
+            if (0 <= msg.frame_index <= self.params.reference_frame and self.inherited is not None
+                    and self.inherited_from == "the recording's"):
+                self.log.info("the recording starts at frame %d of its video, so the live tracker took its "
+                              "reference within it: the reference recorded before it (stamped %.1f s before the "
+                              "first frame, the previous pass's) is not used", msg.frame_index,
+                              1e-9 * (msg.stamp_ns - self.inherited.stamp_ns))
+                self.inherited = None
         if self.needs_reference:
             if self.inherited is not None and self.inherited.pub_ns < self.reset_ns:
                 self.log.info("%s reference is not resumed: it was published %.3f s before the "

@@ -422,34 +422,6 @@ def test_a_resumed_reference_is_published_as_it_was_taken() -> None:
         assert markers[0].stamp_ns == 5 and np.abs(markers[0].cur_px - markers[0].ref_px)[markers[0].valid].max() > 1
 
 
-def test_a_tracker_respawned_as_a_looped_video_starts_its_next_pass_takes_that_pass_s_reference() -> None:
-    """A tracker killed as a looped video started its next pass, respawned at frame 0 or 1 of it: its previous
-    process's reference is the pass before's (a process that took this pass's would have seen this frame), and
-    it resumed it, also when that reference came after the first frame. It now takes the reference at frame
-    `reference_frame` (1) of the pass, as for every pass; respawned later in a pass it resumes as before."""
-    from fv_algos.perception import Perception
-    from msgs import Image
-    rest = _skin_at_rest()
-    sheared = np.roll(rest, 2, axis=1)
-    taken = Perception().reset(rest).reference_px
-    for first_index, reference_first, resumed in ((0, True, False), (1, True, False), (0, False, False),
-                                                  (5, True, True)):
-        with _tracker({"resume_wait_s": 0.0}) as (node, references, markers):
-            node.launch_ns = node.started_ns - 10
-            previous = _reference_of(taken, rest, node.started_ns - 5)
-            if reference_first:
-                node.on_reference(previous)
-            node.on_image(Image(stamp_ns=5, encoding="mono8", data=sheared, frame_index=first_index))
-            if not reference_first:
-                node.on_reference(previous)
-            node.on_image(Image(stamp_ns=6, encoding="mono8", data=sheared, frame_index=first_index + 1))
-            case = (first_index, reference_first)
-            assert (node.counters["resumed"], node.counters["references"]) == ((1, 0) if resumed else (0, 1)), case
-            assert references[0].stamp_ns == (1 if resumed else 5 if first_index == 1 else 6), case
-            shift = np.abs(markers[-1].cur_px - markers[-1].ref_px)[markers[-1].valid].max()
-            assert (shift > 1) == resumed, (case, shift)
-
-
 def test_the_previous_process_s_last_reset_keeps_only_an_older_reference_from_being_resumed() -> None:
     """The reset a previous process of the tracker took in this launch (`markers/reset`) keeps a reference that
     process published before it from being resumed (the first frame is the new grasp's reference), and not one
