@@ -267,10 +267,11 @@ class BagRecord(Node):
         return sum(t.gaps for t in self._gaps.values())
 
     def _finish(self) -> None:
-        """Close the bag with its totals; a bag that cannot be finished (the disk full) is named, with
-        the command that indexes what reached it. After a split whose new file could not be opened (the
-        node's error) there is none to close: the files before it are finished."""
+        """Close the bag with its totals; a file that cannot be finished (the disk full: the last, or the one a
+        split closed) is named, with the command that indexes what reached it. After a split whose new file
+        could not be opened (the node's error) there is none open to close."""
         stats = self.writer.stats
+        unfinished, why = self.writer.unfinished, f" ({self.message})"
         if self.writer.is_open:
             try:
                 self.writer.add_metadata(RECORDING_END_META, {
@@ -281,10 +282,11 @@ class BagRecord(Node):
                                                  "last_ns": s.last_ns} for t, s in stats.items()})})
                 self.writer.close()
             except OSError as exc:
-                unfinished = self.writer.files[-1] if self.writer.files else self.writer.output
-                self.state, self.message = "error", f"could not finish {unfinished}: {exc.strerror or exc}"
-                self.log.error("%s; what was flushed is kept: run `fv bag recover %s` to index it", self.message,
-                               unfinished)
+                unfinished, why = self.writer.unfinished or self.writer.files[-1], f": {exc.strerror or exc}"
+        if unfinished is not None:
+            self.state, self.message = "error", f"could not finish {unfinished}{why}"
+            self.log.error("%s; what was flushed is kept: run `fv bag recover %s` to index it", self.message,
+                           unfinished)
         self._update_counters()
         self.log.info("%s", self.summary_line())
 

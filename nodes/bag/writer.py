@@ -97,6 +97,7 @@ class BagWriter:
         self._schemas: dict[str, int] = {}
         self._channels: dict[tuple[str, str, str, bool], int] = {}
         self._file_start_ns = 0
+        self.unfinished: Path | None = None  # a file whose summary and index could not be written (a full disk)
         self._open_next()
 
     # -- files -----------------------------------------------------------------------
@@ -120,6 +121,9 @@ class BagWriter:
             self._stream.flush()
             if self.fsync:
                 os.fsync(self._stream.fileno())
+        except OSError:
+            self.unfinished = self.files[-1]
+            raise
         finally:  # a full disk: the file stays as flushed, closed
             stream, self._writer, self._stream = self._stream, None, None
             stream.close()

@@ -1037,13 +1037,20 @@ def test_a_node_process_sends_what_it_published_before_it_exits(bus: BusAddress,
     assert got == images
 
 
-def test_a_split_whose_new_file_cannot_be_opened_ends_in_a_named_error_and_a_summary(
-        bus: BusAddress, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A recording split by size whose next file cannot be opened (permissions, a full disk): the node's error
-    names it, the files before it are kept, and the recording ends with its summary. It ended in the writer
-    thread's AssertionError ('writer is closed', a traceback) and no summary."""
+@pytest.mark.parametrize("failing", ["open", "finish"])
+def test_a_split_that_fails_ends_in_an_error_naming_the_file_and_a_summary(
+        bus: BusAddress, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture,
+        failing: str) -> None:
+    """A recording split by size whose next file cannot be opened (permissions), or whose file cannot be finished
+    as it is closed (its summary and index: a full disk): the node's error names it (with `fv bag recover` for the
+    unfinished file), what was recorded is kept, and the recording ends with its summary. Both ended in the writer
+    thread's AssertionError ('writer is closed', a traceback) and no summary, and the unfinished file went unnamed."""
+    import errno
+
+    import mcap.writer
+
     import nodes.bag.writer as writer_module
-    opened, open_mcap = [], writer_module.open_mcap
+    opened, open_mcap, finish = [], writer_module.open_mcap, mcap.writer.Writer.finish
 
     def second_open_fails(path: Path, *args: object) -> object:
         opened.append(path)
@@ -1051,7 +1058,15 @@ def test_a_split_whose_new_file_cannot_be_opened_ends_in_a_named_error_and_a_sum
             raise PermissionError(13, "Permission denied", str(path))
         return open_mcap(path, *args)
 
+    def first_finish_fails(self: mcap.writer.Writer) -> None:
+        if not getattr(first_finish_fails, "failed", False):
+            first_finish_fails.failed = True
+            raise OSError(errno.ENOSPC, "No space left on device")
+        finish(self)
+
     monkeypatch.setattr(writer_module, "open_mcap", second_open_fails)
+    if failing == "finish":
+        monkeypatch.setattr(mcap.writer.Writer, "finish", first_finish_fails)
     died: list = []
     monkeypatch.setattr(threading, "excepthook", died.append)
     node = BagRecord("rec", {"output": str(tmp_path / "split"), "topics": ["/a"], "max_bag_size_b": 4000,
@@ -1066,6 +1081,12 @@ def test_a_split_whose_new_file_cannot_be_opened_ends_in_a_named_error_and_a_sum
         node.stop()
         thread.join(10)
     assert not died, died[0].exc_value
-    assert node.state == "error" and "Permission denied" in node.message, node.message
-    assert len(opened) == 2 and BagReader(opened[0]).topics()["/a"].count == node.counters["recorded"] > 0
-    assert node.summary_line().startswith(f"recorded {node.counters['recorded']} messages")
+    assert node.state == "error" and node.summary_line().startswith(f"recorded {node.counters['recorded']} messages")
+    if failing == "open":
+        assert "Permission denied" in node.message, node.message
+        assert len(opened) == 2 and BagReader(opened[0]).topics()["/a"].count == node.counters["recorded"] > 0
+    else:
+        assert node.message.startswith(f"could not finish {opened[0]} (recording failed: OSError: [Errno 28]"), \
+            node.message
+        assert f"run `fv bag recover {opened[0]}`" in caplog.text
+        assert recover(opened[0], tmp_path / "kept.mcap").messages == node.counters["recorded"] > 0
