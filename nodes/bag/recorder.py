@@ -115,6 +115,7 @@ class BagRecord(Node):
     before the stop (`stop_ns`, the wall time stop() was first called)."""
 
     stop_ns: int | None = None
+    error = ""  # the recording's failure, once it failed
 
     def stop(self) -> None:
         if self.stop_ns is None:
@@ -253,7 +254,8 @@ class BagRecord(Node):
 
     def _failed(self, exc: Exception) -> None:
         """Stop the node for a recording error, named in its status and the log."""
-        self.state, self.message = "error", f"recording failed: {type(exc).__name__}: {exc}"
+        self.error = f"recording failed: {type(exc).__name__}: {exc}"
+        self.state, self.message = "error", self.error
         self.log.error("%s", self.message)
         self.stop()
 
@@ -270,6 +272,8 @@ class BagRecord(Node):
         """Close the bag with its totals; a file that cannot be finished (the disk full: the last, or the one a
         split closed) is named, with the command that indexes what reached it. After a split whose new file
         could not be opened (the node's error) there is none open to close."""
+        if self.error:  # a drop warning of the receive thread, as the writer failed, may have come after it
+            self.state, self.message = "error", self.error
         stats = self.writer.stats
         unfinished, why = self.writer.unfinished, f" ({self.message})"
         if self.writer.is_open:
