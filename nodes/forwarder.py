@@ -270,10 +270,21 @@ def ensure_forwarder(address: BusAddress | None = None, timeout_s: float = START
         if proc.poll() is not None:
             raise RuntimeError(f"forwarder for {address.url} exited with code {proc.returncode} at start")
         if stop.wait(0.05):
-            proc.terminate()
+            _end(proc)
             raise RuntimeError(f"stopped before the forwarder for {address.url} answered")
-    proc.terminate()
+    _end(proc)
     raise RuntimeError(f"forwarder for {address.url} did not answer within {timeout_s} s")
+
+
+def _end(proc: subprocess.Popen) -> None:
+    """End a forwarder process no longer waited for, and reap it: terminated, it stayed a zombie until its
+    parent (a launch) exited. Killed if it has not ended 5 s after SIGTERM."""
+    proc.terminate()
+    try:
+        proc.wait(5.0)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
 
 
 def serve(tcp_url: str | None = None, keys: Path | None = None) -> int:

@@ -832,3 +832,19 @@ def test_the_forwarder_answers_a_request_of_several_frames(bus: Bus) -> None:
     finally:
         req.close()
     assert ping(bus.address, 2.0) is not None and bus._thread is not None and bus._thread.is_alive()
+
+
+def test_a_forwarder_no_longer_waited_for_is_ended_and_reaped(bus_env: Bus, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`ensure_forwarder` stopped (a launch's Ctrl-C) while the forwarder it started was starting terminated it
+    without waiting: a zombie process until the launch exited."""
+    started, stop, popen = [], threading.Event(), subprocess.Popen
+
+    def popen_then_stop(*args: object, **kwargs: object) -> subprocess.Popen:
+        started.append(popen(*args, **kwargs))
+        stop.set()
+        return started[-1]
+
+    monkeypatch.setattr(subprocess, "Popen", popen_then_stop)
+    with pytest.raises(RuntimeError, match="stopped before the forwarder"):
+        ensure_forwarder(bus_env.address, stop=stop)
+    assert started[0].returncode is not None, "the forwarder was left running or unreaped"
