@@ -15,6 +15,7 @@ from __future__ import annotations
 import fcntl
 import logging
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -32,6 +33,7 @@ from nodes.endpoints import BUS_ENV, BusAddress, bus_address, secure_server
 from nodes.exit_codes import OK, on_stop_signals
 from nodes.latched_cache import LatchedCache
 from nodes.parent_death import parent_env
+from nodes.process_stop import stop_process
 
 log = logging.getLogger("fv.forwarder")
 FWD_HWM = 200
@@ -270,21 +272,10 @@ def ensure_forwarder(address: BusAddress | None = None, timeout_s: float = START
         if proc.poll() is not None:
             raise RuntimeError(f"forwarder for {address.url} exited with code {proc.returncode} at start")
         if stop.wait(0.05):
-            _end(proc)
+            stop_process(proc, signal.SIGTERM, 5.0)  # and reaped: a zombie until the launch exited
             raise RuntimeError(f"stopped before the forwarder for {address.url} answered")
-    _end(proc)
+    stop_process(proc, signal.SIGTERM, 5.0)
     raise RuntimeError(f"forwarder for {address.url} did not answer within {timeout_s} s")
-
-
-def _end(proc: subprocess.Popen) -> None:
-    """End a forwarder process no longer waited for, and reap it: terminated, it stayed a zombie until its
-    parent (a launch) exited. Killed if it has not ended 5 s after SIGTERM."""
-    proc.terminate()
-    try:
-        proc.wait(5.0)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
 
 
 def serve(tcp_url: str | None = None, keys: Path | None = None) -> int:

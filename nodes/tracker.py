@@ -104,7 +104,7 @@ class TrackerNode(Node):
         self.inherited: MarkerArray | None = None
         self.inherited_from = ""  # whose reference `inherited` is, for the log
         self.first_stamp_ns: int | None = None  # stamp of the first frame this process sees
-        self.reset_ns = 0  # pub_ns of the previous process's last reset taken: a reference it published before is not resumed
+        self.reset_ns = 0  # pub_ns of the previous process's last reset: a reference it published before is not resumed
         self.markers_pub = self.publisher("markers", MarkerArray)
         self.reference_pub = self.publisher("markers/reference", MarkerArray, latched=True)
         self.reset_pub = self.publisher("markers/reset", SlipState, latched=True)  # the last reset taken
@@ -138,8 +138,12 @@ class TrackerNode(Node):
         reference it published before it (before its next frame came) is not resumed. One of an earlier
         launch (a forwarder left running keeps it, e.g. the live session's, as its recording is replayed)
         is not this grasp's."""
-        if msg.node == self.name and self.launch_ns <= msg.pub_ns < self.started_ns:
+        if self.of_previous_process(msg):
             self.reset_ns = max(self.reset_ns, msg.pub_ns)
+
+    def of_previous_process(self, msg: Message) -> bool:
+        """Whether `msg` was published by a previous process of this node in this launch."""
+        return msg.node == self.name and self.launch_ns <= msg.pub_ns < self.started_ns
 
     def new_grasp(self, take_next: bool = False) -> None:
         """Take a new reference (neither the previous process's nor the recording's) at frame
@@ -156,7 +160,7 @@ class TrackerNode(Node):
 
     def on_reference(self, msg: MarkerArray) -> None:
         """Keep the reference a previous process of this node published (latched), in this launch."""
-        if (self.needs_reference and msg.node == self.name and self.launch_ns <= msg.pub_ns < self.started_ns
+        if (self.needs_reference and self.of_previous_process(msg)
                 and self.resumable(msg, "the previous process's")):
             self.inherited, self.inherited_from = msg, "the previous process's"
 
@@ -209,9 +213,9 @@ class TrackerNode(Node):
                 self.inherited = None
         if self.needs_reference:
             if self.inherited is not None and self.inherited.pub_ns < self.reset_ns:
-                self.log.info("%s reference is not resumed: it was published %.3f s before the "
-                              "/tracker/reset that process took last; this frame is the new grasp's reference", self.inherited_from,
-                              1e-9 * (self.reset_ns - self.inherited.pub_ns))
+                self.log.info("%s reference is not resumed: it was published %.3f s before the /tracker/reset "
+                              "that process took last; this frame is the new grasp's reference",
+                              self.inherited_from, 1e-9 * (self.reset_ns - self.inherited.pub_ns))
                 self.new_grasp(take_next=True)
             old = self.inherited
             resume = (old is not None and (old.width, old.height) == (msg.width, msg.height)

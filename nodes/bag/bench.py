@@ -24,10 +24,10 @@ from typing import Any, Callable
 
 from nodes.arg_types import positive_float, positive_int
 from nodes.proc_stats import cpu_seconds
+from nodes.process_stop import stop_process
 
 TOPICS = ("/camera/image", "/field", "/slip")
 N_DISTINCT_FRAMES = 16
-STOP_TIMEOUT_S = 30.0
 CONNECT_TIMEOUT_S = 15.0
 PLAY_IDLE_S = 1.0
 
@@ -118,18 +118,6 @@ def _fast_play(bag_dir: Path, env: dict[str, str], address: Any) -> dict[str, An
             stop_process(proc)
     span = times[-1] - times[0] if len(times) > 1 else 0.0
     return {"received": len(times), "fps": (len(times) - 1) / span if span > 0 else 0.0}
-
-
-def stop_process(proc: subprocess.Popen, sig: int = signal.SIGINT, timeout_s: float = STOP_TIMEOUT_S) -> int:
-    """Send `sig` to `proc`, SIGKILL it if it has not exited after `timeout_s`; its return code."""
-    if proc.poll() is None:
-        proc.send_signal(sig)
-        try:
-            proc.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-    return proc.returncode
 
 
 def run_bench(duration_s: float, fps: float, width: int, height: int, compression: str,

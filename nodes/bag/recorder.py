@@ -11,11 +11,11 @@ A crash or `kill -9` loses what is not yet flushed: the chunk in progress (at mo
 messages) and the backlog, as it lost the socket's queue before. The backlog holds at most `queue_depth`
 messages, as that queue does: a writer further behind (a disk slower than the stream) drops newly received
 messages, counted per topic (counters["dropped"], the summary, the ``fv_recording_end`` record) and warned by
-topic name, where the socket dropped them silently (seen only as gaps in seq). Latched `CameraInfo` messages are also stored as a YAML
-attachment ``calibration/<topic>.yaml``; files named in `attach` (the launch file...)
-are attached at the start of every split file. On stop the receive queue is drained of the
-messages published before the stop, the writer writes all of them, totals go into a ``fv_recording_end``
-metadata record and one summary line is logged.
+topic name, where the socket dropped them silently (seen only as gaps in seq). Latched `CameraInfo` messages
+are also stored as a YAML attachment ``calibration/<topic>.yaml``; files named in `attach` (the launch file...)
+are attached at the start of every split file. On stop the receive queue is drained of the messages published
+before the stop, the writer writes all of them, totals go into a ``fv_recording_end`` metadata record and one
+summary line is logged.
 """
 from __future__ import annotations
 
@@ -142,7 +142,6 @@ class BagRecord(Node):
         wanted = [ALL_TOPICS] if (p.all_topics or p.regex) else sorted(self._only)
         self._reader = TopicReader(wanted, self.address, self.ctx, hwm=p.queue_depth)
         self._backlog = Backlog(p.queue_depth)
-        self._write_failed = threading.Event()
         self._receive_thread = threading.Thread(target=self._run_receiving, name=f"{self.name}-receive",
                                                 daemon=True)
         self._write_thread = threading.Thread(target=self._run_writing, name=f"{self.name}-write", daemon=True)
@@ -190,7 +189,7 @@ class BagRecord(Node):
         if published_by_ns is not None and header["pub_ns"] > published_by_ns:
             return False
         if not self._backlog.put(Stamped(topic, node, latched, frames, header, log_time_ns)) \
-                and not self._write_failed.is_set():  # a failed writer's error stays the node's state
+                and not self.error:  # a failed writer's error stays the node's state
             self.warn(f"dropping messages of {topic}: the writer is {self.params.queue_depth} messages behind "
                       f"(queue_depth; {self._backlog.dropped[topic]} dropped so far)", kind=f"dropped {topic}")
         return True
@@ -221,7 +220,7 @@ class BagRecord(Node):
                     break  # the stop came while it waited: a message published after it is not recorded
             # the stop's time, not the time this thread saw it: on a loaded machine one more message came between
             stopped_ns, drain_until = self.stop_ns or time.time_ns(), time.monotonic() + DRAIN_MAX_S
-            while (not self._write_failed.is_set() and time.monotonic() < drain_until
+            while (not self.error and time.monotonic() < drain_until
                    and (raw := self._reader.recv_raw(DRAIN_IDLE_S)) is not None):
                 if not self._receive(*raw, published_by_ns=stopped_ns):
                     break
@@ -246,7 +245,6 @@ class BagRecord(Node):
                     self._update_counters()
                     next_flush = time.monotonic() + period
         except Exception as exc:  # disk full, permissions...: stop the node, keep what was written
-            self._write_failed.set()
             self._failed(exc)
         finally:
             self._receive_thread.join()

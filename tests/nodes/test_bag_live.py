@@ -34,7 +34,7 @@ from nodes.bag.recorder import BagRecord
 from nodes.bag.player import BagPlay
 from nodes.bag.recover import recover
 from nodes.bag.writer import BagWriter
-from nodes.bag.bench import stop_process
+from nodes.process_stop import stop_process
 from nodes.bus import PublisherSocket, TopicReader
 from nodes.cli import main
 from nodes.endpoints import BUS_ENV, BusAddress, bus_address

@@ -25,7 +25,7 @@ from pathlib import Path
 import pytest
 
 from msgs import Image, SlipState
-from nodes.bag.bench import stop_process
+from nodes.process_stop import stop_process
 from nodes.bag.reader import read_bag
 from fv_algos.camera_vote import camera_vote
 from fv_algos.real_trials import read_frames
