@@ -139,3 +139,24 @@ class SlipState(Message):
         for name in ("probability", "threshold"):
             if not 0.0 <= getattr(self, name) <= 1.0:  # NaN too
                 raise ValueError(f"{name}: {getattr(self, name)} is not in [0, 1]")
+
+
+@dataclass(kw_only=True)
+class GraspStart(Message):
+    """A tracker started a new grasp: its reference before is no longer tracked against.
+
+    cause: "reset" (a message on /tracker/reset, stamp_ns its stamp: the next frame is the new reference) or
+    "source restart" (the camera's source started over, a looped video's next pass, stamp_ns the stamp of
+    the pass's first frame: frame `reference_frame` of the pass is the new reference).
+    """
+
+    TYPE: ClassVar[str] = "GraspStart"
+    VERSION: ClassVar[int] = 1
+    CAUSES: ClassVar[tuple[str, ...]] = ("reset", "source restart")
+
+    cause: str = "reset"
+
+    def validate(self) -> None:
+        super().validate()
+        if self.cause not in self.CAUSES:
+            raise ValueError(f"cause: {self.cause!r} is not one of {self.CAUSES}")

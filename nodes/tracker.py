@@ -36,11 +36,13 @@ reference stamped after that frame belongs to another stream (e.g. the live sess
 holds, when a recording of it is replayed), and one from before the launch to an earlier session (a
 forwarder left running keeps it): neither is resumed.
 
-Nor is a reference its previous process published before taking a /tracker/reset and being killed before
-its next frame: every reset a tracker takes is said, latched, on its own `markers/reset`, and its next
-process (in this launch) starts the new grasp at its first frame. A reset sent while no process of the
-tracker runs reaches none (the bus keeps no message that is not latched, and /tracker/reset is not:
-latched, a looped replay played its recorded reset once)."""
+Nor is a reference its previous process published before starting a new grasp and being killed before it
+took the new grasp's reference: every grasp a tracker starts is said, latched, on its own `markers/grasp_start`
+(`msgs.GraspStart`), and its next process (in this launch) starts that grasp as the previous process would have:
+after a /tracker/reset (cause "reset") at its first frame, after its source started over (cause "source
+restart", a looped video's next pass) at frame `reference_frame` of the pass, or at its first frame when that
+is later in the pass. A reset sent while no process of the tracker runs reaches none (the bus keeps no message
+that is not latched, and /tracker/reset is not: latched, a looped replay played its recorded reset once)."""
 from __future__ import annotations
 
 import time
@@ -51,7 +53,7 @@ import numpy as np
 from fv_algos.field import MAX_MARKERS
 from fv_algos.perception import Perception, PerceptionParams, resumable_reference
 from fv_algos.visualize import as_bgr
-from msgs import Image, MarkerArray, Message, SlipState
+from msgs import GraspStart, Image, MarkerArray, Message
 from nodes.node import Node, launch_started_ns
 
 PRESETS = ("paper", "default", "fastest")
@@ -104,15 +106,15 @@ class TrackerNode(Node):
         self.inherited: MarkerArray | None = None
         self.inherited_from = ""  # whose reference `inherited` is, for the log
         self.first_stamp_ns: int | None = None  # stamp of the first frame this process sees
-        self.reset_ns = 0  # pub_ns of the previous process's last reset: a reference it published before is not resumed
+        self.voided: GraspStart | None = None  # the previous process's last grasp start: voids its references before
         self.markers_pub = self.publisher("markers", MarkerArray)
         self.reference_pub = self.publisher("markers/reference", MarkerArray, latched=True)
-        self.reset_pub = self.publisher("markers/reset", SlipState, latched=True)  # the last reset taken
+        self.grasp_pub = self.publisher("markers/grasp_start", GraspStart, latched=True)  # the last grasp started
         self.subscribe("camera/image", Image, self.on_image, depth=1, stale_after_s=p.input_timeout_s or None,
                        answered_by=self.markers_pub)
         self.subscribe("/tracker/reset", None, self.on_reset, depth=1)
-        if p.resume:  # subscribed before the reference: the previous process's last reset comes first
-            self.subscribe("markers/reset", SlipState, self.on_reset_taken, depth=1, gone=True)
+        if p.resume:  # subscribed before the reference: the previous process's last grasp start comes first
+            self.subscribe("markers/grasp_start", GraspStart, self.on_grasp_started, depth=1, gone=True)
             self.subscribe("markers/reference", MarkerArray, self.on_reference, depth=1, gone=True)
         if p.recorded_reference:
             self.subscribe(p.recorded_reference, MarkerArray, self.on_recorded_reference, depth=1)
@@ -128,22 +130,26 @@ class TrackerNode(Node):
                              "%d)", self.frames_seen, self.params.reference_frame)
 
     def on_reset(self, msg: Message) -> None:
-        """/tracker/reset: a new grasp from the next frame, said (latched) on `markers/reset` for this tracker's
-        next process (`on_reset_taken`)."""
-        self.new_grasp(take_next=True)
-        self.reset_pub.publish(SlipState(stamp_ns=msg.stamp_ns, frame_id=msg.frame_id))
+        """/tracker/reset: a new grasp from the next frame."""
+        self.start_grasp(GraspStart(stamp_ns=msg.stamp_ns, frame_id=msg.frame_id, cause="reset"))
 
-    def on_reset_taken(self, msg: SlipState) -> None:
-        """A /tracker/reset a previous process of this node took in this launch (`markers/reset`, latched): a
-        reference it published before it (before its next frame came) is not resumed. One of an earlier
-        launch (a forwarder left running keeps it, e.g. the live session's, as its recording is replayed)
-        is not this grasp's."""
-        if self.of_previous_process(msg):
-            self.reset_ns = max(self.reset_ns, msg.pub_ns)
+    def on_grasp_started(self, msg: GraspStart) -> None:
+        """A grasp a previous process of this node started in this launch (`markers/grasp_start`, latched): a
+        reference it published before it (before the grasp's reference was taken) is not resumed. One of an
+        earlier launch (a forwarder left running keeps it, e.g. the live session's, as its recording is
+        replayed) is not this grasp's."""
+        if self.of_previous_process(msg) and (self.voided is None or msg.pub_ns > self.voided.pub_ns):
+            self.voided = msg
 
     def of_previous_process(self, msg: Message) -> bool:
         """Whether `msg` was published by a previous process of this node in this launch."""
         return msg.node == self.name and self.launch_ns <= msg.pub_ns < self.started_ns
+
+    def start_grasp(self, start: GraspStart) -> None:
+        """A new grasp (`new_grasp`), said (latched) on `markers/grasp_start` for this tracker's next process
+        (`on_grasp_started`)."""
+        self.new_grasp(take_next=start.cause == "reset")
+        self.grasp_pub.publish(start)
 
     def new_grasp(self, take_next: bool = False) -> None:
         """Take a new reference (neither the previous process's nor the recording's) at frame
@@ -200,7 +206,7 @@ class TrackerNode(Node):
                               "reference at frame %d (reference_frame); each restart counted in source_restarts",
                               msg.frame_index, self.last_index, self.params.reference_frame)
             self.counters["source_restarts"] += 1
-            self.new_grasp()
+            self.start_grasp(GraspStart(stamp_ns=msg.stamp_ns, frame_id=msg.frame_id, cause="source restart"))
         self.last_index = msg.frame_index
         if self.first_stamp_ns is None:
             self.first_stamp_ns = msg.stamp_ns
@@ -212,11 +218,12 @@ class TrackerNode(Node):
                               1e-9 * (msg.stamp_ns - self.inherited.stamp_ns))
                 self.inherited = None
         if self.needs_reference:
-            if self.inherited is not None and self.inherited.pub_ns < self.reset_ns:
-                self.log.info("%s reference is not resumed: it was published %.3f s before the /tracker/reset "
-                              "that process took last; this frame is the new grasp's reference",
-                              self.inherited_from, 1e-9 * (self.reset_ns - self.inherited.pub_ns))
-                self.new_grasp(take_next=True)
+            voided = self.voided
+            if self.inherited is not None and voided is not None and self.inherited.pub_ns < voided.pub_ns:
+                self.log.info("%s reference is not resumed: it was published %.3f s before that process started "
+                              "a new grasp (%s)", self.inherited_from, 1e-9 * (voided.pub_ns - self.inherited.pub_ns),
+                              voided.cause)
+                self.new_grasp(take_next=voided.cause == "reset")
             old = self.inherited
             resume = (old is not None and (old.width, old.height) == (msg.width, msg.height)
                       and old.stamp_ns <= self.first_stamp_ns)  # a reference stamped later is another stream's

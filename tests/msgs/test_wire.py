@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import msgs
-from msgs import (CameraInfo, ContactSummary, DisplacementField, Image, MarkerArray, MessageError, NodeStatus,
-                  SlipState, Unanswered)
+from msgs import (CameraInfo, ContactSummary, DisplacementField, GraspStart, Image, MarkerArray, MessageError,
+                  NodeStatus, SlipState, Unanswered)
 from msgs.param import ParamSet, ParamState
 from msgs.wire import check_message
 
@@ -30,6 +30,7 @@ def _examples() -> list[msgs.Message]:
         ContactSummary(in_contact=True, area_px2=12.5, area_share=0.1, centre_x_px=3.0, divergence=-0.2),
         SlipState(probability=0.75, slip=True, window_stamps_ns=np.arange(10, dtype=np.int64) * 33_000_000,
                   model="convlstm"),
+        GraspStart(stamp_ns=11, frame_id="cam", cause="source restart"),
         NodeStatus(state="warn", message="camera lost", pid=42, publishes=[["/slip", "SlipState"]],
                    counters={"reopen": 2}),
         ParamSet(request_id="r1", values={"threshold": 0.7, "inputs": ["/a", "/b"]}),
@@ -245,6 +246,14 @@ def test_slip_state_threshold_outside_0_1_is_refused(threshold: float) -> None:
             msgs.decode(_frames(SlipState(threshold=threshold)), "/slip")
         assert err.value.field == "threshold"
 
+
+
+def test_grasp_start_of_an_unknown_cause_is_refused() -> None:
+    with pytest.raises(ValueError, match="cause: 'loop'"):
+        GraspStart(cause="loop").validate()
+    with pytest.raises(MessageError) as err:
+        msgs.decode(_frames(GraspStart(cause="loop")), "/markers/grasp_start")
+    assert err.value.field == "cause"
 
 @pytest.mark.parametrize("changes, field", [
     ({"publishes": ["x"]}, "publishes"),

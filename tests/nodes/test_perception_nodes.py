@@ -144,12 +144,12 @@ def test_a_tracker_respawned_after_a_reset_takes_a_new_reference(bus, spawn) -> 
     camera = PublisherSocket("fake_camera", bus.address)
     gripper = PublisherSocket("gripper", bus.address)
     assert camera.wait_connected(2.0) and gripper.wait_connected(2.0)
-    with TopicReader(["/markers", "/markers/reference", "/markers/reset"]) as reader:
+    with TopicReader(["/markers", "/markers/reference", "/markers/grasp_start"]) as reader:
         first = spawn("node", "tracker")
         _frames_until(camera, reader, dots_image(0.0), _is_reference)
         wait_for(lambda: gripper.has_subscribers("/tracker/reset"), 5.0, "the tracker subscribed")
         gripper.publish("/tracker/reset", SlipState(stamp_ns=time.time_ns()))
-        while (item := reader.recv(5.0)) is not None and item.topic != "/markers/reset":
+        while (item := reader.recv(5.0)) is not None and item.topic != "/markers/grasp_start":
             pass
         assert item is not None, "the tracker never took the reset"
         os.killpg(first.pid, signal.SIGKILL)
@@ -161,6 +161,56 @@ def test_a_tracker_respawned_after_a_reset_takes_a_new_reference(bus, spawn) -> 
     camera.close()
     gripper.close()
 
+
+
+def test_a_tracker_respawned_as_a_looped_video_starts_its_next_pass_takes_that_pass_s_reference(bus, spawn) -> None:
+    """A looped video started its next pass (frame_index back to 0) and the tracker was killed (kill -9) before
+    that pass's frame `reference_frame`: the respawned tracker resumed its previous process's reference, the
+    pass before's, and the new pass was judged as the old grasp going on (its grasp start, the reference's
+    stamp, a pass back). It now waits for frame `reference_frame` of the pass, as the tracker that saw the
+    pass start would have."""
+    import os
+    import signal
+
+    from msgs import Image
+    from nodes.bus import PublisherSocket
+    from tests.nodes.conftest import wait_status
+
+    camera = PublisherSocket("fake_camera", bus.address)
+    assert camera.wait_connected(2.0)
+    frame = dots_image(0.0)
+
+    def publish(index: int) -> int:
+        stamp = time.time_ns()
+        camera.publish("/camera/image", Image(stamp_ns=stamp, data=frame, frame_index=index))
+        return stamp
+
+    def answered(index: int, since_ns: int, topics: tuple[str, ...]) -> object:
+        """Publish frame `index` until the tracker (a process started after `since_ns`) answers on `topics`."""
+        for _ in range(200):
+            publish(index)
+            while (item := reader.recv(0.05)) is not None:
+                if item.topic in topics and item.msg.pub_ns > since_ns:
+                    return item
+        raise AssertionError(f"the tracker never answered frame {index} on {topics}")
+
+    with TopicReader(["/markers", "/markers/reference", "/unanswered"]) as reader:
+        first = spawn("node", "tracker")
+        answered(0, 0, ("/unanswered",))  # frame 0 is before reference_frame 1
+        first_pass = answered(1, 0, ("/markers/reference",)).msg
+        publish(0)  # the next pass
+        wait_status("tracker", lambda st: st.counters.get("source_restarts") == 1)
+        os.killpg(first.pid, signal.SIGKILL)
+        first.wait(10.0)
+        restarted_ns = time.time_ns()
+        spawn("node", "tracker")
+        item = answered(0, restarted_ns, ("/markers", "/unanswered"))
+        assert item.topic == "/unanswered", "frame 0 of the pass was tracked against the pass before's reference"
+        item = answered(1, restarted_ns, ("/markers/reference",))
+    assert item.msg.stamp_ns > first_pass.stamp_ns
+    status = wait_status("tracker", lambda st: st.counters.get("references") == 1)
+    assert status.counters["resumed"] == 0
+    camera.close()
 
 def _skin_at_rest() -> np.ndarray:
     """A simulated camera frame (H, W) uint8 of the skin at rest, its markers undeformed."""
@@ -422,32 +472,44 @@ def test_a_resumed_reference_is_published_as_it_was_taken() -> None:
         assert markers[0].stamp_ns == 5 and np.abs(markers[0].cur_px - markers[0].ref_px)[markers[0].valid].max() > 1
 
 
-def test_the_previous_process_s_last_reset_keeps_only_an_older_reference_from_being_resumed() -> None:
-    """The reset a previous process of the tracker took in this launch (`markers/reset`) keeps a reference that
-    process published before it from being resumed (the first frame is the new grasp's reference), and not one
-    published after it (the grasp it started goes on). One of an earlier launch (a forwarder left running keeps
-    the live session's as its recording is replayed) or of another node changes nothing: the replay's tracker
-    refused the recording's reference for a live tracker's reset."""
+def test_the_previous_process_s_last_grasp_start_keeps_only_an_older_reference_from_being_resumed() -> None:
+    """The grasp a previous process of the tracker started in this launch (`markers/grasp_start`) keeps a
+    reference that process published before it from being resumed, and not one published after it (the grasp
+    it started goes on). After a reset the first frame is the new grasp's reference; after its source started
+    over (a looped video's next pass), frame `reference_frame` of the pass, or the first frame when that is
+    later in the pass. One of an earlier launch (a forwarder left running keeps the live session's as its
+    recording is replayed) or of another node changes nothing: the replay's tracker refused the recording's
+    reference for a live tracker's reset."""
     from fv_algos.perception import Perception
-    from msgs import Image, SlipState
+    from msgs import GraspStart, Image
     rest = _skin_at_rest()
     sheared = np.roll(rest, 2, axis=1)
     taken = Perception().reset(rest).reference_px
-    cases = [(3, "tracker", "previous", False), (1, "tracker", "previous", True), (3, "left_tracker", "previous", True),
-             (-1, "tracker", "recording", True)]  # reset's pub_ns after the launch, its node, whose reference
-    for reset_ns, node_name, whose, resumed in cases:
+    # the grasp start's pub_ns after the launch, its node and cause; whose reference; the first frame's frame_index;
+    # what the tracker does with the reference
+    cases = [(3, "tracker", "reset", "previous", -1, "taken"), (1, "tracker", "reset", "previous", -1, "resumed"),
+             (3, "left_tracker", "reset", "previous", -1, "resumed"), (-1, "tracker", "reset", "recording", -1, "resumed"),
+             (3, "tracker", "source restart", "previous", 0, "waits"),
+             (3, "tracker", "source restart", "previous", 1, "taken"),
+             (3, "tracker", "source restart", "previous", 4, "taken"),
+             (1, "tracker", "source restart", "previous", 0, "resumed")]
+    for start_ns, node_name, cause, whose, index, then in cases:
         with _tracker({"resume_wait_s": 0.0, "recorded_reference": "recorded/markers/reference"}) as (
                 node, references, markers):
             node.launch_ns = node.started_ns - 10
-            node.on_reset_taken(SlipState(pub_ns=node.launch_ns + reset_ns, node=node_name))
+            node.on_grasp_started(GraspStart(pub_ns=node.launch_ns + start_ns, node=node_name, cause=cause))
             if whose == "previous":
                 node.on_reference(_reference_of(taken, rest, node.launch_ns + 2))
             else:  # recorded in a session before this launch
                 node.on_recorded_reference(_reference_of(taken, rest, node.launch_ns - 100))
-            node.on_image(Image(stamp_ns=5, encoding="mono8", data=sheared))
-            case = (reset_ns, node_name, whose)
+            node.on_image(Image(stamp_ns=5, encoding="mono8", data=sheared, frame_index=index))
+            case = (start_ns, node_name, cause, whose, index)
+            if then == "waits":  # frame 0 of the pass is before reference_frame 1: frame 1 is the reference
+                assert not references and not markers, case
+                node.on_image(Image(stamp_ns=6, encoding="mono8", data=sheared, frame_index=1))
+            resumed = then == "resumed"
             assert (node.counters["resumed"], node.counters["references"]) == ((1, 0) if resumed else (0, 1)), case
-            assert len(references) == 1 and references[0].stamp_ns == (1 if resumed else 5), case
+            assert len(references) == 1 and references[0].stamp_ns == (1 if resumed else markers[0].stamp_ns), case
             shift = np.abs(markers[0].cur_px - markers[0].ref_px)[markers[0].valid].max()
             assert (shift > 1) == resumed, (case, shift)
 
