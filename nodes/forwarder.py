@@ -245,37 +245,63 @@ def ping(address: BusAddress | None = None, timeout_s: float = ANSWER_WAIT_S) ->
         sock.close(linger=0)
 
 
+class ForwarderStart:
+    """A forwarder process started on `address`, until it answers: `answered()` looks once, without waiting
+    for it, so that its caller decides how to wait (`ensure_forwarder` blocks; the launcher looks on each pass
+    of its supervise loop and supervises its nodes meanwhile). The process stops when the caller dies
+    (`nodes.parent_death`). One that starts is waited for up to `timeout_s`: a Python process's start, 0.6 s
+    here, took over 5 s on a loaded host (a test run beside two others), and the launch failed ("did not
+    answer within 5.0 s")."""
+
+    def __init__(self, address: BusAddress, timeout_s: float = START_TIMEOUT_S) -> None:
+        env = dict(os.environ, **{BUS_ENV: address.url}, **parent_env())
+        self.address = address
+        self.timeout_s = timeout_s
+        self.proc = subprocess.Popen([sys.executable, "-m", "nodes.cli", "forwarder"], env=env,
+                                     start_new_session=False)
+        self._deadline = time.monotonic() + timeout_s
+
+    def answered(self) -> bool:
+        """True once the forwarder answers a ping (of up to 0.2 s; at once while nothing listens on its socket
+        file), False while it may still. RuntimeError when it exited at its start (its code said), or when
+        `timeout_s` passed without an answer: then it is stopped (`stop`)."""
+        if ping(self.address, 0.2) is not None:
+            return True
+        if self.proc.poll() is not None:
+            raise RuntimeError(f"forwarder for {self.address.url} exited with code {self.proc.returncode} at start")
+        if time.monotonic() >= self._deadline:
+            self.stop()
+            raise RuntimeError(f"forwarder for {self.address.url} did not answer within {self.timeout_s} s")
+        return False
+
+    def stop(self) -> None:
+        """Stop the process no longer waited for (SIGTERM, SIGKILL after 5 s) and reap it: it was left a
+        zombie until the launch exited."""
+        stop_process(self.proc, signal.SIGTERM, 5.0)
+
+
 def ensure_forwarder(address: BusAddress | None = None, timeout_s: float = START_TIMEOUT_S,
                      stop: threading.Event | None = None) -> subprocess.Popen | None:
-    """Start a forwarder process unless one answers; returns it (the caller stops it; it also stops
-    when the caller dies: `nodes.parent_death`) or None when one was already running. Once `stop` is set, none
-    is started and the one started is no longer waited for (it is terminated): RuntimeError, as when it cannot
-    start. A launch stopped as it looked for a forwarder started one, waited for its answer, then stopped it:
-    0.5 to 0.7 s before its stop began. A forwarder that listens on the bus is waited for as long as `ping`
-    waits (a killed one's socket file is told at once): a quick look of 0.3 s missed a serving one on a loaded
-    host, and the forwarder started then could not take the bus's lock ("exited with code 2 at start"). One that
-    starts is waited for up to `timeout_s`: a Python process's start, 0.6 s here, took over 5 s on a loaded
-    host (a test run beside two others), and the launch failed ("did not answer within 5.0 s")."""
+    """Start a forwarder process unless one answers and wait for its answer (`ForwarderStart`, up to
+    `timeout_s`); returns it (the caller stops it) or None when one was already running. Once `stop` is set,
+    none is started and the one started is no longer waited for (it is stopped): RuntimeError, as when it
+    cannot start. A launch stopped as it looked for a forwarder started one, waited for its answer, then
+    stopped it: 0.5 to 0.7 s before its stop began. A forwarder that listens on the bus is waited for as long
+    as `ping` waits (a killed one's socket file is told at once): a quick look of 0.3 s missed a serving one
+    on a loaded host, and the forwarder started then could not take the bus's lock ("exited with code 2 at
+    start")."""
     address = address or bus_address()
     stop = stop or threading.Event()
     if ping(address) is not None:
         return None
     if stop.is_set():
         raise RuntimeError(f"stopped before a forwarder for {address.url} was started")
-    env = dict(os.environ, **{BUS_ENV: address.url}, **parent_env())
-    proc = subprocess.Popen([sys.executable, "-m", "nodes.cli", "forwarder"], env=env,
-                            start_new_session=False)
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if ping(address, 0.2) is not None:
-            return proc
-        if proc.poll() is not None:
-            raise RuntimeError(f"forwarder for {address.url} exited with code {proc.returncode} at start")
+    start = ForwarderStart(address, timeout_s)
+    while not start.answered():
         if stop.wait(0.05):
-            stop_process(proc, signal.SIGTERM, 5.0)  # and reaped: a zombie until the launch exited
+            start.stop()
             raise RuntimeError(f"stopped before the forwarder for {address.url} answered")
-    stop_process(proc, signal.SIGTERM, 5.0)
-    raise RuntimeError(f"forwarder for {address.url} did not answer within {timeout_s} s")
+    return start.proc
 
 
 def serve(tcp_url: str | None = None, keys: Path | None = None) -> int:

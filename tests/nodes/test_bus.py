@@ -5,11 +5,13 @@ from __future__ import annotations
 import copy
 import os
 import pickle
+import signal
 import socket
 import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 import msgpack
 import pytest
 import zmq
@@ -18,7 +20,7 @@ import msgs
 from msgs import CameraInfo, NodeStatus, SlipState
 from nodes.bus import PublisherSocket, SeqTracker, TopicReader, envelope, parse_envelope
 from nodes.endpoints import BUS_ENV, CURVE_ENV, bus_address, make_keys, secure_server
-from nodes.forwarder import Forwarder, ensure_forwarder, ping
+from nodes.forwarder import Forwarder, ForwarderStart, ensure_forwarder, ping
 from tests.nodes.conftest import REPO, Bus, poll_until, run_fv, wait_for
 
 
@@ -221,6 +223,22 @@ def test_a_killed_forwarder_s_socket_files_are_told_from_a_serving_one_at_once(b
     finally:
         restarted.terminate()
         restarted.wait(5.0)
+
+
+def test_a_started_forwarder_that_never_answers_is_looked_at_then_stopped_and_reaped(
+        bus_env: Bus, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`ForwarderStart.answered` looks once without waiting for the answer (the launcher supervises its nodes
+    between its looks): False while the process may still answer; past `timeout_s`, RuntimeError, the process
+    stopped and reaped."""
+    python = tmp_path / "python"  # a forwarder whose Python never starts
+    python.write_text("#!/bin/sh\nexec sleep 60\n")
+    python.chmod(0o755)
+    monkeypatch.setattr(sys, "executable", str(python))
+    start = ForwarderStart(bus_env.address, timeout_s=1.0)
+    assert start.answered() is False and start.proc.returncode is None
+    with pytest.raises(RuntimeError, match=f"forwarder for {bus_env.address.url} did not answer within 1.0 s"):
+        poll_until(start.answered, 30.0)
+    assert start.proc.returncode == -signal.SIGTERM, "the forwarder was left running or unreaped"
 
 
 def test_a_launch_waits_for_a_slow_answer_from_a_serving_forwarder(bus: Bus, monkeypatch: pytest.MonkeyPatch) -> None:
