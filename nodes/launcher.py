@@ -12,8 +12,10 @@ they must be started from the main thread or the supervisor, which live as long 
 The launcher supervises the forwarder it started (restarted when it dies; nodes
 reconnect by themselves and re-send their latched messages). A launch that found another's
 forwarder running on its IPC bus pings it every `FORWARDER_CHECK_S` and starts its own when it is
-gone (the other launch stopped): its nodes would otherwise wait for a forwarder for good. It publishes its own
-`NodeStatus` on `/status` as `launch_<file stem>`: counters `respawns`,
+gone (the other launch stopped): its nodes would otherwise wait for a forwarder for good. A forwarder
+(re)started while the nodes run is looked at on each pass of the supervise loop until it answers, so the
+nodes are supervised meanwhile (only the launch's first forwarder is waited for before any node starts).
+It publishes its own `NodeStatus` on `/status` as `launch_<file stem>`: counters `respawns`,
 `<node>.respawns`, `forwarder_restarts`, `running`, `waiting`, and state "error" naming a node
 whose process is stopped (SIGSTOP), whose NodeStatus has been missing for `SILENT_AFTER_S` or that
 cannot start, "warn" for a node waiting to respawn, waiting for what it needs, or gone with an error code.
@@ -44,7 +46,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 from nodes import launch_checks
 from nodes.endpoints import BusAddress
@@ -52,6 +54,9 @@ from nodes.exit_codes import CONFIG, CONFIG_WHILE_RUNNING, FAILED, OK, TEMPFAIL,
 from nodes.launch_file import NodeSpec, load_launch, parse_arg_overrides
 from nodes.node import LAUNCH_ENV, STANDBY_READY
 from nodes.parent_death import parent_env
+
+if TYPE_CHECKING:
+    from nodes.forwarder import ForwarderStart
 
 GRACE_S = 1.2
 NAMESAKE_WAIT_S = 0.5  # how long a launch on a running bus listens for the NodeStatus of namesakes
@@ -129,6 +134,7 @@ class Launch:
         self.forwarder_restarts = 0
         self._forwarder: subprocess.Popen | None = None
         self._forwarder_retry_at: float | None = None  # when to (re)try starting the forwarder; None = not needed
+        self._forwarder_start: ForwarderStart | None = None  # a forwarder (re)started, not answering yet
         self._forwarder_check_at = 0.0  # next ping of a shared forwarder
         self._address = None
         self._status_pub = None
@@ -366,9 +372,15 @@ class Launch:
 
     def _watch_forwarder(self, now: float) -> None:
         """Restart the forwarder this launch started when it has died, start one when the shared
-        IPC forwarder no longer answers (retrying every FORWARDER_RETRY_S while it fails to start)."""
-        from nodes.forwarder import ensure_forwarder, ping
+        IPC forwarder no longer answers (retrying every FORWARDER_RETRY_S while it fails to start). The new
+        process is not waited for (`_forwarder_answered` looks on each pass): a restart that waited for its
+        answer held the supervise loop up to START_TIMEOUT_S (30 s), the nodes that died meanwhile not respawned
+        and the launch's status not sent."""
+        from nodes.forwarder import ForwarderStart, ping
 
+        if self._forwarder_start is not None:
+            self._forwarder_answered()
+            return
         if self._forwarder is not None and self._forwarder.poll() is not None:
             dead = self._forwarder
             self.say(f"forwarder pid {dead.pid} exited with code {dead.returncode}; restarting it")
@@ -382,21 +394,31 @@ class Launch:
                 self._forwarder_retry_at = now
         if self._forwarder_retry_at is None or now < self._forwarder_retry_at or self._stop.is_set():
             return
-        try:
-            proc = ensure_forwarder(self._address, stop=self._stop)
-        except RuntimeError as exc:
-            if self._stop.is_set():  # the launch is stopping: no forwarder is wanted any more
-                return
-            self.say(f"forwarder restart failed: {exc}; retrying in {FORWARDER_RETRY_S:g} s")
-            self._forwarder_retry_at = time.monotonic() + FORWARDER_RETRY_S
-            return
-        self._forwarder_retry_at = None
-        self.forwarder_restarts += 1
-        if proc is None:
+        if ping(self._address) is not None:
+            self._forwarder_retry_at = None
+            self.forwarder_restarts += 1
             self.say(f"another forwarder now serves {self._address.url}; this launch does not supervise it")
             return
-        self._forwarder = proc
-        self.say(f"restarted forwarder on {self._address.url} pid {proc.pid} (restart {self.forwarder_restarts})")
+        self._forwarder_start = ForwarderStart(self._address)
+
+    def _forwarder_answered(self) -> None:
+        """Look once whether the forwarder being (re)started answers: then it is this launch's, said with its
+        restart count. One that exited at its start, or did not answer within START_TIMEOUT_S (stopped), is said
+        and started again after FORWARDER_RETRY_S, unless the launch is stopping."""
+        start = self._forwarder_start
+        try:
+            if not start.answered():
+                return
+        except RuntimeError as exc:
+            self._forwarder_start = None
+            if not self._stop.is_set():  # the launch is stopping: no forwarder is wanted any more
+                self.say(f"forwarder restart failed: {exc}; retrying in {FORWARDER_RETRY_S:g} s")
+                self._forwarder_retry_at = time.monotonic() + FORWARDER_RETRY_S
+            return
+        self._forwarder_start, self._forwarder_retry_at, self._forwarder = None, None, start.proc
+        self.forwarder_restarts += 1
+        self.say(f"restarted forwarder on {self._address.url} pid {start.proc.pid} "
+                 f"(restart {self.forwarder_restarts})")
 
     def _read_statuses(self, now: float) -> None:
         """Note the NodeStatus messages of the current processes of this launch's nodes; say when a
@@ -547,6 +569,9 @@ class Launch:
             if sock is not None:
                 sock.close()
         self._status_reader = self._params = self._status_pub = None
+        if self._forwarder_start is not None:  # a restart not answered yet: stopped and reaped, not said
+            self._forwarder_start.stop()
+            self._forwarder_start = None
         if self._forwarder is not None:
             self._forwarder.terminate()
             try:

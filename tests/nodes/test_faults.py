@@ -8,6 +8,7 @@ import logging
 import os
 import signal
 import subprocess
+import sys
 import threading
 import time
 from contextlib import contextmanager
@@ -369,6 +370,44 @@ def test_launcher_restarts_the_forwarder_it_started(bus_env: Bus, tmp_path: Path
     print(f"listener receiving again {recovered_s:.2f} s after the forwarder's kill")
     # idle 1.8 s; up to 4.8 s under 3 busy loops on 2 cores: the bound leaves room for a loaded CI host
     assert recovered_s < 8.0, f"listener receiving again {recovered_s:.1f} s after the kill"
+    assert ping(bus_env.address) is None, "the restarted forwarder outlived the launch"
+
+
+@pytest.mark.parametrize("then", ["answers", "stop"])
+def test_the_launcher_respawns_a_node_while_its_forwarder_restarts(bus_env: Bus, tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch, then: str) -> None:
+    """The launcher waited for its restarted forwarder's answer (up to 30 s) in its supervise loop: a node killed
+    meanwhile was respawned only after the forwarder answered. Here the restarted forwarder waits for a file
+    before its Python starts: the node is respawned while it waits. Then it answers and is this launch's, or the
+    launch is stopped: the forwarder still starting is stopped and reaped, the abandoned restart not said."""
+    slow, go = tmp_path / "slow", tmp_path / "go"
+    python = tmp_path / "python"  # the launch's python (sys.executable): a forwarder started once `slow` exists waits
+    python.write_text(f'#!/bin/sh\ncase "$*" in *"nodes.cli forwarder"*) [ -e {slow} ] && '
+                      f'while [ ! -e {go} ]; do sleep 0.05; done;; esac\nexec {sys.executable} "$@"\n')
+    python.chmod(0o755)
+    monkeypatch.setattr(sys, "executable", str(python))
+    run, out = launch(tmp_path, "nodes:\n  - {kind: talker, respawn: true, respawn_delay: 0.1}\n")
+    run.start()
+    try:
+        first = wait_status("talker", timeout_s=10.0).pid
+        slow.touch()
+        old = run.forwarder_pid
+        os.kill(old, signal.SIGKILL)
+        wait_for(lambda: "restarting it" in out.getvalue(), 10.0, "the launcher noticing the forwarder's death")
+        os.kill(first, signal.SIGKILL)
+        wait_for(lambda: run.pid("talker") not in (None, first), 10.0, "the talker's respawn")
+        assert ping(bus_env.address) is None, "the forwarder answered: the respawn proves nothing"
+        starting = run._forwarder_start.proc
+        if then == "answers":
+            go.touch()
+            wait_for(lambda: run.forwarder_pid == starting.pid, 30.0, "the restarted forwarder's answer")
+            wait_status("talker", lambda st: st.pid == run.pid("talker"), 10.0)
+    finally:
+        run.stop()
+    text = out.getvalue()
+    assert text.count("respawn 1 in 0.1 s") == 1 and "restart failed" not in text, text
+    assert ("(restart 1)" in text) == (then == "answers"), text
+    assert starting.returncode is not None, "the restarted forwarder was left running or unreaped"
     assert ping(bus_env.address) is None, "the restarted forwarder outlived the launch"
 
 
