@@ -136,6 +136,7 @@ class Launch:
         self._forwarder_retry_at: float | None = None  # when to (re)try starting the forwarder; None = not needed
         self._forwarder_start: ForwarderStart | None = None  # a forwarder (re)started, not answering yet
         self._forwarder_check_at = 0.0  # next ping of a shared forwarder
+        self._bus_back_s = 0.0  # when a (re)started forwarder last answered (monotonic s): nodes were silent before
         self._address = None
         self._status_pub = None
         self._status_reader = None
@@ -395,7 +396,7 @@ class Launch:
         if self._forwarder_retry_at is None or now < self._forwarder_retry_at or self._stop.is_set():
             return
         if ping(self._address) is not None:
-            self._forwarder_retry_at = None
+            self._forwarder_retry_at, self._bus_back_s = None, time.monotonic()
             self.forwarder_restarts += 1
             self.say(f"another forwarder now serves {self._address.url}; this launch does not supervise it")
             return
@@ -416,6 +417,7 @@ class Launch:
                 self._forwarder_retry_at = time.monotonic() + FORWARDER_RETRY_S
             return
         self._forwarder_start, self._forwarder_retry_at, self._forwarder = None, None, start.proc
+        self._bus_back_s = time.monotonic()
         self.forwarder_restarts += 1
         self.say(f"restarted forwarder on {self._address.url} pid {start.proc.pid} "
                  f"(restart {self.forwarder_restarts})")
@@ -435,14 +437,18 @@ class Launch:
 
     def _check_nodes(self, now: float) -> list[tuple[str, str]]:
         """(state, message) per node in trouble: its process stopped or its NodeStatus
-        missing for SILENT_AFTER_S (error; said once when it starts), it cannot start (error),
+        missing for SILENT_AFTER_S (error; said once when it starts; not while the forwarder is restarted, nor
+        counted from before it answered: the silence is the bus's, and every node was said hung), it cannot
+        start (error),
         it waits for what it needs (exit TEMPFAIL), waits to respawn or exited with an error
         code (warn)."""
         faults = []
         for child in self.children:
             name, kind, fault, state = child.spec.name, "", "", "warn"
             running = child.proc is not None
-            silent_s = None if not running or child.last_status_s is None else now - child.last_status_s
+            bus_down = self._forwarder_start is not None or self._forwarder_retry_at is not None
+            silent_s = (None if not running or child.last_status_s is None or bus_down
+                        else now - max(child.last_status_s, self._bus_back_s))  # a forwarder's gap is not theirs
             if running and _process_state(child.proc.pid) in ("T", "t"):
                 kind, fault, state = "stopped", f"{name} is stopped (SIGSTOP?)", "error"
             elif silent_s is not None and silent_s > SILENT_AFTER_S:

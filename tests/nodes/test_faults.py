@@ -26,7 +26,7 @@ from nodes.bus import PublisherSocket, TopicReader, envelope
 from nodes.camera_sources import FolderSource, SourceError, VideoFileSource
 from nodes.exit_codes import CONFIG
 from nodes.forwarder import ping
-from nodes.launcher import Launch
+from nodes.launcher import SILENT_AFTER_S, Launch
 from nodes.node import Node
 from tests.nodes.conftest import Bus, pid_alive, spinning, wait_for, wait_status
 
@@ -378,18 +378,20 @@ def test_the_launcher_respawns_a_node_while_its_forwarder_restarts(bus_env: Bus,
                                                                    monkeypatch: pytest.MonkeyPatch, then: str) -> None:
     """The launcher waited for its restarted forwarder's answer (up to 30 s) in its supervise loop: a node killed
     meanwhile was respawned only after the forwarder answered. Here the restarted forwarder waits for a file
-    before its Python starts: the node is respawned while it waits. Then it answers and is this launch's, or the
-    launch is stopped: the forwarder still starting is stopped and reaped, the abandoned restart not said."""
+    before its Python starts: the node is respawned while it waits. Then it answers and is this launch's (the
+    listener, silent while it waited, is not said hung: the silence was the bus's), or the launch is stopped: the
+    forwarder still starting is stopped and reaped, the abandoned restart not said."""
     slow, go = tmp_path / "slow", tmp_path / "go"
     python = tmp_path / "python"  # the launch's python (sys.executable): a forwarder started once `slow` exists waits
     python.write_text(f'#!/bin/sh\ncase "$*" in *"nodes.cli forwarder"*) [ -e {slow} ] && '
                       f'while [ ! -e {go} ]; do sleep 0.05; done;; esac\nexec {sys.executable} "$@"\n')
     python.chmod(0o755)
     monkeypatch.setattr(sys, "executable", str(python))
-    run, out = launch(tmp_path, "nodes:\n  - {kind: talker, respawn: true, respawn_delay: 0.1}\n")
+    run, out = launch(tmp_path, "nodes:\n  - {kind: talker, respawn: true, respawn_delay: 0.1}\n  - {kind: listener}\n")
     run.start()
     try:
         first = wait_status("talker", timeout_s=10.0).pid
+        wait_status("listener", timeout_s=10.0)
         slow.touch()
         old = run.forwarder_pid
         os.kill(old, signal.SIGKILL)
@@ -399,13 +401,15 @@ def test_the_launcher_respawns_a_node_while_its_forwarder_restarts(bus_env: Bus,
         assert ping(bus_env.address) is None, "the forwarder answered: the respawn proves nothing"
         starting = run._forwarder_start.proc
         if then == "answers":
+            time.sleep(SILENT_AFTER_S + 1.0)  # the listener is not said hung for the forwarder's silence
             go.touch()
             wait_for(lambda: run.forwarder_pid == starting.pid, 30.0, "the restarted forwarder's answer")
             wait_status("talker", lambda st: st.pid == run.pid("talker"), 10.0)
+            time.sleep(1.5)  # the launcher's next statuses, with the talker's first after the restart
     finally:
         run.stop()
     text = out.getvalue()
-    assert text.count("respawn 1 in 0.1 s") == 1 and "restart failed" not in text, text
+    assert text.count("respawn 1 in 0.1 s") == 1 and "restart failed" not in text and "hung?" not in text, text
     assert ("(restart 1)" in text) == (then == "answers"), text
     assert starting.returncode is not None, "the restarted forwarder was left running or unreaped"
     assert ping(bus_env.address) is None, "the restarted forwarder outlived the launch"
