@@ -267,9 +267,9 @@ class BagRecord(Node):
         return sum(t.gaps for t in self._gaps.values())
 
     def _finish(self) -> None:
-        """Close the bag with its totals; a file that cannot be finished (the disk full: the last, or the one a
-        split closed) is named, with the command that indexes what reached it. After a split whose new file
-        could not be opened (the node's error) there is none open to close."""
+        """Close the bag with its totals; a file that cannot be finished (the disk full, the MCAP writer's own
+        error: the last, or the one a split closed) is named, with the command that indexes what reached it. After
+        a split whose new file could not be opened (the node's error) there is none open to close."""
         if self.error:  # a drop warning of the receive thread, as the writer failed, may have come after it
             self.state, self.message = "error", self.error
         stats = self.writer.stats
@@ -283,8 +283,11 @@ class BagRecord(Node):
                     "per_topic": json.dumps({t: {"count": s.count, "gaps": self._gaps[t].gaps, "first_ns": s.first_ns,
                                                  "last_ns": s.last_ns} for t, s in stats.items()})})
                 self.writer.close()
-            except OSError as exc:
-                unfinished, why = self.writer.unfinished or self.writer.files[-1], f": {exc.strerror or exc}"
+            except Exception as exc:  # not BaseException: Ctrl-C still interrupts
+                self.writer.abandon()
+                unfinished = self.writer.unfinished
+                why = (f": {exc.strerror}" if isinstance(exc, OSError) and exc.strerror
+                       else f": {type(exc).__name__}: {exc}")
         if unfinished is not None:
             self.state, self.message = "error", f"could not finish {unfinished}{why}"
             self.log.error("%s; what was flushed is kept: run `fv bag recover %s` to index it", self.message,

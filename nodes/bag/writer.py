@@ -8,6 +8,7 @@ file, so a crash loses at most the chunk in progress (`fv bag recover` restores 
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import time
@@ -97,7 +98,7 @@ class BagWriter:
         self._schemas: dict[str, int] = {}
         self._channels: dict[tuple[str, str, str, bool], int] = {}
         self._file_start_ns = 0
-        self.unfinished: Path | None = None  # a file whose summary and index could not be written (a full disk)
+        self.unfinished: Path | None = None  # a file whose summary and index could not be written (a full disk...)
         self._open_next()
 
     # -- files -----------------------------------------------------------------------
@@ -121,12 +122,16 @@ class BagWriter:
             self._stream.flush()
             if self.fsync:
                 os.fsync(self._stream.fileno())
-        except OSError:
-            self.unfinished = self.files[-1]
+        except Exception:  # a full disk, or the MCAP writer's own error: the file stays as flushed, closed
+            self.abandon()
             raise
-        finally:  # a full disk: the file stays as flushed, closed
-            stream, self._writer, self._stream = self._stream, None, None
-            stream.close()
+        self._release().close()
+
+    def _release(self) -> IO[bytes]:
+        """The open file's stream, no longer the writer's (`is_open` is False)."""
+        assert self._stream is not None
+        stream, self._writer, self._stream = self._stream, None, None
+        return stream
 
     def _maybe_split(self, log_time_ns: int) -> None:
         assert self._stream is not None
@@ -210,3 +215,12 @@ class BagWriter:
         """Write the summary and index of the last file and close it."""
         if self._writer is not None:
             self._finish_file()
+
+    def abandon(self) -> None:
+        """Close the open file as it stands, without its summary and index, after a failure that left it open: it
+        is `unfinished` (`fv bag recover` indexes what was flushed)."""
+        if self._stream is None:
+            return
+        self.unfinished = self.files[-1]
+        with contextlib.suppress(OSError):  # the buffered tail on a full disk: the file is unfinished either way
+            self._release().close()

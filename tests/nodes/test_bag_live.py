@@ -1037,14 +1037,15 @@ def test_a_node_process_sends_what_it_published_before_it_exits(bus: BusAddress,
     assert got == images
 
 
-@pytest.mark.parametrize("failing", ["open", "finish"])
+@pytest.mark.parametrize("failing", ["open", "finish", "mcap"])
 def test_a_split_that_fails_ends_in_an_error_naming_the_file_and_a_summary(
         bus: BusAddress, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture,
         failing: str) -> None:
     """A recording split by size whose next file cannot be opened (permissions), or whose file cannot be finished
     as it is closed (its summary and index: a full disk): the node's error names it (with `fv bag recover` for the
     unfinished file), what was recorded is kept, and the recording ends with its summary. Both ended in the writer
-    thread's AssertionError ('writer is closed', a traceback) and no summary, and the unfinished file went unnamed."""
+    thread's AssertionError ('writer is closed', a traceback) and no summary, and the unfinished file went unnamed;
+    it went unnamed still when the MCAP writer's own error (not an OSError) stopped the finishing."""
     import errno
 
     import mcap.writer
@@ -1061,11 +1062,11 @@ def test_a_split_that_fails_ends_in_an_error_naming_the_file_and_a_summary(
     def first_finish_fails(self: mcap.writer.Writer) -> None:
         if not getattr(first_finish_fails, "failed", False):
             first_finish_fails.failed = True
-            raise OSError(errno.ENOSPC, "No space left on device")
+            raise OSError(errno.ENOSPC, "No space left on device") if failing == "finish" else ValueError("bad chunk")
         finish(self)
 
     monkeypatch.setattr(writer_module, "open_mcap", second_open_fails)
-    if failing == "finish":
+    if failing != "open":
         monkeypatch.setattr(mcap.writer.Writer, "finish", first_finish_fails)
     died: list = []
     monkeypatch.setattr(threading, "excepthook", died.append)
@@ -1086,7 +1087,38 @@ def test_a_split_that_fails_ends_in_an_error_naming_the_file_and_a_summary(
         assert "Permission denied" in node.message, node.message
         assert len(opened) == 2 and BagReader(opened[0]).topics()["/a"].count == node.counters["recorded"] > 0
     else:
-        assert node.message.startswith(f"could not finish {opened[0]} (recording failed: OSError: [Errno 28]"), \
-            node.message
+        error = "OSError: [Errno 28]" if failing == "finish" else "ValueError: bad chunk"
+        assert node.message.startswith(f"could not finish {opened[0]} (recording failed: {error}"), node.message
         assert f"run `fv bag recover {opened[0]}`" in caplog.text
         assert recover(opened[0], tmp_path / "kept.mcap").messages == node.counters["recorded"] > 0
+
+
+@pytest.mark.parametrize("failing", ["add_metadata", "finish"])
+def test_a_bag_that_cannot_be_closed_is_named_with_recover_and_summed_up(
+        bus: BusAddress, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture,
+        failing: str) -> None:
+    """An error other than an OSError as the recording ends (its end record, or the MCAP writer's summary and
+    index): the node's error names the file, with `fv bag recover`, the file is closed as it stands, and the
+    summary line is logged. Only an OSError was caught there: any other ended in the writer thread's traceback,
+    the file unnamed (and left open) and no summary."""
+    import mcap.writer
+
+    def fails(*args: object) -> None:
+        raise ValueError("bad record")
+
+    owner = BagWriter if failing == "add_metadata" else mcap.writer.Writer
+    monkeypatch.setattr(owner, failing, fails)
+    caplog.set_level(logging.INFO)
+    died: list = []
+    monkeypatch.setattr(threading, "excepthook", died.append)
+    node = BagRecord("rec", {"output": str(tmp_path / "end"), "topics": ["/a"], "flush_period_s": 0.1},
+                     address=bus)
+    _record_published(node, bus, ("/a",), 20)
+    file = tmp_path / "end" / "end_0.mcap"
+    assert not died, died[0].exc_value
+    assert node.state == "error" and node.message == f"could not finish {file}: ValueError: bad record", \
+        node.message
+    assert f"run `fv bag recover {file}`" in caplog.text and node.summary_line() in caplog.text
+    assert not node.writer.is_open and node.counters["recorded"] == 20
+    monkeypatch.undo()  # the MCAP writer that `recover` uses too
+    assert 0 < recover(file, tmp_path / "kept.mcap").messages <= 20
