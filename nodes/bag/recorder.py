@@ -11,9 +11,10 @@ A crash or `kill -9` loses what is not yet flushed: the chunk in progress (at mo
 messages) and the backlog, as it lost the socket's queue before. The backlog holds at most `queue_depth`
 messages, as that queue does: a writer further behind (a disk slower than the stream) drops newly received
 messages, counted per topic (counters["dropped"], the summary, the ``fv_recording_end`` record) and warned by
-topic name, where the socket dropped them silently (seen only as gaps in seq). Latched `CameraInfo` messages
-are also stored as a YAML attachment ``calibration/<topic>.yaml``; files named in `attach` (the launch file...)
-are attached at the start of every split file. On stop the receive queue is drained of the messages published
+topic name, where the socket dropped them silently. Gaps in seq are counted as messages are received, before
+the backlog may drop one: they are the bus's losses only. Latched `CameraInfo` messages are also stored as
+a YAML attachment ``calibration/<topic>.yaml``; files named in `attach` (the launch file...) are attached at
+the start of every split file. On stop the receive queue is drained of the messages published
 before the stop, the writer writes all of them, totals go into a ``fv_recording_end`` metadata record and one
 summary line is logged.
 """
@@ -138,7 +139,8 @@ class BagRecord(Node):
                 mimetypes.guess_type(path)[0] or "application/octet-stream")
             self.writer.attach(Path(path).name, Path(path).read_bytes(), media)
         self._calibrations: dict[str, bytes] = {}
-        self._gaps: dict[str, SeqTracker] = {}
+        self._gaps: dict[str, SeqTracker] = {}  # per topic, the seqs received (the receive thread's; `gaps`)
+        self._gaps_lock = threading.Lock()
         wanted = [ALL_TOPICS] if (p.all_topics or p.regex) else sorted(self._only)
         self._reader = TopicReader(wanted, self.address, self.ctx, hwm=p.queue_depth)
         self._backlog = Backlog(p.queue_depth)
@@ -188,6 +190,8 @@ class BagRecord(Node):
         header = msgs.decode_header(frames[0], topic)
         if published_by_ns is not None and header["pub_ns"] > published_by_ns:
             return False
+        with self._gaps_lock:
+            self._gaps.setdefault(topic, SeqTracker()).accept(topic, node, header["seq"], latched)
         if not self._backlog.put(Stamped(topic, node, latched, frames, header, log_time_ns)) \
                 and not self.error:  # a failed writer's error stays the node's state
             self.warn(f"dropping messages of {topic}: the writer is {self.params.queue_depth} messages behind "
@@ -195,9 +199,8 @@ class BagRecord(Node):
         return True
 
     def _record(self, m: Stamped) -> None:
-        """Write one stamped message, count its gaps, attach its calibration."""
+        """Write one stamped message, attach its calibration."""
         self.writer.write(m.topic, m.node, m.latched, m.frames, m.log_time_ns, m.header)
-        self._gaps.setdefault(m.topic, SeqTracker()).accept(m.topic, m.node, m.header["seq"], m.latched)
         if m.header["type"] == CameraInfo.TYPE:
             self._attach_calibration(m.topic, m.frames)
 
@@ -263,8 +266,15 @@ class BagRecord(Node):
                              bytes=self.writer.size_b, files=len(self.writer.files))
 
     @property
+    def gaps(self) -> dict[str, int]:
+        """Messages missing by seq per topic: lost on the bus before the recorder received them (its own drops
+        are `dropped`)."""
+        with self._gaps_lock:
+            return {topic: tracker.gaps for topic, tracker in self._gaps.items()}
+
+    @property
     def total_gaps(self) -> int:
-        return sum(t.gaps for t in self._gaps.values())
+        return sum(self.gaps.values())
 
     def _finish(self) -> None:
         """Close the bag with its totals; a file that cannot be finished (the disk full, the MCAP writer's own
@@ -272,15 +282,15 @@ class BagRecord(Node):
         a split whose new file could not be opened (the node's error) there is none open to close."""
         if self.error:  # a drop warning of the receive thread, as the writer failed, may have come after it
             self.state, self.message = "error", self.error
-        stats = self.writer.stats
+        stats, gaps = self.writer.stats, self.gaps
         unfinished, why = self.writer.unfinished, f" ({self.message})"
         if self.writer.is_open:
             try:
                 self.writer.add_metadata(RECORDING_END_META, {
                     "end_time_ns": str(time.time_ns()), "messages": str(sum(s.count for s in stats.values())),
-                    "gaps": str(self.total_gaps), "malformed": str(self._reader.malformed),
+                    "gaps": str(sum(gaps.values())), "malformed": str(self._reader.malformed),
                     "dropped": json.dumps(self._backlog.dropped),
-                    "per_topic": json.dumps({t: {"count": s.count, "gaps": self._gaps[t].gaps, "first_ns": s.first_ns,
+                    "per_topic": json.dumps({t: {"count": s.count, "gaps": gaps.get(t, 0), "first_ns": s.first_ns,
                                                  "last_ns": s.last_ns} for t, s in stats.items()})})
                 self.writer.close()
             except Exception as exc:  # not BaseException: Ctrl-C still interrupts
@@ -297,21 +307,21 @@ class BagRecord(Node):
 
     def summary_line(self) -> str:
         """One line: messages (gaps, drops) per topic, size, duration, files."""
-        stats, dropped = self.writer.stats, self._backlog.dropped
+        stats, gaps, dropped = self.writer.stats, self.gaps, self._backlog.dropped
         first = min((s.first_ns for s in stats.values()), default=0)
         last = max((s.last_ns for s in stats.values()), default=0)
         span_s = max((last - first) / 1e9, 1e-9)
 
         def losses(topic: str) -> str:
-            gaps = self._gaps[topic].gaps if topic in self._gaps else 0
-            words = ([f"{gaps} missing"] if gaps else []) + ([f"{dropped[topic]} dropped"] if topic in dropped else [])
+            words = [f"{counts[topic]} {word}" for counts, word in ((gaps, "missing"), (dropped, "dropped"))
+                     if counts.get(topic)]
             return f" ({', '.join(words)})" if words else ""
 
         topics = ", ".join(f"{t} {stats[t].count if t in stats else 0}{losses(t)}"
                            for t in sorted(stats.keys() | dropped.keys()))
         return (f"recorded {sum(s.count for s in stats.values())} messages in {span_s if stats else 0:.1f} s "
                 f"to {self.writer.output} ({len(self.writer.files)} file(s), {self.writer.size_b / 1e6:.1f} MB): "
-                f"{topics or 'nothing'}; missing by seq {self.total_gaps}, malformed {self._reader.malformed}, "
+                f"{topics or 'nothing'}; missing by seq {sum(gaps.values())}, malformed {self._reader.malformed}, "
                 f"dropped {self._backlog.total_dropped}")
 
     def teardown(self) -> None:

@@ -742,7 +742,8 @@ def test_a_writer_more_than_queue_depth_behind_drops_and_names_what_it_dropped(
     """At most `queue_depth` messages wait for the writer, as in the socket's queue, which dropped the rest
     unnamed. A flush stalled 1.5 s while 100 messages a second come, 50 at most waiting: what comes beyond them
     is dropped, counted and named by topic; every message published is either in the bag or counted as
-    dropped."""
+    dropped. The recorder's drops are no bus losses: none is also missing by seq, where every one was (the seqs
+    were counted as the writer took the messages)."""
     arm, stalls = _stall_a_flush(monkeypatch, 1.5)
     node = BagRecord("rec", {"output": str(tmp_path / "behind"), "topics": ["/a"], "queue_depth": 50},
                      address=bus)
@@ -751,6 +752,9 @@ def test_a_writer_more_than_queue_depth_behind_drops_and_names_what_it_dropped(
     dropped = json.loads(bag.metadata()["fv_recording_end"]["dropped"])
     assert dropped.keys() == {"/a"} and dropped["/a"] > 0 and node.counters["dropped"] == dropped["/a"]
     assert bag.topics()["/a"].count + dropped["/a"] == published
+    assert node.counters["gaps"] == 0 and _summary_counts(node.summary_line())["/a"]["missing"] == 0, \
+        node.summary_line()
+    assert bag.metadata()["fv_recording_end"]["gaps"] == "0"
     assert node.state == "warn" and "dropped" in node.message and "/a" in node.message, node.message
     assert f"{dropped['/a']} dropped)" in node.summary_line() and node.summary_line().endswith(
         f"dropped {dropped['/a']}")
@@ -1091,6 +1095,17 @@ def test_a_split_that_fails_ends_in_an_error_naming_the_file_and_a_summary(
         assert node.message.startswith(f"could not finish {opened[0]} (recording failed: {error}"), node.message
         assert f"run `fv bag recover {opened[0]}`" in caplog.text
         assert recover(opened[0], tmp_path / "kept.mcap").messages == node.counters["recorded"] > 0
+
+
+def _summary_counts(line: str) -> dict[str, dict[str, int]]:
+    """Per topic of a recorder's summary line, {"recorded": n, "missing": n, "dropped": n, "lost": n} (0 when not
+    named): "/a 2 (18 dropped, 10 lost), /b 3" gives {"/a": {"recorded": 2, "dropped": 18, "lost": 10, ...}...}."""
+    topics = line.split(": ", 1)[1].rsplit("; missing by seq", 1)[0]
+    counts = {}
+    for topic, recorded, losses in re.findall(r"(/\S+) (\d+)(?: \(([^)]*)\))?", topics):
+        words = dict(reversed(word.split(" ")) for word in losses.split(", ") if word)
+        counts[topic] = {"recorded": int(recorded), **{w: int(words.get(w, 0)) for w in ("missing", "dropped", "lost")}}
+    return counts
 
 
 @pytest.mark.parametrize("failing", ["add_metadata", "finish"])
