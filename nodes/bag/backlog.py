@@ -2,7 +2,9 @@
 
 Bounded, as the socket's receive queue it empties is (`queue_depth`): a writer that falls behind the bus (a
 disk slower than the stream) cannot fill the memory. A message that arrives while `max_count` wait is dropped
-(the newest goes, the backlog keeps its order) and counted under its topic in `dropped`.
+(the newest goes, the backlog keeps its order) and counted under its topic in `dropped`. A writer that fails
+`abandon`s it: the messages waiting then, the one it failed on and every one put after are counted under their
+topic in `lost`, so that each message put is either taken by the writer, dropped or lost.
 """
 from __future__ import annotations
 
@@ -25,6 +27,10 @@ class Stamped:
     log_time_ns: int
 
 
+def _count(counts: dict[str, int], topic: str) -> None:
+    counts[topic] = counts.get(topic, 0) + 1
+
+
 class Backlog:
     """A bounded FIFO from one receiving thread to one writing thread.
 
@@ -36,15 +42,21 @@ class Backlog:
             raise ValueError(f"max_count ({max_count}) must be > 0")
         self.max_count = max_count
         self.dropped: dict[str, int] = {}
+        self.lost: dict[str, int] = {}
         self._items: deque[Stamped] = deque()
         self._cond = threading.Condition()
         self._closed = False
+        self._abandoned = False
 
     def put(self, item: Stamped) -> bool:
-        """Queue `item`; False when it is dropped (counted) because the writer is too far behind."""
+        """Queue `item`; False when it is dropped (counted) because the writer is too far behind, or lost
+        (counted) because the writer failed."""
         with self._cond:
+            if self._abandoned:
+                _count(self.lost, item.topic)
+                return False
             if len(self._items) >= self.max_count:
-                self.dropped[item.topic] = self.dropped.get(item.topic, 0) + 1
+                _count(self.dropped, item.topic)
                 return False
             self._items.append(item)
             self._cond.notify()
@@ -62,6 +74,15 @@ class Backlog:
             self._closed = True
             self._cond.notify_all()
 
+    def abandon(self, unwritten: Stamped | None = None) -> None:
+        """The writer failed and takes no more: the waiting messages, `unwritten` (the one it failed on, if
+        any) and every message put from now on are counted under their topic in `lost`."""
+        with self._cond:
+            self._abandoned = True
+            for item in ([unwritten] if unwritten is not None else []) + list(self._items):
+                _count(self.lost, item.topic)
+            self._items.clear()
+
     @property
     def finished(self) -> bool:
         """Closed and emptied."""
@@ -72,3 +93,8 @@ class Backlog:
     def total_dropped(self) -> int:
         with self._cond:
             return sum(self.dropped.values())
+
+    @property
+    def total_lost(self) -> int:
+        with self._cond:
+            return sum(self.lost.values())

@@ -12,9 +12,12 @@ messages) and the backlog, as it lost the socket's queue before. The backlog hol
 messages, as that queue does: a writer further behind (a disk slower than the stream) drops newly received
 messages, counted per topic (counters["dropped"], the summary, the ``fv_recording_end`` record) and warned by
 topic name, where the socket dropped them silently. Gaps in seq are counted as messages are received, before
-the backlog may drop one: they are the bus's losses only. Latched `CameraInfo` messages are also stored as
-a YAML attachment ``calibration/<topic>.yaml``; files named in `attach` (the launch file...) are attached at
-the start of every split file. On stop the receive queue is drained of the messages published
+the backlog may drop one: they are the bus's losses only. A writer that fails (a full disk, a split whose new
+file cannot be opened) stops the node; the messages received but not stored (the one it failed on, those
+waiting, those received until the stop's drain ends) are counted lost per topic (counters["lost"], the summary,
+the node's error, ``fv_recording_end`` where it can still be written). Latched `CameraInfo` messages are also
+stored as a YAML attachment ``calibration/<topic>.yaml``; files named in `attach` (the launch file...) are
+attached at the start of every split file. On stop the receive queue is drained of the messages published
 before the stop, the writer writes all of them, totals go into a ``fv_recording_end`` metadata record and one
 summary line is logged.
 """
@@ -199,10 +202,11 @@ class BagRecord(Node):
         return True
 
     def _record(self, m: Stamped) -> None:
-        """Write one stamped message, attach its calibration."""
-        self.writer.write(m.topic, m.node, m.latched, m.frames, m.log_time_ns, m.header)
+        """Attach a stamped message's calibration, then write it: the message is stored once this returns, and
+        not when it raises."""
         if m.header["type"] == CameraInfo.TYPE:
             self._attach_calibration(m.topic, m.frames)
+        self.writer.write(m.topic, m.node, m.latched, m.frames, m.log_time_ns, m.header)
 
     def _attach_calibration(self, topic: str, frames: list[Any]) -> None:
         try:
@@ -221,10 +225,10 @@ class BagRecord(Node):
                 raw = self._reader.recv_raw(RECV_WAIT_S)
                 if raw is not None and not self._receive(*raw, published_by_ns=self.stop_ns):
                     break  # the stop came while it waited: a message published after it is not recorded
-            # the stop's time, not the time this thread saw it: on a loaded machine one more message came between
+            # the stop's time, not the time this thread saw it: on a loaded machine one more message came between.
+            # Drained after a writer's failure too: what was published before it is counted lost (`Backlog`)
             stopped_ns, drain_until = self.stop_ns or time.time_ns(), time.monotonic() + DRAIN_MAX_S
-            while (not self.error and time.monotonic() < drain_until
-                   and (raw := self._reader.recv_raw(DRAIN_IDLE_S)) is not None):
+            while time.monotonic() < drain_until and (raw := self._reader.recv_raw(DRAIN_IDLE_S)) is not None:
                 if not self._receive(*raw, published_by_ns=stopped_ns):
                     break
         except Exception as exc:
@@ -235,20 +239,23 @@ class BagRecord(Node):
 
     def _run_writing(self) -> None:
         """The writer thread: write what the backlog holds, flush every period; once it is finished (or the
-        writing failed) and the receive thread has ended, close the bag."""
+        writing failed: what it did not store is counted lost) and the receive thread has ended, close the bag."""
         period = self.params.flush_period_s
+        stamped: Stamped | None = None  # the message being stored, until it is
         try:
             next_flush = time.monotonic() + period
             while not self._backlog.finished:
                 stamped = self._backlog.get(max(0.0, next_flush - time.monotonic()))
                 if stamped is not None:
                     self._record(stamped)
+                    stamped = None
                 if time.monotonic() >= next_flush:
                     self.writer.flush()
                     self._update_counters()
                     next_flush = time.monotonic() + period
         except Exception as exc:  # disk full, permissions...: stop the node, keep what was written
-            self._failed(exc)
+            self._failed(exc)  # first: the receive thread warns of no drop once the node's error is set
+            self._backlog.abandon(stamped)
         finally:
             self._receive_thread.join()
             self._finish()
@@ -263,7 +270,7 @@ class BagRecord(Node):
     def _update_counters(self) -> None:
         self.counters.update(recorded=sum(s.count for s in self.writer.stats.values()), gaps=self.total_gaps,
                              malformed=self._reader.malformed, dropped=self._backlog.total_dropped,
-                             bytes=self.writer.size_b, files=len(self.writer.files))
+                             lost=self._backlog.total_lost, bytes=self.writer.size_b, files=len(self.writer.files))
 
     @property
     def gaps(self) -> dict[str, int]:
@@ -276,20 +283,28 @@ class BagRecord(Node):
     def total_gaps(self) -> int:
         return sum(self.gaps.values())
 
+    def _lost_words(self) -> str:
+        """The messages received but not stored because the writing failed, e.g. "; 30 messages received were
+        not stored (/a 20, /b 10)", or "" for none."""
+        lost = self._backlog.lost
+        if not lost:
+            return ""
+        by_topic = ", ".join(f"{topic} {lost[topic]}" for topic in sorted(lost))
+        return f"; {sum(lost.values())} messages received were not stored ({by_topic})"
+
     def _finish(self) -> None:
         """Close the bag with its totals; a file that cannot be finished (the disk full, the MCAP writer's own
         error: the last, or the one a split closed) is named, with the command that indexes what reached it. After
-        a split whose new file could not be opened (the node's error) there is none open to close."""
-        if self.error:  # a drop warning of the receive thread, as the writer failed, may have come after it
-            self.state, self.message = "error", self.error
+        a split whose new file could not be opened (the node's error) there is none open to close. The messages
+        received but not stored, the writing having failed, are named in the node's error by topic."""
         stats, gaps = self.writer.stats, self.gaps
-        unfinished, why = self.writer.unfinished, f" ({self.message})"
+        unfinished, why = self.writer.unfinished, f" ({self.error})"
         if self.writer.is_open:
             try:
                 self.writer.add_metadata(RECORDING_END_META, {
                     "end_time_ns": str(time.time_ns()), "messages": str(sum(s.count for s in stats.values())),
                     "gaps": str(sum(gaps.values())), "malformed": str(self._reader.malformed),
-                    "dropped": json.dumps(self._backlog.dropped),
+                    "dropped": json.dumps(self._backlog.dropped), "lost": json.dumps(self._backlog.lost),
                     "per_topic": json.dumps({t: {"count": s.count, "gaps": gaps.get(t, 0), "first_ns": s.first_ns,
                                                  "last_ns": s.last_ns} for t, s in stats.items()})})
                 self.writer.close()
@@ -299,30 +314,34 @@ class BagRecord(Node):
                 why = (f": {exc.strerror}" if isinstance(exc, OSError) and exc.strerror
                        else f": {type(exc).__name__}: {exc}")
         if unfinished is not None:
-            self.state, self.message = "error", f"could not finish {unfinished}{why}"
+            self.state, self.message = "error", f"could not finish {unfinished}{why}{self._lost_words()}"
             self.log.error("%s; what was flushed is kept: run `fv bag recover %s` to index it", self.message,
                            unfinished)
+        elif self.error:  # a drop warning of the receive thread, as the writer failed, may have come after it
+            self.state, self.message = "error", self.error + self._lost_words()
+            if self._backlog.lost:
+                self.log.error("%s", self.message)
         self._update_counters()
         self.log.info("%s", self.summary_line())
 
     def summary_line(self) -> str:
-        """One line: messages (gaps, drops) per topic, size, duration, files."""
-        stats, gaps, dropped = self.writer.stats, self.gaps, self._backlog.dropped
+        """One line: messages (gaps, drops, losses) per topic, size, duration, files."""
+        stats, gaps, dropped, lost = self.writer.stats, self.gaps, self._backlog.dropped, self._backlog.lost
         first = min((s.first_ns for s in stats.values()), default=0)
         last = max((s.last_ns for s in stats.values()), default=0)
         span_s = max((last - first) / 1e9, 1e-9)
 
         def losses(topic: str) -> str:
-            words = [f"{counts[topic]} {word}" for counts, word in ((gaps, "missing"), (dropped, "dropped"))
-                     if counts.get(topic)]
+            words = [f"{counts[topic]} {word}" for counts, word in ((gaps, "missing"), (dropped, "dropped"),
+                                                                      (lost, "lost")) if counts.get(topic)]
             return f" ({', '.join(words)})" if words else ""
 
         topics = ", ".join(f"{t} {stats[t].count if t in stats else 0}{losses(t)}"
-                           for t in sorted(stats.keys() | dropped.keys()))
+                           for t in sorted(stats.keys() | dropped.keys() | lost.keys()))
         return (f"recorded {sum(s.count for s in stats.values())} messages in {span_s if stats else 0:.1f} s "
                 f"to {self.writer.output} ({len(self.writer.files)} file(s), {self.writer.size_b / 1e6:.1f} MB): "
                 f"{topics or 'nothing'}; missing by seq {sum(gaps.values())}, malformed {self._reader.malformed}, "
-                f"dropped {self._backlog.total_dropped}")
+                f"dropped {self._backlog.total_dropped}" + (f", lost {sum(lost.values())}" if lost else ""))
 
     def teardown(self) -> None:
         if getattr(self, "_write_thread", None) is not None:

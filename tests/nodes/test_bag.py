@@ -12,6 +12,7 @@ import pytest
 
 import msgs
 from msgs import CameraInfo, DisplacementField, Image, MarkerArray, MessageError, SlipState
+from nodes.bag.backlog import Backlog, Stamped
 from nodes.bag.codec import MESSAGE_ENCODING, RECORDING_END_META, join_frames, split_payload
 from nodes.bag.export import export, video_fps
 from nodes.bag.info import bag_info
@@ -381,6 +382,21 @@ def test_video_rates_are_rounded_to_what_the_writers_take(fps: float, written: f
     writer = cv2.VideoWriter(str(tmp_path / "v.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), video_fps(fps), (32, 24))
     assert writer.isOpened()
     writer.release()
+
+
+def test_a_backlog_abandoned_by_its_writer_counts_every_message_it_will_not_take_as_lost() -> None:
+    """A writer that fails abandons the backlog: the message it failed on, those waiting and every one put
+    after are counted lost by topic, so that each message put is taken, dropped or lost."""
+    def stamped(topic: str) -> Stamped:
+        return Stamped(topic, "src", False, [], {}, 0)
+
+    backlog = Backlog(2)
+    assert [backlog.put(stamped(t)) for t in ("/a", "/b", "/a")] == [True, True, False]
+    taken = backlog.get(0.0)
+    backlog.abandon(taken)
+    assert not backlog.put(stamped("/b"))
+    assert backlog.dropped == {"/a": 1} and backlog.lost == {"/a": 1, "/b": 2} and backlog.total_lost == 3
+    assert backlog.get(0.0) is None
 
 
 def test_export_video_png_csv_npz(bag: tuple[Path, list], tmp_path: Path) -> None:

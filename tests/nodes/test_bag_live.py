@@ -1108,6 +1108,84 @@ def _summary_counts(line: str) -> dict[str, dict[str, int]]:
     return counts
 
 
+@pytest.mark.parametrize("failing", ["write", "split"])
+def test_a_writer_that_fails_counts_by_topic_every_message_it_did_not_store(
+        bus: BusAddress, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture,
+        failing: str) -> None:
+    """The writer fails (a full disk as it writes a message, a split whose new file cannot be opened) while
+    messages wait for it, 20 at most: every message published before is in the bag, dropped or lost, counted
+    by topic in the summary, the node's error and the status's counters (and the `fv_recording_end` record where
+    the file could still be closed), none missing by seq. Those waiting, the one it failed on and those received
+    after were counted nowhere."""
+    import errno
+
+    import mcap.writer
+
+    import nodes.bag.writer as writer_module
+    blocked, release, rounds = threading.Event(), threading.Event(), 30
+
+    def fail_once_released() -> None:
+        blocked.set()
+        release.wait(30)
+        raise (OSError(errno.ENOSPC, "No space left on device") if failing == "write"
+               else PermissionError(13, "Permission denied"))
+
+    if failing == "write":
+        add_message, added = mcap.writer.Writer.add_message, []
+
+        def third_add_fails(self: mcap.writer.Writer, *args: object, **kwargs: object) -> None:
+            added.append(1)
+            if len(added) == 3:
+                fail_once_released()
+            add_message(self, *args, **kwargs)
+
+        monkeypatch.setattr(mcap.writer.Writer, "add_message", third_add_fails)
+    else:
+        open_mcap, opened = writer_module.open_mcap, []
+
+        def second_open_fails(path: Path, *args: object) -> object:
+            opened.append(path)
+            if len(opened) > 1:
+                fail_once_released()
+            return open_mcap(path, *args)
+
+        monkeypatch.setattr(writer_module, "open_mcap", second_open_fails)
+    caplog.set_level(logging.INFO)
+    died: list = []
+    monkeypatch.setattr(threading, "excepthook", died.append)
+    split = {"chunk_size_b": 500, "max_bag_size_b": 1500} if failing == "split" else {}
+    node = BagRecord("rec", {"output": str(tmp_path / "failed"), "topics": ["/a", "/b"], "queue_depth": 20,
+                             "compression": "none", **split}, address=bus)
+    thread = in_thread(node)
+    pub = PublisherSocket("src", bus)
+    try:
+        wait_subscribed(pub, ["/a", "/b"])
+        for i in range(rounds):
+            pub.publish("/a", SlipState(stamp_ns=i))
+            pub.publish("/b", SlipState(stamp_ns=i))
+            time.sleep(0.01)
+        wait_for(blocked.is_set, 20.0, "the writer at its failure")
+    finally:
+        release.set()
+        pub.close()
+        thread.join(10)
+    assert not died, died[0].exc_value
+    counts = _summary_counts(node.summary_line())
+    assert {t: sum(c[w] for w in ("recorded", "dropped", "lost")) for t, c in counts.items()} == \
+        {"/a": rounds, "/b": rounds}, node.summary_line()
+    lost = {t: c["lost"] for t, c in counts.items() if c["lost"]}
+    assert sum(lost.values()) > 20 and node.counters["lost"] == sum(lost.values()), node.summary_line()
+    assert node.counters["gaps"] == 0 and all(c["missing"] == 0 for c in counts.values()), node.summary_line()
+    by_topic = ", ".join(f"{t} {n}" for t, n in sorted(lost.items()))
+    assert node.state == "error" and node.message.endswith(
+        f"; {sum(lost.values())} messages received were not stored ({by_topic})"), node.message
+    assert node.message in caplog.text and node.summary_line() in caplog.text
+    recorded = {t: info.count for t, info in BagReader(tmp_path / "failed").topics().items()}
+    assert recorded == {t: c["recorded"] for t, c in counts.items() if c["recorded"]}
+    if failing == "write":
+        assert json.loads(BagReader(tmp_path / "failed").metadata()["fv_recording_end"]["lost"]) == lost
+
+
 @pytest.mark.parametrize("failing", ["add_metadata", "finish"])
 def test_a_bag_that_cannot_be_closed_is_named_with_recover_and_summed_up(
         bus: BusAddress, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture,
