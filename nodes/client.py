@@ -28,7 +28,7 @@ Publishing (the gripper closed: every tracker takes a new reference, a new grasp
     from nodes.client import reset_grasp
 
     gripper.close()
-    reset_grasp()
+    reset_grasp()                  # or reset_grasp(confirm=["/"]): TimeoutError unless the tracker took it
 
 or, for any topic, ``with advertise("/my/topic") as pub: pub.publish(msg)``. A latched message
 (``advertise(..., latched=True)``) reaches later subscribers while its publisher is open, as in ROS.
@@ -42,16 +42,18 @@ Tuning a running node (`fv param set` from Python; only the params a node takes 
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import threading
 import time
 from abc import ABC, abstractmethod
-from typing import Any, Callable, Iterator, TypeVar
+from typing import Any, Callable, Iterator, Sequence, TypeVar
 
-from msgs import CameraInfo, ContactSummary, DisplacementField, Image, MarkerArray, Message, NodeStatus, SlipState
+from msgs import (CameraInfo, ContactSummary, DisplacementField, GraspStart, Image, MarkerArray, Message, NodeStatus,
+                  SlipState)
 from msgs.wire import check_message
-from nodes.bus import PublisherSocket, TopicReader, validate_topic
+from nodes.bus import PublisherSocket, TopicReader, resolve_topic, validate_topic
 from nodes.endpoints import BusAddress
 from nodes.forwarder import ping
 from nodes.param_service import ANSWER_TIMEOUT_S, read_params, set_params
@@ -331,6 +333,7 @@ def listen(topic: str, callback: Callable[[Message], object], msg_type: type[Mes
 
 
 RESET_TOPIC = "/tracker/reset"  # any message on it starts a new grasp on every tracker
+GRASP_START_TOPIC = "markers/grasp_start"  # in a tracker's namespace: each grasp it starts (`msgs.GraspStart`)
 
 
 class Publisher(_Closing):
@@ -390,11 +393,29 @@ def advertise(topic: str, *, name: str | None = None, latched: bool = False, con
     return Publisher(topic, name=name, latched=latched, connect_timeout_s=connect_timeout_s, address=address)
 
 
-def reset_grasp(*, connect_timeout_s: float = 2.0, address: BusAddress | None = None) -> None:
+def reset_grasp(*, confirm: Sequence[str] = (), timeout_s: float = 1.0, connect_timeout_s: float = 2.0,
+                address: BusAddress | None = None) -> None:
     """Start a new grasp: one message on /tracker/reset (call it when the gripper closes). Every
-    tracker takes its next frame as the reference; the slip detectors judge the grasp from there."""
-    with advertise(RESET_TOPIC, name="robot_reset", connect_timeout_s=connect_timeout_s, address=address) as pub:
-        pub.publish(SlipState(stamp_ns=time.time_ns()))
+    tracker takes its next frame as the reference; the slip detectors judge the grasp from there.
+
+    confirm: the namespaces of the trackers that must say they took it ("/" for the one-camera launch files,
+    "/left" and "/right" for a pair's), each on `GRASP_START_TOPIC` in its namespace (a `GraspStart` stamped
+    as this reset). TimeoutError naming those that did not within `timeout_s` s: a tracker that is not running
+    (respawning as the reset came) never takes it, and the bus keeps no reset for it; call again."""
+    topics = {resolve_topic(GRASP_START_TOPIC, ns.rstrip("/")): ns for ns in confirm}
+    stamp_ns = time.time_ns()
+    with (TopicReader(sorted(topics), address) if topics else contextlib.nullcontext()) as reader, advertise(
+            RESET_TOPIC, name="robot_reset", connect_timeout_s=connect_timeout_s, address=address) as pub:
+        pub.publish(SlipState(stamp_ns=stamp_ns))
+        deadline = time.monotonic() + timeout_s
+        while topics and (left_s := deadline - time.monotonic()) > 0:
+            item = reader.recv(left_s)
+            if (item is not None and isinstance(item.msg, GraspStart) and item.msg.cause == "reset"
+                    and item.msg.stamp_ns == stamp_ns):
+                topics.pop(item.topic, None)
+    if topics:
+        raise TimeoutError(f"no tracker took the reset within {timeout_s:g} s in {', '.join(topics.values())} "
+                           f"(on {', '.join(topics)}): none runs there, or it was respawning; call reset_grasp again")
 
 
 def set_param(node: str, name: str, value: Any, *, timeout_s: float = ANSWER_TIMEOUT_S,

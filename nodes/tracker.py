@@ -54,6 +54,7 @@ from fv_algos.field import MAX_MARKERS
 from fv_algos.perception import Perception, PerceptionParams, resumable_reference
 from fv_algos.visualize import as_bgr
 from msgs import GraspStart, Image, MarkerArray, Message
+from nodes.client import GRASP_START_TOPIC, RESET_TOPIC
 from nodes.node import Node, launch_started_ns
 
 PRESETS = ("paper", "default", "fastest")
@@ -109,12 +110,12 @@ class TrackerNode(Node):
         self.voided: GraspStart | None = None  # the previous process's last grasp start: voids its references before
         self.markers_pub = self.publisher("markers", MarkerArray)
         self.reference_pub = self.publisher("markers/reference", MarkerArray, latched=True)
-        self.grasp_pub = self.publisher("markers/grasp_start", GraspStart, latched=True)  # the last grasp started
+        self.grasp_pub = self.publisher(GRASP_START_TOPIC, GraspStart, latched=True)  # the last grasp started
         self.subscribe("camera/image", Image, self.on_image, depth=1, stale_after_s=p.input_timeout_s or None,
                        answered_by=self.markers_pub)
-        self.subscribe("/tracker/reset", None, self.on_reset, depth=1)
+        self.subscribe(RESET_TOPIC, None, self.on_reset, depth=1)
         if p.resume:  # subscribed before the reference: the previous process's last grasp start comes first
-            self.subscribe("markers/grasp_start", GraspStart, self.on_grasp_started, depth=1, gone=True)
+            self.subscribe(GRASP_START_TOPIC, GraspStart, self.on_grasp_started, depth=1, gone=True)
             self.subscribe("markers/reference", MarkerArray, self.on_reference, depth=1, gone=True)
         if p.recorded_reference:
             self.subscribe(p.recorded_reference, MarkerArray, self.on_recorded_reference, depth=1)

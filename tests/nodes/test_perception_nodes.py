@@ -212,6 +212,28 @@ def test_a_tracker_respawned_as_a_looped_video_starts_its_next_pass_takes_that_p
     assert status.counters["resumed"] == 0
     camera.close()
 
+
+def test_reset_grasp_confirms_the_trackers_that_took_it(bus, spawn) -> None:
+    """`reset_grasp()` sends one message and returns: a tracker that was not running (respawning) never took
+    it, and nothing said so. With `confirm`, it waits for each named tracker's `GraspStart` of this reset and
+    raises TimeoutError naming those that did not take it."""
+    from nodes.bus import PublisherSocket
+    from nodes.client import reset_grasp
+    from tests.nodes.conftest import kill_group, wait_for
+
+    tracker = spawn("node", "tracker")
+    gripper = PublisherSocket("gripper", bus.address)
+    wait_for(lambda: gripper.has_subscribers("/tracker/reset"), 10.0, "the tracker subscribed")
+    gripper.close()
+    for _ in range(3):  # each call waits for its own reset's word, not an earlier one's (latched)
+        reset_grasp(confirm=["/"], timeout_s=5.0)
+    with pytest.raises(TimeoutError, match=r"no tracker took the reset within 0.5 s in /left \(on "
+                                           r"/left/markers/grasp_start\)"):
+        reset_grasp(confirm=["/", "/left"], timeout_s=0.5)
+    kill_group(tracker)
+    with pytest.raises(TimeoutError, match=r"in / \(on /markers/grasp_start\)"):
+        reset_grasp(confirm=["/"], timeout_s=0.5)
+
 def _skin_at_rest() -> np.ndarray:
     """A simulated camera frame (H, W) uint8 of the skin at rest, its markers undeformed."""
     from fv_algos.sim.scene import scene_from_dict
