@@ -143,11 +143,14 @@ class SlipState(Message):
 
 @dataclass(kw_only=True)
 class GraspStart(Message):
-    """A tracker started a new grasp: its reference before is no longer tracked against.
+    """A new grasp starts: a tracker's reference from before is no longer tracked against. A tracker says each
+    grasp it starts (on `markers/grasp_start`), a video or folder camera each pass of its source (on
+    `camera/pass_start`).
 
     cause: "reset" (a message on /tracker/reset, stamp_ns its stamp: the next frame is the new reference) or
-    "source restart" (the camera's source started over, a looped video's next pass, stamp_ns the stamp of
-    the pass's first frame: frame `reference_frame` of the pass is the new reference).
+    "source restart" (the camera's source started over, a looped video's next pass: frame `reference_frame` of
+    the pass is the new reference; stamp_ns the stamp of the pass's first frame the tracker saw, of the
+    pass's frame 0 from the camera).
     """
 
     TYPE: ClassVar[str] = "GraspStart"

@@ -11,6 +11,10 @@ launch starts it again until it is plugged in), any other source with CONFIG (`n
 does, with CONFIG, one that can give no further frame as configured (a simulated scene that cannot
 play its next frame), said in NodeStatus first.
 
+A video or folder source numbers its frames from 0 at each pass (`Image.frame_index`); at each pass's first frame
+the camera also says, latched on `camera/pass_start`, that its source started over (`msgs.GraspStart`, cause "source
+restart", stamped as that frame): a tracker respawned as the pass began resumes no reference of the pass before.
+
 `start_after` holds the first frame back until the named nodes have reported
 (`nodes.start_gate.StartGate`: a NodeStatus sent since the camera started, once their
 subscriptions are made), so that a replayed video reaches them whole from its first frame;
@@ -27,9 +31,10 @@ import numpy as np
 
 from fv_algos.fisheye import FisheyeCamera
 from fv_algos.frame_crop import FrameCrop
-from msgs import CameraInfo, Image
+from msgs import CameraInfo, GraspStart, Image
 from nodes.camera_sources import (FolderSource, Frame, FrameSource, SourceConfigError, SourceError, V4L2Source,
                                   VideoFileSource)
+from nodes.client import PASS_START_TOPIC
 from nodes.node import Node
 from nodes.start_gate import StartGate
 
@@ -128,6 +133,8 @@ class CameraNode(Node):
         self.source.open()  # SourceError at start is fatal, with the source named (SourceMissing: not yet)
         self.image_pub = self.publisher("camera/image", Image)
         self.info_pub = self.publisher("camera/info", CameraInfo, latched=True)
+        numbered = p.source in ("video", "folder")  # sources whose frames are numbered, pass by pass
+        self.pass_pub = self.publisher(PASS_START_TOPIC, GraspStart, latched=True) if numbered else None
         self.held_frame: Frame | None = None  # read at setup for its size, published first
         self.end_at: float | None = None  # monotonic time to stop at, once the source has ended
         self.fisheye = self._load_calibration()
@@ -279,6 +286,9 @@ class CameraNode(Node):
             image = cv2.remap(image, self.maps[0], self.maps[1], cv2.INTER_LINEAR)
         if self.crop is not None:
             image = self.crop.apply(image)
+        if frame.index == 0 and self.pass_pub is not None:  # before the frame: a tracker may take it as it comes
+            self.pass_pub.publish(GraspStart(stamp_ns=frame.stamp_ns, frame_id=self.params.frame_id,
+                                             cause="source restart"))
         self.image_pub.publish(Image(stamp_ns=frame.stamp_ns, frame_id=self.params.frame_id,
                                      encoding=self.params.encoding, data=np.ascontiguousarray(image),
                                      frame_index=frame.index))

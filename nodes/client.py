@@ -334,6 +334,7 @@ def listen(topic: str, callback: Callable[[Message], object], msg_type: type[Mes
 
 RESET_TOPIC = "/tracker/reset"  # any message on it starts a new grasp on every tracker
 GRASP_START_TOPIC = "markers/grasp_start"  # in a tracker's namespace: each grasp it starts (`msgs.GraspStart`)
+PASS_START_TOPIC = "camera/pass_start"  # in a camera's namespace: each pass of its video or folder (`msgs.GraspStart`)
 
 
 class Publisher(_Closing):

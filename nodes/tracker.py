@@ -41,8 +41,14 @@ took the new grasp's reference: every grasp a tracker starts is said, latched, o
 (`msgs.GraspStart`), and its next process (in this launch) starts that grasp as the previous process would have:
 after a /tracker/reset (cause "reset") at its first frame, after its source started over (cause "source
 restart", a looped video's next pass) at frame `reference_frame` of the pass, or at its first frame when that
-is later in the pass. A reset sent while no process of the tracker runs reaches none (the bus keeps no message
-that is not latched, and /tracker/reset is not: latched, a looped replay played its recorded reset once)."""
+is later in the pass. Nor is a reference whose frame came before the camera's source last started over (the
+video camera says each pass's start, latched, on `camera/pass_start`): a pass that began while no process of
+the tracker ran starts its own grasp, at its frame `reference_frame`. A reset sent while no process of the
+tracker runs reaches none (the bus keeps no message that is not latched, and /tracker/reset is not: latched, a
+looped replay played its recorded reset once); `nodes.client.reset_grasp(confirm=...)` says so.
+
+The reference a replay's recording holds (`recorded_reference`) does not take the place of the previous
+process's: that process took its reference in this replay, or resumed the recording's and published it again."""
 from __future__ import annotations
 
 import time
@@ -54,7 +60,7 @@ from fv_algos.field import MAX_MARKERS
 from fv_algos.perception import Perception, PerceptionParams, resumable_reference
 from fv_algos.visualize import as_bgr
 from msgs import GraspStart, Image, MarkerArray, Message
-from nodes.client import GRASP_START_TOPIC, RESET_TOPIC
+from nodes.client import GRASP_START_TOPIC, PASS_START_TOPIC, RESET_TOPIC
 from nodes.node import Node, launch_started_ns
 
 PRESETS = ("paper", "default", "fastest")
@@ -107,7 +113,9 @@ class TrackerNode(Node):
         self.inherited: MarkerArray | None = None
         self.inherited_from = ""  # whose reference `inherited` is, for the log
         self.first_stamp_ns: int | None = None  # stamp of the first frame this process sees
-        self.voided: GraspStart | None = None  # the previous process's last grasp start: voids its references before
+        self.own_grasp = False  # this process took a reference or started a grasp: the previous one's no longer count
+        self.previous_start: GraspStart | None = None  # the previous process's last grasp start
+        self.pass_start: GraspStart | None = None  # the camera's last pass start (`camera/pass_start`), this launch's
         self.markers_pub = self.publisher("markers", MarkerArray)
         self.reference_pub = self.publisher("markers/reference", MarkerArray, latched=True)
         self.grasp_pub = self.publisher(GRASP_START_TOPIC, GraspStart, latched=True)  # the last grasp started
@@ -116,6 +124,7 @@ class TrackerNode(Node):
         self.subscribe(RESET_TOPIC, None, self.on_reset, depth=1)
         if p.resume:  # subscribed before the reference: the previous process's last grasp start comes first
             self.subscribe(GRASP_START_TOPIC, GraspStart, self.on_grasp_started, depth=1, gone=True)
+            self.subscribe(PASS_START_TOPIC, GraspStart, self.on_pass_start, depth=1, gone=True)
             self.subscribe("markers/reference", MarkerArray, self.on_reference, depth=1, gone=True)
         if p.recorded_reference:
             self.subscribe(p.recorded_reference, MarkerArray, self.on_recorded_reference, depth=1)
@@ -139,12 +148,46 @@ class TrackerNode(Node):
         reference it published before it (before the grasp's reference was taken) is not resumed. One of an
         earlier launch (a forwarder left running keeps it, e.g. the live session's, as its recording is
         replayed) is not this grasp's."""
-        if self.of_previous_process(msg) and (self.voided is None or msg.pub_ns > self.voided.pub_ns):
-            self.voided = msg
+        if (not self.own_grasp and self.of_previous_process(msg)
+                and (self.previous_start is None or msg.pub_ns > self.previous_start.pub_ns)):
+            self.previous_start = msg
+
+    def on_pass_start(self, msg: GraspStart) -> None:
+        """The camera's source started over (`camera/pass_start`, latched, published in this launch): a reference
+        stamped before it is an earlier pass's, also when no process of this tracker saw the pass start."""
+        if msg.pub_ns >= self.launch_ns and (self.pass_start is None or msg.stamp_ns > self.pass_start.stamp_ns):
+            self.pass_start = msg
 
     def of_previous_process(self, msg: Message) -> bool:
         """Whether `msg` was published by a previous process of this node in this launch."""
         return msg.node == self.name and self.launch_ns <= msg.pub_ns < self.started_ns
+
+    def drop_ended_reference(self) -> None:
+        """Forget the reference to resume when its grasp has ended since it was taken: its previous process
+        started another after publishing it (`markers/grasp_start`: a reset, or its source starting over), or
+        the camera's source started over after its frame (`camera/pass_start`: a looped video's next pass, come
+        while no process of this tracker ran)."""
+        old, started, passed = self.inherited, self.previous_start, self.pass_start
+        if old is None:
+            return
+        if started is not None and old.pub_ns < started.pub_ns:
+            why = (f"it was published {1e-9 * (started.pub_ns - old.pub_ns):.3f} s before that process started a new "
+                   f"grasp ({started.cause})")
+        elif passed is not None and old.stamp_ns < passed.stamp_ns:
+            why = f"its frame is {1e-9 * (passed.stamp_ns - old.stamp_ns):.3f} s before the camera's source restarted"
+        else:
+            return
+        self.log.info("%s reference is not resumed: %s", self.inherited_from, why)
+        self.inherited = None
+        self.resume_until = 0.0
+
+    def after_previous_reset(self) -> bool:
+        """Whether the newest grasp start before this process's first reference is a /tracker/reset its previous
+        process took (then its next frame is the reference, as it would have been): not when the camera's source
+        started over since (then frame `reference_frame` of the pass is)."""
+        started, passed = self.previous_start, self.pass_start
+        return (not self.own_grasp and started is not None and started.cause == "reset"
+                and (passed is None or passed.pub_ns < started.pub_ns))
 
     def start_grasp(self, start: GraspStart) -> None:
         """A new grasp (`new_grasp`), said (latched) on `markers/grasp_start` for this tracker's next process
@@ -158,6 +201,7 @@ class TrackerNode(Node):
         self.needs_reference = True
         self.resume_until = 0.0
         self.inherited = None
+        self.own_grasp = True
         self.take_next = take_next
 
     def frame_number(self, msg: Image) -> int:
@@ -167,7 +211,7 @@ class TrackerNode(Node):
 
     def on_reference(self, msg: MarkerArray) -> None:
         """Keep the reference a previous process of this node published (latched), in this launch."""
-        if (self.needs_reference and self.of_previous_process(msg)
+        if (self.needs_reference and not self.own_grasp and self.of_previous_process(msg)
                 and self.resumable(msg, "the previous process's")):
             self.inherited, self.inherited_from = msg, "the previous process's"
 
@@ -189,8 +233,10 @@ class TrackerNode(Node):
         """Keep the reference a replayed recording holds when it is stamped no later than the first frame
         (frames and references may be taken in either order): the recording began after the live tracker
         took it, and is tracked against it as live. Stamped later, it belongs to a frame of the
-        recording, which this tracker takes itself."""
-        if (self.needs_reference and (self.first_stamp_ns is None or msg.stamp_ns <= self.first_stamp_ns)
+        recording, which this tracker takes itself. Not in place of the previous process's: that process took
+        its reference in this replay (or resumed the recording's and published it again)."""
+        if (self.needs_reference and self.inherited_from != "the previous process's"
+                and (self.first_stamp_ns is None or msg.stamp_ns <= self.first_stamp_ns)
                 and self.resumable(msg, "the recording's")):
             self.inherited, self.inherited_from = msg, "the recording's"
 
@@ -219,18 +265,14 @@ class TrackerNode(Node):
                               1e-9 * (msg.stamp_ns - self.inherited.stamp_ns))
                 self.inherited = None
         if self.needs_reference:
-            voided = self.voided
-            if self.inherited is not None and voided is not None and self.inherited.pub_ns < voided.pub_ns:
-                self.log.info("%s reference is not resumed: it was published %.3f s before that process started "
-                              "a new grasp (%s)", self.inherited_from, 1e-9 * (voided.pub_ns - self.inherited.pub_ns),
-                              voided.cause)
-                self.new_grasp(take_next=voided.cause == "reset")
+            self.drop_ended_reference()
             old = self.inherited
             resume = (old is not None and (old.width, old.height) == (msg.width, msg.height)
                       and old.stamp_ns <= self.first_stamp_ns)  # a reference stamped later is another stream's
             if not resume and time.monotonic() < self.resume_until:
                 return
-            if not resume and not self.take_next and self.frame_number(msg) < self.params.reference_frame:
+            take_next = self.take_next or self.after_previous_reset()
+            if not resume and not take_next and self.frame_number(msg) < self.params.reference_frame:
                 if self.frames_seen == 1:  # a video shorter than that is never tracked: say why
                     self.log.info("frames before frame %d (reference_frame) are not tracked",
                                   self.params.reference_frame)
@@ -251,6 +293,7 @@ class TrackerNode(Node):
             self.needs_reference = False
             self.take_next = False
             self.inherited = None
+            self.own_grasp = True
             # a resumed reference is published as it was taken (its frame's stamp): the grasp under way goes on
             self.reference_pub.publish(replace(old) if resume else marker_array(state, msg))
         try:

@@ -71,17 +71,22 @@ def test_a_video_played_once_stops_its_camera_after_its_end(bus, spawn, tmp_path
 def test_a_looped_video_numbers_its_frames_from_0_at_each_pass(bus, spawn, tmp_path: Path) -> None:
     """A looped video's frames carried nothing that told a pass from the next (the tracker kept the first
     pass's reference for good): each frame now carries its number in the file, from 0 again at each pass,
-    the held first frame too; seq and stamps run on across the loop."""
+    the held first frame too; seq and stamps run on across the loop. Each pass's start is also said on
+    camera/pass_start, before its frame 0 and stamped as it (a tracker respawned as a pass began resumed the
+    pass before's reference)."""
     video = tmp_path / "clip.avi"
     _write_video(video, frames=6)
-    with TopicReader(["/camera/image"]) as reader:
+    with TopicReader(["/camera/image", "/camera/pass_start"]) as reader:
         spawn("node", "camera", "-p", "source=video", "-p", f"path={video}", "-p", "fps=50")
-        images = [reader.recv(15.0 if k == 0 else 2.0) for k in range(15)]
-    assert all(item is not None for item in images)
-    images = [item.msg for item in images]
+        items = [reader.recv(15.0 if k == 0 else 2.0) for k in range(18)]
+    assert all(item is not None for item in items)
+    images = [item.msg for item in items if item.topic == "/camera/image"]
     assert [m.frame_index for m in images] == [0, 1, 2, 3, 4, 5] * 2 + [0, 1, 2]
     assert [m.seq for m in images] == list(range(15))
     assert all(a.stamp_ns < b.stamp_ns for a, b in zip(images, images[1:]))
+    passes = [(k, item.msg) for k, item in enumerate(items) if item.topic == "/camera/pass_start"]
+    assert [k for k, _ in passes] == [0, 7, 14]  # each right before its pass's frame 0
+    assert all(m.cause == "source restart" and m.stamp_ns == items[k + 1].msg.stamp_ns for k, m in passes)
 
 
 def test_a_looped_folder_numbers_its_images_by_their_place(tmp_path: Path) -> None:

@@ -163,21 +163,12 @@ def test_a_tracker_respawned_after_a_reset_takes_a_new_reference(bus, spawn) -> 
 
 
 
-def test_a_tracker_respawned_as_a_looped_video_starts_its_next_pass_takes_that_pass_s_reference(bus, spawn) -> None:
-    """A looped video started its next pass (frame_index back to 0) and the tracker was killed (kill -9) before
-    that pass's frame `reference_frame`: the respawned tracker resumed its previous process's reference, the
-    pass before's, and the new pass was judged as the old grasp going on (its grasp start, the reference's
-    stamp, a pass back). It now waits for frame `reference_frame` of the pass, as the tracker that saw the
-    pass start would have."""
-    import os
-    import signal
-
+def _numbered_frames(camera, reader: TopicReader) -> tuple:
+    """(publish, answered) for a fake video camera (`camera`, a PublisherSocket) and `reader` (of the tracker's
+    topics): publish(index) sends frame `index` of a video of the skin at rest on /camera/image and returns
+    its stamp; answered(index, since_ns, topics) sends it until a tracker started after `since_ns` answers
+    on one of `topics`, and returns that answer."""
     from msgs import Image
-    from nodes.bus import PublisherSocket
-    from tests.nodes.conftest import wait_status
-
-    camera = PublisherSocket("fake_camera", bus.address)
-    assert camera.wait_connected(2.0)
     frame = dots_image(0.0)
 
     def publish(index: int) -> int:
@@ -186,31 +177,95 @@ def test_a_tracker_respawned_as_a_looped_video_starts_its_next_pass_takes_that_p
         return stamp
 
     def answered(index: int, since_ns: int, topics: tuple[str, ...]) -> object:
-        """Publish frame `index` until the tracker (a process started after `since_ns`) answers on `topics`."""
         for _ in range(200):
             publish(index)
             while (item := reader.recv(0.05)) is not None:
                 if item.topic in topics and item.msg.pub_ns > since_ns:
                     return item
         raise AssertionError(f"the tracker never answered frame {index} on {topics}")
+    return publish, answered
 
+
+@pytest.mark.parametrize("seen_by", ["tracker", "camera"])
+def test_a_tracker_respawned_as_a_looped_video_starts_its_next_pass_takes_that_pass_s_reference(
+        bus, spawn, seen_by: str) -> None:
+    """A looped video started its next pass (frame_index back to 0) and the tracker was killed (kill -9) before
+    that pass's frame `reference_frame`, after seeing its frame 0 (`seen_by` tracker) or before (camera: only
+    the camera saw the pass start, which it says latched on camera/pass_start): the respawned tracker resumed
+    its previous process's reference, the pass before's, and the new pass was judged as the old grasp going on
+    (its grasp start, the reference's stamp, a pass back). It now waits for frame `reference_frame` of the
+    pass, as a tracker that saw the pass start would have."""
+    import os
+    import signal
+
+    from msgs import GraspStart
+    from nodes.bus import PublisherSocket
+    from tests.nodes.conftest import wait_status
+
+    camera = PublisherSocket("fake_camera", bus.address)
+    assert camera.wait_connected(2.0)
     with TopicReader(["/markers", "/markers/reference", "/unanswered"]) as reader:
+        publish, answered = _numbered_frames(camera, reader)
         first = spawn("node", "tracker")
         answered(0, 0, ("/unanswered",))  # frame 0 is before reference_frame 1
         first_pass = answered(1, 0, ("/markers/reference",)).msg
-        publish(0)  # the next pass
-        wait_status("tracker", lambda st: st.counters.get("source_restarts") == 1)
+        if seen_by == "tracker":
+            publish(0)  # the next pass
+            wait_status("tracker", lambda st: st.counters.get("source_restarts") == 1)
+        else:
+            answered(2, 0, ("/markers",))
         os.killpg(first.pid, signal.SIGKILL)
         first.wait(10.0)
+        if seen_by == "camera":  # as the camera node says it, before the pass's frame 0
+            camera.publish("/camera/pass_start", GraspStart(stamp_ns=time.time_ns(), cause="source restart"),
+                           latched=True)
         restarted_ns = time.time_ns()
-        spawn("node", "tracker")
+        second = spawn("node", "tracker")
         item = answered(0, restarted_ns, ("/markers", "/unanswered"))
         assert item.topic == "/unanswered", "frame 0 of the pass was tracked against the pass before's reference"
         item = answered(1, restarted_ns, ("/markers/reference",))
     assert item.msg.stamp_ns > first_pass.stamp_ns
-    status = wait_status("tracker", lambda st: st.counters.get("references") == 1)
+    status = wait_status("tracker", lambda st: st.pid == second.pid and st.counters.get("references") == 1)
     assert status.counters["resumed"] == 0
     camera.close()
+
+
+def test_a_replay_s_respawned_tracker_resumes_the_reference_of_the_pass_under_way(bus, spawn) -> None:
+    """As `replay.yaml` runs the tracker (recorded_reference, the player's latched reference stamped before the
+    frames): it took frame 1 of pass 1, the recording's video looped, it took frame 1 of pass 2 and was killed.
+    The respawned tracker dropped pass 2's reference (the recording's, delivered after it, took its place and
+    was older than the pass start) and took frame 5 as a new one. It now resumes pass 2's."""
+    import os
+    import signal
+
+    from fv_algos.perception import Perception
+    from nodes.bus import PublisherSocket
+    from tests.nodes.conftest import wait_status
+
+    frame = dots_image(0.0)
+    player = PublisherSocket("bag_play", bus.address)
+    assert player.wait_connected(2.0)
+    ref = Perception().reset(frame).reference_px.astype(np.float32)
+    player.publish("/recorded/markers/reference", MarkerArray(
+        stamp_ns=1, ref_px=ref, cur_px=ref, valid=np.ones(len(ref), bool),
+        frames_since_seen=np.zeros(len(ref), np.int32), width=frame.shape[1], height=frame.shape[0]), latched=True)
+    replay_tracker = ("node", "tracker", "-p", "recorded_reference=recorded/markers/reference")
+    with TopicReader(["/markers", "/markers/reference", "/unanswered"]) as reader:
+        _, answered = _numbered_frames(player, reader)
+        first = spawn(*replay_tracker)
+        answered(0, 0, ("/unanswered",))
+        answered(1, 0, ("/markers/reference",))
+        answered(0, 0, ("/unanswered",))  # pass 2
+        pass_2 = answered(1, 0, ("/markers/reference",)).msg
+        answered(2, 0, ("/markers",))
+        wait_status("tracker", lambda st: st.counters.get("references") == 2)
+        os.killpg(first.pid, signal.SIGKILL)
+        first.wait(10.0)
+        restarted_ns = time.time_ns()
+        spawn(*replay_tracker)
+        item = answered(5, restarted_ns, ("/markers/reference",))
+    assert item.msg.stamp_ns == pass_2.stamp_ns, "pass 2's reference was dropped: frame 5 was taken instead"
+    player.close()
 
 
 def test_reset_grasp_confirms_the_trackers_that_took_it(bus, spawn) -> None:
@@ -535,6 +590,75 @@ def test_the_previous_process_s_last_grasp_start_keeps_only_an_older_reference_f
             shift = np.abs(markers[0].cur_px - markers[0].ref_px)[markers[0].valid].max()
             assert (shift > 1) == resumed, (case, shift)
 
+
+
+def test_a_pass_the_camera_started_while_no_tracker_process_ran_starts_its_own_grasp() -> None:
+    """The previous process took pass N's reference (frame 1) and was killed near the pass's end; the video's
+    next pass started before the respawned process's first frame, so no process of the tracker saw it start.
+    The respawned tracker resumed pass N's reference and judged pass N+1 as that grasp going on (also after
+    a reset the previous process took last: frame 0 of the pass became the reference). The camera says each
+    pass's start (`camera/pass_start`): a reference whose frame came before it is not resumed, and the pass's
+    frame `reference_frame` is the new one. A pass start before the reference's frame changes nothing."""
+    from fv_algos.perception import Perception
+    from msgs import GraspStart, Image
+    rest = _skin_at_rest()
+    taken = Perception().reset(rest).reference_px
+    # (the previous process's last reset's pub_ns, or None; the pass start's stamp; resumed)
+    for reset_ns, pass_stamp, resumed in [(None, 4, False), (2, 4, False), (None, 0, True), (0, 0, True)]:
+        with _tracker({"resume_wait_s": 0.0}) as (node, references, markers):
+            node.launch_ns = node.started_ns - 10
+            if reset_ns is not None:
+                node.on_grasp_started(GraspStart(pub_ns=node.launch_ns + reset_ns, node="tracker", cause="reset"))
+            node.on_pass_start(GraspStart(stamp_ns=pass_stamp, pub_ns=node.launch_ns + 3, node="camera",
+                                          cause="source restart"))
+            node.on_reference(_reference_of(taken, rest, node.launch_ns + 1))  # stamped 1
+            node.on_image(Image(stamp_ns=5, encoding="mono8", data=rest, frame_index=0))
+            case = (reset_ns, pass_stamp)
+            if resumed:
+                assert node.counters["resumed"] == 1 and references[0].stamp_ns == 1, case
+                continue
+            assert not references and not markers, case  # frame 0 is before reference_frame 1
+            node.on_image(Image(stamp_ns=6, encoding="mono8", data=rest, frame_index=1))
+            assert node.counters["references"] == 1 and references[0].stamp_ns == 6 and len(markers) == 1, case
+
+
+def test_a_recorded_reference_does_not_take_the_place_of_the_previous_process_s() -> None:
+    """A replay (`recorded_reference`) whose tracker started a grasp (a reset, or the recording's next pass),
+    took its reference and was killed: the recording's reference, delivered after the previous process's,
+    took its place, was found older than that grasp's start, and the respawned tracker took a new reference
+    at its first frame (the skin maybe pressed): the grasp's own reference was dropped."""
+    from fv_algos.perception import Perception
+    from msgs import GraspStart, Image
+    rest = _skin_at_rest()
+    taken = Perception().reset(rest).reference_px
+    for cause in ("source restart", "reset"):
+        with _tracker({"resume_wait_s": 0.0, "recorded_reference": "recorded/markers/reference"}) as (
+                node, references, markers):
+            node.launch_ns = node.started_ns - 10
+            node.on_grasp_started(GraspStart(pub_ns=node.launch_ns + 3, node="tracker", cause=cause))
+            node.on_reference(_reference_of(taken, rest, node.launch_ns + 4))  # this grasp's, after its start
+            node.on_recorded_reference(_reference_of(taken, rest, node.launch_ns - 100))
+            node.on_image(Image(stamp_ns=5, encoding="mono8", data=np.roll(rest, 2, axis=1), frame_index=5))
+            assert (node.counters["resumed"], node.counters["references"]) == (1, 0), (cause, node.counters)
+
+
+def test_a_reset_the_previous_process_took_is_followed_without_a_reference_to_resume() -> None:
+    """The previous process took a /tracker/reset and was killed before its next frame, with no reference
+    to resume (none taken yet, one refused): the respawned tracker's first frame was skipped as before
+    `reference_frame`; it is the new grasp's reference, as it would have been for the previous process."""
+    from msgs import GraspStart, Image
+    rest = _skin_at_rest()
+    with _tracker({"resume_wait_s": 0.0}) as (node, references, markers):
+        node.launch_ns = node.started_ns - 10
+        node.on_grasp_started(GraspStart(pub_ns=node.launch_ns + 3, node="tracker", cause="reset"))
+        node.on_image(Image(stamp_ns=5, encoding="mono8", data=rest))
+        assert len(references) == 1 and references[0].stamp_ns == 5
+        node.on_reset(GraspStart(stamp_ns=6))  # its own grasps are its own: a source restart's at reference_frame
+        node.on_image(Image(stamp_ns=7, encoding="mono8", data=rest, frame_index=0))
+        node.on_image(Image(stamp_ns=8, encoding="mono8", data=rest, frame_index=9))
+        node.on_image(Image(stamp_ns=9, encoding="mono8", data=rest, frame_index=0))  # the source started over
+        node.on_image(Image(stamp_ns=10, encoding="mono8", data=rest, frame_index=1))
+        assert [r.stamp_ns for r in references] == [5, 7, 10]
 
 @pytest.mark.parametrize("ref, says", [
     (np.array([[np.nan, 0.0], [10.0, 0.0], [0.0, 10.0]]), "non-finite"),
