@@ -12,7 +12,7 @@ does, with CONFIG, one that can give no further frame as configured (a simulated
 play its next frame), said in NodeStatus first.
 
 A video or folder source numbers its frames from 0 at each pass (`Image.frame_index`); at each pass's first frame
-the camera also says, latched on `camera/pass_start`, that its source started over (`msgs.GraspStart`, cause "source
+(frame 0, or the first a folder could read) the camera also says, latched on `camera/pass_start`, that its source started over (`msgs.GraspStart`, cause "source
 restart", stamped as that frame): a tracker respawned as the pass began resumes no reference of the pass before.
 
 `start_after` holds the first frame back until the named nodes have reported
@@ -135,6 +135,7 @@ class CameraNode(Node):
         self.info_pub = self.publisher("camera/info", CameraInfo, latched=True)
         numbered = p.source in ("video", "folder")  # sources whose frames are numbered, pass by pass
         self.pass_pub = self.publisher(PASS_START_TOPIC, GraspStart, latched=True) if numbered else None
+        self.last_index = -1  # frame_index of the frame published last (-1: none yet, or a live source's)
         self.held_frame: Frame | None = None  # read at setup for its size, published first
         self.end_at: float | None = None  # monotonic time to stop at, once the source has ended
         self.fisheye = self._load_calibration()
@@ -286,9 +287,12 @@ class CameraNode(Node):
             image = cv2.remap(image, self.maps[0], self.maps[1], cv2.INTER_LINEAR)
         if self.crop is not None:
             image = self.crop.apply(image)
-        if frame.index == 0 and self.pass_pub is not None:  # before the frame: a tracker may take it as it comes
+        if self.pass_pub is not None and frame.index >= 0 and not 0 <= self.last_index < frame.index:
+            # a pass's first frame (its frame 0, or the first that could be read: a folder's), said before the
+            # frame, which a tracker may take as it comes
             self.pass_pub.publish(GraspStart(stamp_ns=frame.stamp_ns, frame_id=self.params.frame_id,
                                              cause="source restart"))
+        self.last_index = frame.index
         self.image_pub.publish(Image(stamp_ns=frame.stamp_ns, frame_id=self.params.frame_id,
                                      encoding=self.params.encoding, data=np.ascontiguousarray(image),
                                      frame_index=frame.index))

@@ -53,7 +53,7 @@ from typing import Any, Callable, Iterator, Sequence, TypeVar
 from msgs import (CameraInfo, ContactSummary, DisplacementField, GraspStart, Image, MarkerArray, Message, NodeStatus,
                   SlipState)
 from msgs.wire import check_message
-from nodes.bus import PublisherSocket, TopicReader, resolve_topic, validate_topic
+from nodes.bus import PublisherSocket, TopicReader, absolute_namespace, resolve_topic, validate_topic
 from nodes.endpoints import BusAddress
 from nodes.forwarder import ping
 from nodes.param_service import ANSWER_TIMEOUT_S, read_params, set_params
@@ -400,10 +400,10 @@ def reset_grasp(*, confirm: Sequence[str] = (), timeout_s: float = 1.0, connect_
     tracker takes its next frame as the reference; the slip detectors judge the grasp from there.
 
     confirm: the namespaces of the trackers that must say they took it ("/" for the one-camera launch files,
-    "/left" and "/right" for a pair's), each on `GRASP_START_TOPIC` in its namespace (a `GraspStart` stamped
+    "/left" and "/right", or "left" and "right" as launch files write them, for a pair's), each on `GRASP_START_TOPIC` in its namespace (a `GraspStart` stamped
     as this reset). TimeoutError naming those that did not within `timeout_s` s: a tracker that is not running
     (respawning as the reset came) never takes it, and the bus keeps no reset for it; call again."""
-    topics = {resolve_topic(GRASP_START_TOPIC, ns.rstrip("/")): ns for ns in confirm}
+    topics = {resolve_topic(GRASP_START_TOPIC, absolute_namespace(ns)): ns for ns in confirm}
     stamp_ns = time.time_ns()
     with (TopicReader(sorted(topics), address) if topics else contextlib.nullcontext()) as reader, advertise(
             RESET_TOPIC, name="robot_reset", connect_timeout_s=connect_timeout_s, address=address) as pub:

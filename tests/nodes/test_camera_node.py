@@ -547,3 +547,20 @@ def test_a_camera_slower_than_its_fps_says_so_until_it_keeps_the_rate_again() ->
         assert node.state == "ok" and node.message == ""
     finally:
         node.close()
+
+
+def test_a_looped_folder_whose_first_image_cannot_be_read_says_each_pass_start(bus, spawn, tmp_path: Path) -> None:
+    """The camera said a pass's start only at frame_index 0: a folder whose first image cannot be read numbers
+    each pass from 1, and no pass start was said (a tracker respawned as a pass began resumed the pass
+    before's reference), while the tracker still saw each pass start over (1 after 3)."""
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    (folder / "000.png").write_bytes(b"not a png")
+    for k in range(1, 4):
+        cv2.imwrite(str(folder / f"{k:03d}.png"), np.full((24, 32), 40 * k, np.uint8))
+    with TopicReader(["/camera/image", "/camera/pass_start"]) as reader:
+        spawn("node", "camera", "-p", "source=folder", "-p", f"path={folder}", "-p", "fps=50")
+        items = [reader.recv(15.0 if k == 0 else 2.0) for k in range(11)]
+    assert all(item is not None for item in items)
+    assert [item.msg.frame_index if item.topic == "/camera/image" else "start" for item in items] == [
+        "start", 1, 2, 3, "start", 1, 2, 3, "start", 1, 2]
