@@ -74,13 +74,16 @@ class Backlog:
             self._closed = True
             self._cond.notify_all()
 
-    def abandon(self, unwritten: Stamped | None = None) -> None:
+    def abandon(self, unwritten: Stamped | None = None, unstored: dict[str, int] | None = None) -> None:
         """The writer failed and takes no more: the waiting messages, `unwritten` (the one it failed on, if
-        any) and every message put from now on are counted under their topic in `lost`."""
+        any), `unstored` ({topic: count} it took that the file did not) and every message put from now on are
+        counted under their topic in `lost`."""
         with self._cond:
             self._abandoned = True
             for item in ([unwritten] if unwritten is not None else []) + list(self._items):
                 _count(self.lost, item.topic)
+            for topic, count in (unstored or {}).items():
+                self.lost[topic] = self.lost.get(topic, 0) + count
             self._items.clear()
 
     @property

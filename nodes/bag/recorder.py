@@ -13,8 +13,9 @@ messages, as that queue does: a writer further behind (a disk slower than the st
 messages, counted per topic (counters["dropped"], the summary, the ``fv_recording_end`` record) and warned by
 topic name, where the socket dropped them silently. Gaps in seq are counted as messages are received, before
 the backlog may drop one: they are the bus's losses only. A writer that fails (a full disk, a split whose new
-file cannot be opened) stops the node; the messages received but not stored (the one it failed on, those
-waiting, those received until the stop's drain ends) are counted lost per topic (counters["lost"], the summary,
+file cannot be opened) stops the node; the messages received but not stored (those written since the file's
+last flush, the one it failed on, those waiting, those received until the stop's drain ends) are counted lost per
+topic (counters["lost"], the summary,
 the node's error, ``fv_recording_end`` where it can still be written). Latched `CameraInfo` messages are also
 stored as a YAML attachment ``calibration/<topic>.yaml``; files named in `attach` (the launch file...) are
 attached at the start of every split file. On stop the receive queue is drained of the messages published
@@ -313,6 +314,8 @@ class BagRecord(Node):
                 unfinished = self.writer.unfinished
                 why = (f": {exc.strerror}" if isinstance(exc, OSError) and exc.strerror
                        else f": {type(exc).__name__}: {exc}")
+        if unstored := self.writer.take_unflushed():  # written since the last flush of a file left unfinished
+            self._backlog.abandon(unstored=unstored)
         if unfinished is not None:
             self.state, self.message = "error", f"could not finish {unfinished}{why}{self._lost_words()}"
             self.log.error("%s; what was flushed is kept: run `fv bag recover %s` to index it", self.message,

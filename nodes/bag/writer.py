@@ -99,6 +99,7 @@ class BagWriter:
         self._channels: dict[tuple[str, str, str, bool], int] = {}
         self._file_start_ns = 0
         self.unfinished: Path | None = None  # a file whose summary and index could not be written (a full disk...)
+        self.unflushed: dict[str, int] = {}  # per topic, messages written since the file last took them (flushed)
         self._open_next()
 
     # -- files -----------------------------------------------------------------------
@@ -125,6 +126,7 @@ class BagWriter:
         except Exception:  # a full disk, or the MCAP writer's own error: the file stays as flushed, closed
             self.abandon()
             raise
+        self.unflushed.clear()
         self._release().close()
 
     def _release(self) -> IO[bytes]:
@@ -190,6 +192,7 @@ class BagWriter:
         st.count += 1
         st.payload_b += len(payload)
         st.last_ns = log_time_ns
+        self.unflushed[topic] = self.unflushed.get(topic, 0) + 1
 
     def flush(self) -> None:
         """Close the chunk in progress and push everything to the file (and the disk
@@ -199,6 +202,7 @@ class BagWriter:
         self._writer.flush()
         if self.fsync:
             os.fsync(self._stream.fileno())
+        self.unflushed.clear()
 
     @property
     def is_open(self) -> bool:
@@ -215,6 +219,16 @@ class BagWriter:
         """Write the summary and index of the last file and close it."""
         if self._writer is not None:
             self._finish_file()
+
+    def take_unflushed(self) -> dict[str, int]:
+        """The messages written since the file last took them ({topic: count}; none once it is closed, or split,
+        as it should be: those of a file left unfinished), no longer counted in `stats` (whose `count` is then what
+        the files took). The file may hold some of them (the chunks written before its summary failed): `fv bag
+        recover` tells."""
+        taken, self.unflushed = self.unflushed, {}
+        for topic, count in taken.items():
+            self.stats[topic].count -= count
+        return taken
 
     def abandon(self) -> None:
         """Close the open file as it stands, without its summary and index, after a failure that left it open: it

@@ -1215,3 +1215,58 @@ def test_a_bag_that_cannot_be_closed_is_named_with_recover_and_summed_up(
     assert not node.writer.is_open and node.counters["recorded"] == 20
     monkeypatch.undo()  # the MCAP writer that `recover` uses too
     assert 0 < recover(file, tmp_path / "kept.mcap").messages <= 20
+
+
+def test_a_disk_full_at_a_flush_counts_the_chunk_in_progress_lost_not_recorded(
+        bus: BusAddress, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The disk fills as a flush writes the chunk in progress: the messages of that chunk never reached the
+    file, yet they stayed counted as recorded (summary, counters) and not as lost."""
+    import errno
+
+    import nodes.bag.writer as writer_module
+    open_mcap, full = writer_module.open_mcap, threading.Event()
+
+    class FillingStream:
+        def __init__(self, stream: object) -> None:
+            self._s = stream
+
+        def write(self, data: bytes) -> int:
+            if full.is_set():
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return self._s.write(data)
+
+        def __getattr__(self, name: str) -> object:
+            return getattr(self._s, name)
+
+    def filling_open(path: Path, compression: str, chunk_size_b: int = writer_module.DEFAULT_CHUNK_B) -> object:
+        stream = open(path, "xb")
+        wrapped = FillingStream(stream)
+        writer = writer_module.Writer(wrapped, chunk_size=chunk_size_b,
+                                      compression=writer_module.COMPRESSIONS[compression])
+        writer.start(profile=writer_module.PROFILE)
+        return wrapped, writer
+
+    monkeypatch.setattr(writer_module, "open_mcap", filling_open)
+    node = BagRecord("rec", {"output": str(tmp_path / "full"), "topics": ["/a"], "flush_period_s": 0.5,
+                             "compression": "none"}, address=bus)
+    thread = in_thread(node)
+    pub = PublisherSocket("src", bus)
+    try:
+        wait_subscribed(pub, ["/a"])
+        for i in range(20):
+            pub.publish("/a", SlipState(stamp_ns=i))
+            time.sleep(0.01)
+        wait_for(lambda: node.writer.stats.get("/a") is not None and node.writer.stats["/a"].count == 20, 10.0,
+                 "20 messages in the chunk in progress")
+        full.set()  # the disk is full before the next flush writes the chunk
+        wait_for(lambda: bool(node.error), 10.0, "the writer's failure")
+    finally:
+        pub.close()
+        node.stop()
+        thread.join(10)
+    file = tmp_path / "full" / "full_0.mcap"
+    stored = recover(file, tmp_path / "kept.mcap").messages
+    counts = {k: node.counters.get(k) for k in ("recorded", "lost", "dropped")}
+    assert stored == 0 and counts == {"recorded": 0, "lost": 20, "dropped": 0}, (counts, node.summary_line())
+    assert "20 messages received were not stored (/a 20)" in node.message, node.message
+    assert "/a 0 (20 lost)" in node.summary_line(), node.summary_line()
