@@ -361,9 +361,11 @@ def _without_onednn() -> Iterator[None]:
 
 
 def fit_trial_net(inputs: Sequence[TrialInput], labels: np.ndarray,
-                  config: TrialNetConfig = TrialNetConfig()) -> TrialNet:
+                  config: TrialNetConfig = TrialNetConfig(), init: TrialNet | None = None) -> TrialNet:
     """Train a :class:`TrialNet` on ``inputs`` with ``labels`` (M,) 0/1 (both classes needed):
-    AdamW on every member's binary cross-entropy of balanced batches of augmented trials."""
+    AdamW on every member's binary cross-entropy of balanced batches of augmented trials. ``init``: a
+    network to fine-tune (its weights are the start; ``config`` must give its hidden, layers and members),
+    its descriptors' clamp range set anew from ``inputs`` as for a new network."""
     labels = np.asarray(labels)
     slip, still = np.flatnonzero(labels == 1), np.flatnonzero(labels == 0)
     if slip.size == 0 or still.size == 0:
@@ -371,6 +373,12 @@ def fit_trial_net(inputs: Sequence[TrialInput], labels: np.ndarray,
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     net = TrialNet(config.hidden, config.layers, config.members)
+    if init is not None:
+        if (init.hidden, init.layers, init.members) != (config.hidden, config.layers, config.members):
+            raise ValueError(f"the network to fine-tune has hidden {init.hidden}, layers {init.layers}, members "
+                             f"{init.members}; the training asks for {config.hidden}, {config.layers}, "
+                             f"{config.members}")
+        net.load_state_dict(init.state_dict())
     frames = torch.cat([x for cameras in inputs for x in cameras], dim=1).numpy()  # (C, all frames)
     low, high = (torch.from_numpy(np.quantile(frames, q, axis=1).astype(np.float32))
                  for q in (config.clip, 1 - config.clip))
@@ -473,18 +481,20 @@ def judge_trials(probability: np.ndarray, labels: np.ndarray) -> dict[str, objec
 
 
 def _held_out(inputs: Sequence[TrialInput], labels: np.ndarray, config: TrialNetConfig, online: bool,
-              test: np.ndarray) -> tuple[np.ndarray, list[list[np.ndarray]] | None]:
-    """Slip probability (T,) of the ``test`` trials (mask (M,)) from a network trained on the others,
-    and when ``online`` each test trial's per-camera :func:`running_probability` (else None)."""
-    net = fit_trial_net([inputs[i] for i in np.flatnonzero(~test)], labels[~test], config)
+              init: TrialNet | None, test: np.ndarray) -> tuple[np.ndarray, list[list[np.ndarray]] | None]:
+    """Slip probability (T,) of the ``test`` trials (mask (M,)) from a network trained on the others (fine-tuned
+    from ``init`` when given), and when ``online`` each test trial's per-camera :func:`running_probability`
+    (else None)."""
+    net = fit_trial_net([inputs[i] for i in np.flatnonzero(~test)], labels[~test], config, init)
     tested = [inputs[i] for i in np.flatnonzero(test)]
     running = running_probabilities(net, tested) if online else None
     return trial_probability(net, tested), running
 
 
 def cross_validate_trials(inputs: Sequence[TrialInput], labels: np.ndarray, objects: Sequence[str], folds: int,
-                          seed: int = 0, config: TrialNetConfig = TrialNetConfig(),
-                          workers: int = 1, progress: bool = False, online: bool = False) -> dict[str, object]:
+                          seed: int = 0, config: TrialNetConfig = TrialNetConfig(), workers: int = 1,
+                          progress: bool = False, online: bool = False,
+                          init: TrialNet | None = None) -> dict[str, object]:
     """Object-held-out cross-validation of :class:`TrialNet`: ``folds`` object groups (dealt with
     ``seed``; ``folds`` = number of objects leaves one object out), a network trained per fold on
     the other objects' trials, the folds in ``workers`` spawned processes of one torch thread each
@@ -492,11 +502,12 @@ def cross_validate_trials(inputs: Sequence[TrialInput], labels: np.ndarray, obje
     over the folds when ``progress``. Returns {"folds": per fold objects, trials,
     trial accuracy, confusion; "summary": mean, std, min, worst fold, pooled accuracy and confusion}
     and, when ``online``, "running": per trial (in the order of ``inputs``), per camera, the held-out
-    network's P(slip) after every frame as a list (:func:`running_probability`)."""
+    network's P(slip) after every frame as a list (:func:`running_probability`). ``init``: every fold's network is
+    fine-tuned from it (:func:`fit_trial_net`)."""
     names, labels = np.asarray(objects), np.asarray(labels)
     groups = object_folds(objects, folds, seed)
     tests = [np.isin(names, group) for group in groups]
-    results = map_folds(partial(_held_out, inputs, labels, config, online), tests, workers, progress)
+    results = map_folds(partial(_held_out, inputs, labels, config, online, init), tests, workers, progress)
     rows = [{"fold": k, "objects": group, "trials": np.flatnonzero(test).tolist(),
              **judge_trials(probability, labels[test])}
             for k, (group, test, (probability, _)) in enumerate(zip(groups, tests, results))]

@@ -47,8 +47,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     _fit_args(p, window_steps=300)
     p.add_argument("--folds", type=int, default=5, help="object folds (default 5; the number of objects, "
                    "e.g. 29, leaves one object out)")
-    p.add_argument("--init", default=None, help=f"with --method windows: fine-tune every fold from this model, a "
-                   f"{model_help()}; its architecture is used and --steps counts the extra steps")
     online_flags(p)
     p.add_argument("--out", type=output_file, default=None, help="also write the full report (JSON) here")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
@@ -173,6 +171,10 @@ def _fit_args(p: argparse.ArgumentParser, window_steps: int) -> None:
     p.add_argument("--batch-size", type=int, default=None, help="default: trial: TrialNetConfig's, windows: 32")
     p.add_argument("--lr", type=positive_float, default=None, help="default: trial: TrialNetConfig's, windows: 1e-3")
     p.add_argument("--seed", type=random_seed, default=0)
+    p.add_argument("--init", default=None, help=f"fine-tune from this model (every fold's, in cv), a {model_help()}: "
+                   "with --method trial a trial-level model, whose hidden, layers and members are used (the "
+                   "descriptors' clamp range is taken from these trials); with windows a window model, whose "
+                   "architecture is used; --steps counts the extra steps")
     p.add_argument("--stride", type=int, default=5, help="frames between window starts (default 5)")
     p.add_argument("--activity-px", type=float, default=None, help="activity (px/frame) from which a slip "
                    "trial's window is labelled slip (default: the TrialRule default)")
@@ -228,18 +230,26 @@ def _given(value, default):
 
 
 def _trial_config(args: argparse.Namespace):
+    """The trial network's training config of `args`, and the network `--init` names (None without): its hidden,
+    layers and members replace those of `args`. ValueError when it is no trial-level model."""
     import torch
-    from fv_algos.trial_net import TrialNetConfig
+    from fv_algos.trial_net import TrialNetConfig, load_trial_model
+    from nodes.shipped_models import model_path
     torch.set_num_threads(1)
     default = TrialNetConfig()
-    return TrialNetConfig(hidden=args.hidden, layers=_given(args.layers, default.layers),
-                          members=_given(args.members, default.members),
-                          stretch=_given(args.stretch, default.stretch), clip=_given(args.clip, default.clip),
-                          held_prefix=_given(args.held_prefix, default.held_prefix),
-                          start_swap=_given(args.start_swap, default.start_swap),
-                          reference_frame=_given(args.reference_frame, default.reference_frame),
-                          steps=_given(args.steps, default.steps),
-                          batch=_given(args.batch_size, default.batch), lr=_given(args.lr, default.lr), seed=args.seed)
+    config = TrialNetConfig(hidden=args.hidden, layers=_given(args.layers, default.layers),
+                            members=_given(args.members, default.members),
+                            stretch=_given(args.stretch, default.stretch), clip=_given(args.clip, default.clip),
+                            held_prefix=_given(args.held_prefix, default.held_prefix),
+                            start_swap=_given(args.start_swap, default.start_swap),
+                            reference_frame=_given(args.reference_frame, default.reference_frame),
+                            steps=_given(args.steps, default.steps),
+                            batch=_given(args.batch_size, default.batch), lr=_given(args.lr, default.lr),
+                            seed=args.seed)
+    if args.init is None:
+        return config, None
+    init = load_trial_model(model_path(args.init)).net
+    return replace(config, hidden=init.hidden, layers=init.layers, members=init.members), init
 
 
 def _trial_inputs(args: argparse.Namespace, reference_frame: int, params: ContactMotionParams | None = None,
@@ -269,17 +279,14 @@ def _trial_inputs(args: argparse.Namespace, reference_frame: int, params: Contac
 def _cv(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     check_online(args, args.method == "trial")
-    if args.method == "trial" and args.init is not None:  # it was ignored, a name that is no model too
-        raise ValueError("--init fine-tunes window models (--method windows): the trial model is trained "
-                         "from scratch in every fold")
     if args.method == "trial":
         from fv_algos.trial_net import cross_validate_trials
-        config = _trial_config(args)
+        config, init = _trial_config(args)
         trials, _, _, inputs, labels, fps = _trial_inputs(args, config.reference_frame, stretch=config.stretch)
         config = replace(config, fps=fps)
         report = cross_validate_trials(inputs, labels, [t.object for t in trials], args.folds, args.seed, config,
-                                       args.workers, progress=not args.no_progress, online=args.online)
-        report["config"] = {"method": "trial", **asdict(config), "folds": args.folds}
+                                       args.workers, progress=not args.no_progress, online=args.online, init=init)
+        report["config"] = {"method": "trial", **asdict(config), "folds": args.folds, "init": args.init}
         if args.online:
             report["online"] = _online_report(report["running"], labels, args, fps)
     else:
@@ -352,22 +359,25 @@ def _train(args: argparse.Namespace) -> int:
     if args.method == "trial":
         return _train_trial(args)
     import numpy as np
-    from fv_algos.slip.classifier import Checkpoint, save_checkpoint
+    from fv_algos.slip.classifier import Checkpoint, load_checkpoint, save_checkpoint
     from fv_algos.slip.models import count_parameters
     from fv_algos.trial_eval import fit, trial_windows
+    from nodes.shipped_models import model_path
     config = _fit_config(args)
     trials, fields, _ = _load(args)
     data = trial_windows(trials, fields, config.train.model.window, config.rule)
     started = time.perf_counter()
-    model, threshold, record = fit(data, np.arange(len(trials)), config)
-    checkpoint = Checkpoint(config.train.model, model.state_dict(), record["steps"], None,
-                            config.train.to_dict(), [])
+    init = None if args.init is None else str(model_path(args.init))
+    model, threshold, record = fit(data, np.arange(len(trials)), config, init=init)
+    model_config = config.train.model if init is None else load_checkpoint(init).model_config  # fine-tuned: its own
+    checkpoint = Checkpoint(model_config, model.state_dict(), record["steps"], None, config.train.to_dict(), [])
     path = save_checkpoint(args.out, checkpoint)
     info = {
         "model": path.stem.removeprefix("slip_"),
         "trained_on": {"trials_dir": str(args.trials), "trials": len(trials),
                        "slip": int(sum(t.label for t in trials)), "objects": len({t.object for t in trials})},
-        "fit": {"train": config.train.to_dict(), "rule": asdict(config.rule), "seconds": time.perf_counter() - started},
+        "fit": {"train": config.train.to_dict(), "rule": asdict(config.rule), "init": init,
+                "seconds": time.perf_counter() - started},
         "trial_threshold": threshold,
         "training": record,
         "parameters": count_parameters(model),
@@ -405,17 +415,18 @@ def _train_trial(args: argparse.Namespace) -> int:
     from fv_algos.slip.models import count_parameters
     from fv_algos.trial_net import DESCRIPTORS, fit_trial_net, judge_trials, save_trial_model, trial_probability
     started = time.perf_counter()
-    config = _trial_config(args)
+    config, init = _trial_config(args)
     trials, _, _, inputs, labels, fps = _trial_inputs(args, config.reference_frame, stretch=config.stretch)
     config = replace(config, fps=fps)
-    net = fit_trial_net(inputs, labels, config)
+    net = fit_trial_net(inputs, labels, config, init)
     path = save_trial_model(args.out, net, config)
     info = {
         "model": path.stem.removeprefix("slip_"),
         "kind": "trial-level temporal network on per-frame contact-motion and field descriptors (fv_algos.trial_net)",
         "trained_on": {"trials_dir": str(args.trials), "trials": len(trials), "slip": int(labels.sum()),
                        "objects": len({t.object for t in trials})},
-        "config": asdict(config), "parameters": count_parameters(net), "descriptors": list(DESCRIPTORS),
+        "config": asdict(config), "init": args.init, "parameters": count_parameters(net),
+        "descriptors": list(DESCRIPTORS),
         "decision": "slip when p >= 0.5",
         "training_trial_accuracy": judge_trials(trial_probability(net, inputs), labels)["trial_accuracy"],
         "seconds": time.perf_counter() - started,

@@ -418,6 +418,12 @@ def test_real_train_writes_a_trial_model_that_fv_eval_reads(isd_data: Path, tmp_
     report = json.loads(capsys.readouterr().out)
     assert report["n_trials"] == 3 and report["method"].startswith("trial") and report["window_accuracy"] is None
     assert sorted((tmp_path / "cache").glob("*.np[yz]")) == cached  # fv eval judged the model's frames
+    tuned = tmp_path / "slip_tuned_trial.pt"  # fine-tuned from it: its shape, not --hidden's default 16
+    assert main(["real", "train", "--trials", str(root), "--cache", str(tmp_path / "cache"), "--steps", "3",
+                 "--reference-frame", "5", "--init", str(out), "--out", str(tuned)]) == 0
+    info = json.loads(tuned.with_suffix(".json").read_text())
+    assert info["init"] == str(out) and info["parameters"] == 2 * 485
+    assert (info["config"]["hidden"], info["config"]["members"], info["config"]["steps"]) == (4, 2, 3)
 
 
 def test_real_cv_online_reports_how_early_the_held_out_networks_tell_slips(isd_data: Path, tmp_path: Path,
@@ -461,7 +467,7 @@ def test_real_cv_online_reports_how_early_the_held_out_networks_tell_slips(isd_d
 @pytest.mark.parametrize("argv, message", [
     (["real", "cv", "--trials", "x", "--plot", "x.png"], "fv real: error: --plot needs --online"),  # exit 1
     (["real", "cv", "--trials", "x", "--online", "--method", "windows"], "--online needs a trial-level model"),
-    (["real", "cv", "--trials", "x", "--init", "no_such_model"], "--init fine-tunes window models"),  # was ignored
+    (["real", "cv", "--trials", "x", "--init", "sim"], "is not a trial-level slip model"),  # a window model
     (["eval", "--trials", "x", "--model", "sim", "--online"], "--online needs a trial-level model"),
     (["eval", "--trials", "x", "--model", "gelsight_trial", "--alarm", "0.9", "--plot", "x.png"],
      "fv eval: error: --alarm and --plot need --online"),

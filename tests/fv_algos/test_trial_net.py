@@ -2,6 +2,7 @@
 cross-validation (no data needed)."""
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -103,6 +104,29 @@ def test_trial_net_learns_a_burst_whatever_the_length_and_round_trips(tmp_path: 
     with pytest.raises(ValueError, match=r"0 < lr < 3.4e\+37 \(got 1e\+38; AdamW's first step"):
         TrialNetConfig(lr=1e38)  # torch's "value cannot be converted to type float without overflow" at its step
 
+
+
+def test_a_network_is_fine_tuned_from_the_one_given_with_the_new_trials_range() -> None:
+    """`fv real --init` fine-tuned window models only: a trial network always started from random weights. With
+    `init` it starts from that network's weights (one step of a tiny learning rate leaves them), and clamps the
+    descriptors to the new trials' range; a network of another shape is refused by name."""
+    torch.set_num_threads(1)
+    inputs, labels = _toy_trials(20)
+    config = TrialNetConfig(steps=30, members=2, hidden=8, seed=1)
+    start = fit_trial_net(inputs, labels, config)
+    new_inputs, new_labels = _toy_trials(10, seed=3)
+    new_inputs = [[3.0 * x for x in cameras] for cameras in new_inputs]  # another sensor's range
+    tuned = fit_trial_net(new_inputs, new_labels, replace(config, steps=1, lr=1e-9, seed=2), start)
+    scratch = fit_trial_net(new_inputs, new_labels, replace(config, steps=1, lr=1e-9, seed=2))
+    for name, weight in start.state_dict().items():
+        if name not in ("low", "high"):
+            torch.testing.assert_close(tuned.state_dict()[name], weight, atol=1e-6, rtol=0)
+            assert not torch.allclose(scratch.state_dict()[name], weight), name
+    frames = torch.cat([x for cameras in new_inputs for x in cameras], dim=1)
+    torch.testing.assert_close(tuned.high, frames.amax(dim=1))
+    assert not torch.allclose(start.high, tuned.high)
+    with pytest.raises(ValueError, match="has hidden 8, layers 4, members 2; the training asks for 8, 4, 1"):
+        fit_trial_net(new_inputs, new_labels, replace(config, members=1), start)
 
 def test_descriptors_are_clamped_to_the_range_of_the_training_frames() -> None:
     torch.set_num_threads(1)
