@@ -424,6 +424,13 @@ def test_real_train_writes_a_trial_model_that_fv_eval_reads(isd_data: Path, tmp_
     info = json.loads(tuned.with_suffix(".json").read_text())
     assert info["init"] == str(out) and info["parameters"] == 2 * 485
     assert (info["config"]["hidden"], info["config"]["members"], info["config"]["steps"]) == (4, 2, 3)
+    windows = tmp_path / "slip_tuned_windows.pt"  # a window model fine-tuned: saved with its architecture
+    assert main(["real", "train", "--trials", str(root), "--cache", str(tmp_path / "cache"), "--method", "windows",
+                 "--steps", "2", "--init", "sim_cnn_lstm", "--out", str(windows)]) == 0
+    from fv_algos.slip.classifier import load_checkpoint
+    from nodes.shipped_models import model_path
+    assert load_checkpoint(windows).model_config == load_checkpoint(model_path("sim_cnn_lstm")).model_config
+    assert json.loads(windows.with_suffix(".json").read_text())["fit"]["init"] == str(model_path("sim_cnn_lstm"))
 
 
 def test_real_cv_online_reports_how_early_the_held_out_networks_tell_slips(isd_data: Path, tmp_path: Path,
