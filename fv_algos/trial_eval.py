@@ -189,6 +189,15 @@ class FitConfig:
     rule: TrialRule = TrialRule()
 
 
+def fit_train_config(config: FitConfig, init: str | None) -> TrainConfig:
+    """The training config of a fit: ``config.train``, or to fine-tune the checkpoint ``init``, its architecture
+    (in place of ``config.train.model``) and ``config.train.steps`` more optimizer steps than it was trained for."""
+    if init is None:
+        return config.train
+    start = load_checkpoint(init)
+    return replace(config.train, model=start.model_config, steps=start.step + config.train.steps)
+
+
 def fit(data: TrialWindows, train_trials: np.ndarray, config: FitConfig, monitor: np.ndarray | None = None,
         init: str | None = None) -> tuple[nn.Module, float, dict[str, object]]:
     """Train on the labelled windows of ``train_trials`` (trial indices) and choose the trial
@@ -201,11 +210,7 @@ def fit(data: TrialWindows, train_trials: np.ndarray, config: FitConfig, monitor
     train_rows = balanced_rows(rows, data.labels[rows])
     if monitor is None:
         monitor = np.random.default_rng(config.train.seed).permutation(rows)[:MONITOR_WINDOWS]
-    train_config = config.train
-    if init is not None:
-        start = load_checkpoint(init)
-        train_config = replace(train_config, model=start.model_config, steps=start.step + train_config.steps)
-    result = train(train_config, Split(data.windows, train_rows, monitor, "object"), resume=init)
+    result = train(fit_train_config(config, init), Split(data.windows, train_rows, monitor, "object"), resume=init)
     width = data.windows.sequences.frame_width_px
     probability = predict_rows(partial(predict_proba, result.model, width_px=width), data.windows,
                                np.flatnonzero(in_train))
@@ -299,9 +304,7 @@ def cross_validate(data: TrialWindows, config: FitConfig, folds: int, seed: int 
     confusion}. ``init``: fine-tune every fold from this checkpoint."""
     groups = object_folds(data.objects, folds, seed)
     rows = map_folds(partial(_window_fold, data, config, seed, init), list(enumerate(groups)), workers, progress)
-    train_record = config.train.to_dict()
-    if init is not None:  # the fine-tuned architecture is the checkpoint's, not config.train.model
-        train_record["model"] = asdict(load_checkpoint(init).model_config)
+    train_record = {**config.train.to_dict(), "model": asdict(fit_train_config(config, init).model)}
     window_acc = [r["window_accuracy"] for r in rows]
     return {
         "folds": rows,

@@ -11,6 +11,12 @@ from msgs.message import ArraySpec, Message, require_image_size
 ENCODING_CHANNELS = {"mono8": 1, "bgr8": 3, "rgb8": 3}
 
 
+def source_started_over(frame_index: int, previous_index: int) -> bool:
+    """Whether a frame numbered `frame_index` (`Image.frame_index`), after one numbered `previous_index` (-1:
+    none, or a live camera's), begins a new pass of its source: its number went back."""
+    return 0 <= frame_index < previous_index
+
+
 @dataclass(kw_only=True)
 class Image(Message):
     """One camera frame.

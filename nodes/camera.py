@@ -12,8 +12,9 @@ does, with CONFIG, one that can give no further frame as configured (a simulated
 play its next frame), said in NodeStatus first.
 
 A video or folder source numbers its frames from 0 at each pass (`Image.frame_index`); at each pass's first frame
-(frame 0, or the first a folder could read) the camera also says, latched on `camera/pass_start`, that its source started over (`msgs.GraspStart`, cause "source
-restart", stamped as that frame): a tracker respawned as the pass began resumes no reference of the pass before.
+(frame 0, or the first a folder could read) the camera also says, latched on `camera/pass_start`, that its source
+started over (`msgs.GraspStart`, cause "source restart", stamped as that frame): a tracker respawned as the pass
+began resumes no reference of the pass before.
 
 `start_after` holds the first frame back until the named nodes have reported
 (`nodes.start_gate.StartGate`: a NodeStatus sent since the camera started, once their
@@ -32,6 +33,7 @@ import numpy as np
 from fv_algos.fisheye import FisheyeCamera
 from fv_algos.frame_crop import FrameCrop
 from msgs import CameraInfo, GraspStart, Image
+from msgs.camera import source_started_over
 from nodes.camera_sources import (FolderSource, Frame, FrameSource, SourceConfigError, SourceError, V4L2Source,
                                   VideoFileSource)
 from nodes.client import PASS_START_TOPIC
@@ -287,7 +289,8 @@ class CameraNode(Node):
             image = cv2.remap(image, self.maps[0], self.maps[1], cv2.INTER_LINEAR)
         if self.crop is not None:
             image = self.crop.apply(image)
-        if self.pass_pub is not None and frame.index >= 0 and not 0 <= self.last_index < frame.index:
+        if self.pass_pub is not None and frame.index >= 0 and (
+                self.last_index < 0 or source_started_over(frame.index, self.last_index)):
             # a pass's first frame (its frame 0, or the first that could be read: a folder's), said before the
             # frame, which a tracker may take as it comes
             self.pass_pub.publish(GraspStart(stamp_ns=frame.stamp_ns, frame_id=self.params.frame_id,

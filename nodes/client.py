@@ -399,10 +399,11 @@ def reset_grasp(*, confirm: Sequence[str] = (), timeout_s: float = 1.0, connect_
     """Start a new grasp: one message on /tracker/reset (call it when the gripper closes). Every
     tracker takes its next frame as the reference; the slip detectors judge the grasp from there.
 
-    confirm: the namespaces of the trackers that must say they took it ("/" for the one-camera launch files,
-    "/left" and "/right", or "left" and "right" as launch files write them, for a pair's), each on `GRASP_START_TOPIC` in its namespace (a `GraspStart` stamped
-    as this reset). TimeoutError naming those that did not within `timeout_s` s: a tracker that is not running
-    (respawning as the reset came) never takes it, and the bus keeps no reset for it; call again."""
+    confirm: the namespaces of the trackers that must say they took it ("/" for the one-camera launch files, "/left"
+    and "/right", or "left" and "right" as launch files write them, for a pair's), each on `GRASP_START_TOPIC`
+    in its namespace (a `GraspStart` stamped as this reset). TimeoutError naming those that did not within
+    `timeout_s` s: a tracker that is not running (respawning as the reset came) never takes it, and the bus
+    keeps no reset for it; call again."""
     topics = {resolve_topic(GRASP_START_TOPIC, absolute_namespace(ns)): ns for ns in confirm}
     stamp_ns = time.time_ns()
     with (TopicReader(sorted(topics), address) if topics else contextlib.nullcontext()) as reader, advertise(

@@ -439,14 +439,13 @@ class Launch:
         """(state, message) per node in trouble: its process stopped or its NodeStatus
         missing for SILENT_AFTER_S (error; said once when it starts; not while the forwarder is restarted, nor
         counted from before it answered: the silence is the bus's, and every node was said hung), it cannot
-        start (error),
-        it waits for what it needs (exit TEMPFAIL), waits to respawn or exited with an error
+        start (error), it waits for what it needs (exit TEMPFAIL), waits to respawn or exited with an error
         code (warn)."""
         faults = []
+        bus_down = self._forwarder_start is not None or self._forwarder_retry_at is not None
         for child in self.children:
             name, kind, fault, state = child.spec.name, "", "", "warn"
             running = child.proc is not None
-            bus_down = self._forwarder_start is not None or self._forwarder_retry_at is not None
             silent_s = (None if not running or child.last_status_s is None or bus_down
                         else now - max(child.last_status_s, self._bus_back_s))  # a forwarder's gap is not theirs
             if running and _process_state(child.proc.pid) in ("T", "t"):

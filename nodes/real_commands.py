@@ -229,6 +229,12 @@ def _given(value, default):
     return default if value is None else value
 
 
+def _window_init(args: argparse.Namespace) -> str | None:
+    """The path of the window model `--init` names (a shipped name or a path), None without."""
+    from nodes.shipped_models import model_path
+    return None if args.init is None else str(model_path(args.init))
+
+
 def _trial_config(args: argparse.Namespace):
     """The trial network's training config of `args`, and the network `--init` names (None without): its hidden,
     layers and members replace those of `args`. ValueError when it is no trial-level model."""
@@ -291,12 +297,10 @@ def _cv(args: argparse.Namespace) -> int:
             report["online"] = _online_report(report["running"], labels, args, fps)
     else:
         from fv_algos.trial_eval import cross_validate, trial_windows
-        from nodes.shipped_models import model_path
         config = _fit_config(args)
         trials, fields, _ = _load(args)
         data = trial_windows(trials, fields, config.train.model.window, config.rule)
-        init = None if args.init is None else str(model_path(args.init))
-        report = cross_validate(data, config, args.folds, args.seed, init, workers=args.workers)
+        report = cross_validate(data, config, args.folds, args.seed, _window_init(args), workers=args.workers)
     report["wall_s"] = time.perf_counter() - started
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -359,18 +363,16 @@ def _train(args: argparse.Namespace) -> int:
     if args.method == "trial":
         return _train_trial(args)
     import numpy as np
-    from fv_algos.slip.classifier import Checkpoint, load_checkpoint, save_checkpoint
+    from fv_algos.slip.classifier import Checkpoint, save_checkpoint
     from fv_algos.slip.models import count_parameters
-    from fv_algos.trial_eval import fit, trial_windows
-    from nodes.shipped_models import model_path
+    from fv_algos.trial_eval import fit, fit_train_config, trial_windows
     config = _fit_config(args)
     trials, fields, _ = _load(args)
     data = trial_windows(trials, fields, config.train.model.window, config.rule)
     started = time.perf_counter()
-    init = None if args.init is None else str(model_path(args.init))
+    init = _window_init(args)
     model, threshold, record = fit(data, np.arange(len(trials)), config, init=init)
-    model_config = config.train.model if init is None else load_checkpoint(init).model_config  # fine-tuned: its own
-    checkpoint = Checkpoint(model_config, model.state_dict(), record["steps"], None, config.train.to_dict(), [])
+    checkpoint = Checkpoint(fit_train_config(config, init).model, model.state_dict(), record["steps"], None, config.train.to_dict(), [])
     path = save_checkpoint(args.out, checkpoint)
     info = {
         "model": path.stem.removeprefix("slip_"),

@@ -60,6 +60,7 @@ from fv_algos.field import MAX_MARKERS
 from fv_algos.perception import Perception, PerceptionParams, resumable_reference
 from fv_algos.visualize import as_bgr
 from msgs import GraspStart, Image, MarkerArray, Message
+from msgs.camera import source_started_over
 from nodes.client import GRASP_START_TOPIC, PASS_START_TOPIC, RESET_TOPIC
 from nodes.node import Node, launch_started_ns
 
@@ -247,7 +248,7 @@ class TrackerNode(Node):
         no reference in it is a reference_retries warning, and the next frame is tried."""
         self.frames_seen += 1
         image = as_bgr(msg.data, msg.encoding) if msg.encoding == "rgb8" else msg.data  # perception reads BGR
-        if 0 <= msg.frame_index < self.last_index:  # the source started over (a looped video's next pass)
+        if source_started_over(msg.frame_index, self.last_index):  # a looped video's next pass
             if not self.counters["source_restarts"]:
                 self.log.info("the camera's source started over (frame %d after frame %d): a new grasp, its "
                               "reference at frame %d (reference_frame); each restart counted in source_restarts",

@@ -27,8 +27,8 @@ class Stamped:
     log_time_ns: int
 
 
-def _count(counts: dict[str, int], topic: str) -> None:
-    counts[topic] = counts.get(topic, 0) + 1
+def _count(counts: dict[str, int], topic: str, n: int = 1) -> None:
+    counts[topic] = counts.get(topic, 0) + n
 
 
 class Backlog:
@@ -83,7 +83,7 @@ class Backlog:
             for item in ([unwritten] if unwritten is not None else []) + list(self._items):
                 _count(self.lost, item.topic)
             for topic, count in (unstored or {}).items():
-                self.lost[topic] = self.lost.get(topic, 0) + count
+                _count(self.lost, topic, count)
             self._items.clear()
 
     @property

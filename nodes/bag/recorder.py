@@ -11,16 +11,15 @@ A crash or `kill -9` loses what is not yet flushed: the chunk in progress (at mo
 messages) and the backlog, as it lost the socket's queue before. The backlog holds at most `queue_depth`
 messages, as that queue does: a writer further behind (a disk slower than the stream) drops newly received
 messages, counted per topic (counters["dropped"], the summary, the ``fv_recording_end`` record) and warned by
-topic name, where the socket dropped them silently. Gaps in seq are counted as messages are received, before
-the backlog may drop one: they are the bus's losses only. A writer that fails (a full disk, a split whose new
-file cannot be opened) stops the node; the messages received but not stored (those written since the file's
-last flush, the one it failed on, those waiting, those received until the stop's drain ends) are counted lost per
-topic (counters["lost"], the summary,
-the node's error, ``fv_recording_end`` where it can still be written). Latched `CameraInfo` messages are also
-stored as a YAML attachment ``calibration/<topic>.yaml``; files named in `attach` (the launch file...) are
-attached at the start of every split file. On stop the receive queue is drained of the messages published
-before the stop, the writer writes all of them, totals go into a ``fv_recording_end`` metadata record and one
-summary line is logged.
+topic name, where the socket dropped them silently. Gaps in seq are counted as messages are received, before the
+backlog may drop one: they are the bus's losses only. A writer that fails (a full disk, a split whose new file
+cannot be opened) stops the node; the messages received but not stored (those written since the file's last flush,
+the one it failed on, those waiting, those received until the stop's drain ends) are counted lost per topic
+(counters["lost"], the summary, the node's error, ``fv_recording_end`` where it can still be written). Latched
+`CameraInfo` messages are also stored as a YAML attachment ``calibration/<topic>.yaml``; files named in `attach`
+(the launch file...) are attached at the start of every split file. On stop the receive queue is drained of the
+messages published before the stop, the writer writes all of them, totals go into a ``fv_recording_end`` metadata
+record and one summary line is logged.
 """
 from __future__ import annotations
 
