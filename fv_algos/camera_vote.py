@@ -119,16 +119,29 @@ class CameraVote:
 
     def update(self, camera: str, answer: CameraAnswer, arrived_s: float, clock_ns: int) -> Vote:
         """Take ``camera``'s newest answer, arrived at ``arrived_s`` (s, the caller's monotonic clock)
-        when its wall clock read ``clock_ns``; the vote of all the cameras' latest. StampAhead for an
-        answer stamped more than ``stale_after_s`` ahead of every clock (:meth:`ahead_s`): it is left
-        out, and a camera whose clock jumped ahead counts again from its next answer."""
-        ahead_s = self.ahead_s(answer.stamp_ns, arrived_s, clock_ns)
-        self.seen[camera] = (answer.stamp_ns, arrived_s)
+        when its wall clock read ``clock_ns``; the vote of all the cameras' latest (:meth:`admit`, then
+        :meth:`take`)."""
+        self.admit(camera, answer.stamp_ns, arrived_s, clock_ns)
+        return self.take(camera, answer, arrived_s, clock_ns)
+
+    def admit(self, camera: str, stamp_ns: int, arrived_s: float, clock_ns: int) -> None:
+        """Check an answer of ``camera`` stamped ``stamp_ns`` as it arrives (at ``arrived_s``, the wall
+        clock then ``clock_ns``): StampAhead for one stamped more than ``stale_after_s`` ahead of every
+        clock (:meth:`ahead_s`), to be left out; a camera whose clock jumped ahead counts again from its
+        next answer."""
+        ahead_s = self.ahead_s(stamp_ns, arrived_s, clock_ns)
+        self.seen[camera] = (stamp_ns, arrived_s)
         if ahead_s * 1e9 > self.stale_after_ns:
             raise StampAhead(camera, ahead_s)
+
+    def take(self, camera: str, answer: CameraAnswer, arrived_s: float, clock_ns: int) -> Vote:
+        """The vote of all the cameras' latest with ``answer``, admitted (:meth:`admit`) when it arrived
+        at ``arrived_s`` (wall clock ``clock_ns``), as ``camera``'s newest. Answers may be taken later than
+        they arrived, in another order (:class:`fv_algos.stamp_order.StampOrder`): staleness is judged
+        at ``arrived_s``."""
         self.latest[camera], self.arrived_s[camera] = answer, arrived_s
         self.arrival_ns[camera] = clock_ns
-        self.first_s = arrived_s if self.first_s is None else self.first_s
+        self.first_s = arrived_s if self.first_s is None else min(self.first_s, arrived_s)
         fresh = {c: a for c, a in self.latest.items() if (arrived_s - self.arrived_s[c]) * 1e9 <= self.stale_after_ns}
         now = max(a.stamp_ns for a in fresh.values())
         grasp = max(self.grasp_start_on_clock_ns(c) for c in fresh)

@@ -1,11 +1,19 @@
 """The `slip_fusion` node: one slip decision from several cameras' slip detectors, e.g. the two
 fingers of a gripper (`launch/gelsight_mini_pair.yaml`).
 
-Each input is a `SlipState` topic (`/left/slip`, `/right/slip`). On every state that comes in, the
-node publishes on `output` the vote of the inputs' latest states (`fv_algos.camera_vote.CameraVote`):
+Each input is a `SlipState` topic (`/left/slip`, `/right/slip`). For every input state the node
+publishes on `output` the vote of the inputs' latest states (`fv_algos.camera_vote.CameraVote`):
 P(slip) whose logit is the mean of theirs, what a trial model says of all the cameras of a grasp
 together, as `fv eval --trials` judges both cameras; slip when it reaches the node's own `threshold`
 (the inputs' thresholds are not read: one input with threshold 0 made every vote slip).
+
+`order` says which states are the latest. `arrival` (default): each state is voted as it arrives,
+with the others' latest arrived, at once; which of two fingers' states of one instant comes first
+decides the vote, and that varies from run to run. `stamp`: states are voted in the order of their
+capture stamps, each with every other input's latest state stamped at or before it, so a replayed
+recording gives the same votes on every replay; a state waits until every other input has sent one
+stamped at or after it, at most `wait_s` (`fv_algos.stamp_order.StampOrder`: counters `waited`,
+`late`, `restarts`).
 
 Left out of a vote, and named in the node's warning:
 - an input with no state arrived for `stale_after_s` (by arrival on the node's monotonic clock, not
@@ -31,6 +39,7 @@ from typing import Callable
 import numpy as np
 
 from fv_algos.camera_vote import CameraAnswer, CameraVote, StampAhead, Vote
+from fv_algos.stamp_order import StampOrder
 from msgs import SlipState
 from nodes.bus import resolve_topic
 from nodes.node import Node
@@ -43,12 +52,29 @@ class SlipFusionParams:
     threshold: float = 0.5  # the vote's P(slip) at or above which `output` says slip
     stale_after_s: float = 1.0  # an input with no state arrived for this long is left out
     same_grasp_s: float = 1.0  # grasps that started further apart than this are different grasps
+    order: str = "arrival"  # "arrival": vote each state as it arrives; "stamp": in capture stamp order
+    wait_s: float = 0.5  # order "stamp": the longest a state waits for the other inputs' states
 
     def __post_init__(self) -> None:
         check_topics(self.inputs, self.output, resolve_topic)  # as a node without a namespace reads them
         if not 0.0 < self.threshold < 1.0:
             raise ValueError(f"threshold {self.threshold} must be in (0, 1)")
+        if self.order not in ORDERS:
+            raise ValueError(f"order {self.order!r} must be one of {', '.join(ORDERS)}")
         CameraVote(self.inputs, self.stale_after_s, self.same_grasp_s)  # ValueError names a bad duration
+        StampOrder(self.inputs, self.wait_s, self.stale_after_s)
+
+
+ORDERS = ("arrival", "stamp")
+
+
+@dataclass(frozen=True)
+class _Arrival:
+    """An input state as it arrived: at `arrived_s` on the node's monotonic clock, its wall clock then `clock_ns`."""
+
+    msg: SlipState
+    arrived_s: float
+    clock_ns: int
 
 
 def check_topics(inputs: list[str], output: str, resolve: Callable[[str], str]) -> list[str]:
@@ -71,13 +97,15 @@ def _answer(msg: SlipState) -> CameraAnswer:
 
 
 class SlipFusion(Node):
-    """The cameras' vote on `output` after every input state; counters `voted` (states published),
+    """The cameras' vote on `output` for every input state; counters `voted` (states published),
     `alone` (of them, votes of one input), `stale`, `earlier_grasp` and `switching` (inputs left out,
-    by why), `ahead` (states refused). `clock`: the monotonic clock (s) arrivals are read on,
+    by why), `ahead` (states refused), and with order `stamp` `waited`, `late`, `restarts`
+    (:class:`fv_algos.stamp_order.StampOrder`). `clock`: the monotonic clock (s) arrivals are read on,
     `wall_clock` the wall clock (ns since the epoch) stamps are compared with."""
 
     Params = SlipFusionParams
     LIVE_PARAMS = frozenset({"threshold"})  # read by each vote (`fv param set`)
+    order: StampOrder[_Arrival] | None = None  # order `stamp`: the states held until due
 
     def setup(self) -> None:
         p = self.params
@@ -85,23 +113,51 @@ class SlipFusion(Node):
         self.clock: Callable[[], float] = time.monotonic
         self.wall_clock: Callable[[], int] = time.time_ns
         self.vote = CameraVote(inputs, p.stale_after_s, p.same_grasp_s)
+        self.order = StampOrder(inputs, p.wait_s, p.stale_after_s) if p.order == "stamp" else None
         self.pub = self.publisher(p.output, SlipState)
         self.counters.update(voted=0, alone=0, stale=0, earlier_grasp=0, switching=0, ahead=0)
+        if self.order is not None:
+            self.counters.update(self.order.counters)
+            self.timer(p.wait_s / 5, self.on_timer)
         for topic, name in zip(p.inputs, inputs):
             self.subscribe(topic, SlipState, lambda msg, name=name: self.on_state(name, msg), depth=None)
 
     def on_state(self, topic: str, msg: SlipState) -> None:
-        """Vote with `msg`, the newest state of the input `topic` (its resolved name), and publish."""
-        now_s = self.clock()
+        """Take `msg`, the newest state of the input `topic` (its resolved name): vote with it and publish,
+        at once (order `arrival`) or with the states due in stamp order (order `stamp`)."""
+        arrival = _Arrival(msg, self.clock(), self.wall_clock())
         try:
-            vote = self.vote.update(topic, _answer(msg), now_s, self.wall_clock())
+            self.vote.admit(topic, msg.stamp_ns, arrival.arrived_s, arrival.clock_ns)
         except StampAhead as exc:
             self.counters["ahead"] += 1
             self.warn(f"{topic}: state refused, stamped {exc.ahead_s:.1f} s ahead of every input's clock and "
                       f"this host's (stale_after_s {self.params.stale_after_s} s; counter ahead)",
                       kind=f"{topic}: ahead")
             return
-        self._report(vote, now_s)
+        if self.order is None:
+            self._publish(topic, arrival)
+        else:
+            self._publish_due(self.order.push(topic, msg.stamp_ns, arrival, arrival.arrived_s))
+
+    def teardown(self) -> None:
+        """Order `stamp`: publish the votes of the states still held (a replay's last ones) before the node ends."""
+        if self.order is not None:
+            self._publish_due(self.order.flush())
+
+    def on_timer(self) -> None:
+        """Order `stamp`: publish the votes of the states that have waited `wait_s`."""
+        self._publish_due(self.order.due(self.clock()))
+
+    def _publish_due(self, due: list[tuple[str, _Arrival]]) -> None:
+        for topic, arrival in due:
+            self._publish(topic, arrival)
+        self.counters.update(self.order.counters)
+
+    def _publish(self, topic: str, arrival: _Arrival) -> None:
+        """Vote with `arrival`'s state as the newest of the input `topic`, and publish the vote."""
+        msg = arrival.msg
+        vote = self.vote.take(topic, _answer(msg), arrival.arrived_s, arrival.clock_ns)
+        self._report(vote, arrival.arrived_s)
         stamps = np.array([vote.first_ns, vote.last_ns], np.int64)
         threshold = self.params.threshold
         if vote.probability is None:

@@ -31,6 +31,7 @@ from fv_algos.camera_vote import camera_vote
 from fv_algos.real_trials import read_frames
 from nodes.bus import PublisherSocket, TopicReader
 from tests.nodes.conftest import EVERY_FRAME_FPS, REPO, Bus, wait_for, wait_status
+from tests.nodes.fusion_votes import fused
 
 GRASP = Path("train") / "bag_of_peanuts" / "exp_num_8"  # a slip, 57 frames per camera
 # The live runs play the videos at EVERY_FRAME_FPS: at full speed, beside other tests on a loaded 2-core
@@ -140,8 +141,9 @@ def test_one_camera_session_with_a_reset_replays_as_live(bus, spawn, isd_data: P
 def test_two_finger_session_with_a_reset_replays_as_live(bus, spawn, isd_data: Path, tmp_path: Path) -> None:
     """replay_pair.yaml as a batch (`fast`, each finger's frames paced by its /slip answers): both fingers'
     states as live, none lost, and the fingers' vote on /slip at the end, once both have given their last
-    states. (/slip votes each finger's state that comes in with the other's latest: in between, the order
-    the two fingers' states came in, live or replayed, decides which of the other's states that is.)"""
+    states. Every vote on /slip is that of the fingers' states in stamp order (its `order` stamp), whichever
+    finger's came in first: each replay gives the same votes. (Live, voted as they came, the order the two
+    fingers' states came in decided which of the other's states each was voted with.)"""
     bag = tmp_path / "session"
     videos = [isd_data / GRASP / "camera_0.avi", isd_data / GRASP / "camera_2.avi"]
     fingers = ["/left/slip", "/right/slip"]
@@ -158,6 +160,12 @@ def test_two_finger_session_with_a_reset_replays_as_live(bus, spawn, isd_data: P
         _assert_replayed_as_live(recorded[topic], replayed[topic], topic)
     final = [s for s in replayed["/slip"] if s.stamp_ns in ends][-1]  # voted on after both fingers' last states
     assert final.probability == pytest.approx(camera_vote([s.probability for s in last.values()]), abs=1e-4)
+    in_stamp_order, _ = fused({"order": "stamp"}, sorted(((t, s, 0.0) for t in fingers for s in replayed[t]),
+                                                          key=lambda arrival: arrival[1].stamp_ns))
+    votes = replayed["/slip"]
+    assert [s.stamp_ns for s in votes] == [s.stamp_ns for s in in_stamp_order][:len(votes)]
+    assert [s.probability for s in votes] == pytest.approx([s.probability for s in in_stamp_order][:len(votes)],
+                                                           rel=0, abs=1e-12)
 
 
 
