@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import heapq
 import itertools
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
@@ -27,20 +28,22 @@ class StampOrder(Generic[T]):
 
     An item is held until every other input has sent an item stamped at or after it (then nothing
     earlier can come from it: each input sends in its own stamp order), or until ``wait_s`` (s) has
-    passed since it arrived. An input is not waited for once it has sent nothing for ``stale_after_s``
-    (a camera that stopped), nor, ``stale_after_s`` after the first item of any input, if it has never
-    sent one (a camera that never started). Counters: ``waited``, items handed on after ``wait_s``
-    while an input was still awaited; ``late``, items stamped before one already handed on (they are
-    handed on at once: what comes after a wait); ``restarts``, inputs whose stamps went back (a
-    recording played again, a source restarted): everything held is then handed on and the order
-    starts afresh, so the items around a restart go in arrival order. Times are the caller's monotonic
-    clock (s)."""
+    passed since it arrived; with more than two inputs an item also waits for the earlier-stamped ones
+    held before it (at most ``stale_after_s`` + ``wait_s``). An input is not waited for once it has sent
+    nothing for ``stale_after_s`` (a camera that stopped), nor, ``stale_after_s`` after the first item of
+    any input, if it has never sent one (a camera that never started). Counters: ``waited``, items
+    handed on after ``wait_s`` while an input was still awaited; ``late``, items stamped before one
+    already handed on (they are handed on at once: what comes after a wait, or an input whose clock is
+    behind); ``restarts``, times the order started afresh because an input's stamps went back (a
+    recording played again, a source restarted: one or more per pass, as the inputs' last items of the
+    pass before come): everything held is then handed on, so the items around a restart go in arrival
+    order. Times are the caller's monotonic clock (s)."""
 
     def __init__(self, inputs: Sequence[str], wait_s: float, stale_after_s: float) -> None:
         if len(inputs) < 1 or len(set(inputs)) != len(inputs):
             raise ValueError(f"inputs {list(inputs)} must be one or more different names")
-        if not wait_s > 0 or not stale_after_s > 0:
-            raise ValueError(f"wait_s {wait_s} and stale_after_s {stale_after_s} must be > 0")
+        if not 0 < wait_s < math.inf or not stale_after_s > 0:
+            raise ValueError(f"wait_s {wait_s} must be > 0 and finite, stale_after_s {stale_after_s} > 0")
         self.inputs = tuple(inputs)
         self.rank = {name: k for k, name in enumerate(self.inputs)}
         self.wait_s, self.stale_after_s = wait_s, stale_after_s

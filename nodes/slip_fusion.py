@@ -10,10 +10,10 @@ together, as `fv eval --trials` judges both cameras; slip when it reaches the no
 `order` says which states are the latest. `arrival` (default): each state is voted as it arrives,
 with the others' latest arrived, at once; which of two fingers' states of one instant comes first
 decides the vote, and that varies from run to run. `stamp`: states are voted in the order of their
-capture stamps, each with every other input's latest state stamped at or before it, so a replayed
-recording gives the same votes on every replay; a state waits until every other input has sent one
-stamped at or after it, at most `wait_s` (`fv_algos.stamp_order.StampOrder`: counters `waited`,
-`late`, `restarts`).
+capture stamps, each with every other input's latest state stamped at or before it (states of one
+stamp are voted together), so a replayed recording gives the same votes on every replay; a state
+waits until every other input has sent one stamped at or after it, or `wait_s` (to within the
+timer's `wait_s` / 5; `fv_algos.stamp_order.StampOrder`: counters `waited`, `late`, `restarts`).
 
 Left out of a vote, and named in the node's warning:
 - an input with no state arrived for `stale_after_s` (by arrival on the node's monotonic clock, not
@@ -32,8 +32,10 @@ model's invalid window) is left out as well; with no input left, the state publi
 (probability 0)."""
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
+from itertools import groupby
 from typing import Callable
 
 import numpy as np
@@ -53,7 +55,7 @@ class SlipFusionParams:
     stale_after_s: float = 1.0  # an input with no state arrived for this long is left out
     same_grasp_s: float = 1.0  # grasps that started further apart than this are different grasps
     order: str = "arrival"  # "arrival": vote each state as it arrives; "stamp": in capture stamp order
-    wait_s: float = 0.5  # order "stamp": the longest a state waits for the other inputs' states
+    wait_s: float = 0.5  # order "stamp": how long a state waits for the other inputs' states
 
     def __post_init__(self) -> None:
         check_topics(self.inputs, self.output, resolve_topic)  # as a node without a namespace reads them
@@ -61,11 +63,14 @@ class SlipFusionParams:
             raise ValueError(f"threshold {self.threshold} must be in (0, 1)")
         if self.order not in ORDERS:
             raise ValueError(f"order {self.order!r} must be one of {', '.join(ORDERS)}")
+        if not MIN_WAIT_S <= self.wait_s < math.inf:  # the timer, every wait_s / 5, would starve the inputs
+            raise ValueError(f"wait_s {self.wait_s} must be at least {MIN_WAIT_S} s and finite")
         CameraVote(self.inputs, self.stale_after_s, self.same_grasp_s)  # ValueError names a bad duration
         StampOrder(self.inputs, self.wait_s, self.stale_after_s)
 
 
 ORDERS = ("arrival", "stamp")
+MIN_WAIT_S = 0.05  # s: the stamp order's timer ticks every wait_s / 5
 
 
 @dataclass(frozen=True)
@@ -135,7 +140,7 @@ class SlipFusion(Node):
                       kind=f"{topic}: ahead")
             return
         if self.order is None:
-            self._publish(topic, arrival)
+            self._publish(self._take(topic, arrival), arrival)
         else:
             self._publish_due(self.order.push(topic, msg.stamp_ns, arrival, arrival.arrived_s))
 
@@ -149,14 +154,22 @@ class SlipFusion(Node):
         self._publish_due(self.order.due(self.clock()))
 
     def _publish_due(self, due: list[tuple[str, _Arrival]]) -> None:
-        for topic, arrival in due:
-            self._publish(topic, arrival)
+        """Publish the votes of the states `due` in stamp order: each state of one stamp with the vote of them
+        all (every input's latest stamped at or before it)."""
+        for _, same in groupby(due, key=lambda item: item[1].msg.stamp_ns):
+            same = list(same)
+            vote = [self._take(topic, arrival) for topic, arrival in same][-1]
+            for _, arrival in same:
+                self._publish(vote, arrival)
         self.counters.update(self.order.counters)
 
-    def _publish(self, topic: str, arrival: _Arrival) -> None:
-        """Vote with `arrival`'s state as the newest of the input `topic`, and publish the vote."""
+    def _take(self, topic: str, arrival: _Arrival) -> Vote:
+        """The vote with `arrival`'s state as the newest of the input `topic`."""
+        return self.vote.take(topic, _answer(arrival.msg), arrival.arrived_s, arrival.clock_ns)
+
+    def _publish(self, vote: Vote, arrival: _Arrival) -> None:
+        """Publish `vote`, taken for `arrival`'s state, stamped as it."""
         msg = arrival.msg
-        vote = self.vote.take(topic, _answer(msg), arrival.arrived_s, arrival.clock_ns)
         self._report(vote, arrival.arrived_s)
         stamps = np.array([vote.first_ns, vote.last_ns], np.int64)
         threshold = self.params.threshold

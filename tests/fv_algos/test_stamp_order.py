@@ -102,6 +102,7 @@ def test_flush_hands_on_everything_held_in_order() -> None:
 @pytest.mark.parametrize("args, message", [((["a", "a"], 0.5, 1.0), "different names"),
                                            (([], 0.5, 1.0), "different names"),
                                            ((["a", "b"], 0.0, 1.0), "wait_s 0.0"),
+                                           ((["a", "b"], float("inf"), 1.0), "wait_s inf"),
                                            ((["a", "b"], 0.5, float("nan")), "stale_after_s nan")])
 def test_bad_arguments_are_refused(args: tuple, message: str) -> None:
     with pytest.raises(ValueError, match=message):

@@ -1,13 +1,17 @@
 """slip_fusion: both fingers' vote after every state, never a mix of grasps, a stopped camera left
-out and named, and bad params refused."""
+out and named, bad params refused; in stamp order, the same votes whichever finger's state arrives first."""
 from __future__ import annotations
+
+import time
 
 import numpy as np
 import pytest
 
 from fv_algos.camera_vote import camera_vote
 from msgs import SlipState
+from nodes.bus import PublisherSocket, TopicReader
 from nodes.slip_fusion import SlipFusion
+from tests.nodes.conftest import spinning, wait_for, wait_status
 from tests.nodes.fusion_votes import S, arrive, fused
 
 
@@ -95,6 +99,8 @@ def test_invalid_states_do_not_vote(fusion) -> None:
     ({"threshold": 1.5}, "threshold 1.5 must be in"),
     ({"order": "random"}, "order 'random' must be one of arrival, stamp"),
     ({"wait_s": 0.0}, "wait_s 0.0"),
+    ({"wait_s": 0.01}, "wait_s 0.01 must be at least 0.05 s"),  # its timer, every 2 ms, starved the inputs
+    ({"wait_s": float("inf")}, "wait_s inf must be at least 0.05 s and finite"),
 ])
 def test_bad_params_are_refused(params: dict, message: str) -> None:
     from nodes.slip_fusion import SlipFusionParams
@@ -204,3 +210,33 @@ def test_order_stamp_votes_a_state_after_wait_s_when_the_other_finger_is_silent(
         assert out[-1].probability == pytest.approx(camera_vote([0.3, 0.8])) and node.counters["late"] == 1
     finally:
         node.close()
+
+
+def test_order_stamp_votes_states_of_one_stamp_together() -> None:
+    """Both fingers' frames stamped alike (cameras triggered together): each state is voted with the other's of its
+    stamp, not with the other's before it (the first input's was)."""
+    arrivals = [("/left/slip", _state(1.00, 0.1), 0.0), ("/right/slip", _state(1.00, 0.9), 0.0),
+                ("/left/slip", _state(1.04, 0.2), 0.0), ("/right/slip", _state(1.04, 0.3), 0.0)]
+    votes, _ = _votes({"order": "stamp"}, arrivals)
+    assert [stamp for stamp, _ in votes] == [int(1.00 * S)] * 2 + [int(1.04 * S)] * 2
+    assert [p for _, p in votes] == pytest.approx([camera_vote([0.1, 0.9])] * 2 + [camera_vote([0.2, 0.3])] * 2)
+
+
+def test_order_stamp_votes_what_is_held_when_the_node_stops(bus) -> None:
+    """A left state held for right's is voted on the bus as the node stops."""
+    node = SlipFusion("slip_fusion", {"order": "stamp", "wait_s": 30.0, "stale_after_s": 60.0})
+    now = time.time()
+    with TopicReader(["/slip"]) as reader:
+        with spinning(node):
+            wait_status("slip_fusion", timeout_s=5.0)
+            pub = PublisherSocket("sender")
+            try:
+                assert pub.wait_connected(5.0)
+                wait_for(lambda: pub.has_subscribers("/left/slip"), 5.0, "the fusion subscribing")
+                pub.publish("/left/slip", _state(now, 0.3, grasp_s=now))
+                wait_for(lambda: node.order.held() == 1, 5.0, "the state held")
+                assert reader.recv(0.3) is None
+            finally:
+                pub.close()
+        got = reader.recv(2.0)
+    assert got is not None and got.msg.probability == pytest.approx(0.3) and got.msg.stamp_ns == int(now * S)
