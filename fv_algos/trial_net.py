@@ -104,6 +104,7 @@ def trial_inputs(trials: Sequence[Trial], series: TrialSeries, fields: TrialFiel
 
 
 MAX_LAYERS = 12  # a frame's features then see 8,190 frames on each side (5.5 min at 25 fps)
+BALANCES = ("setup", "label")  # how training batches are drawn (TrialNetConfig.balance)
 
 
 @dataclass(frozen=True)
@@ -111,7 +112,9 @@ class TrialNetConfig:
     """hidden: channels of the temporal convolutions; layers: their number (dilations 1, 2, 4, ...:
     a frame's features see 2 * (2**layers - 1) frames on each side); members: networks in the
     ensemble (each with its own weights and loss; the same batches). steps: optimizer steps of
-    ``batch`` trials (half slip, half no slip). lr, weight_decay: AdamW. gain: range of the random factor every
+    ``batch`` trials (half slip, half no slip). balance: "setup", each half drawn alike from every set-up
+    that has trials of its label (:mod:`fv_algos.setups`; the set-ups given to :func:`fit_trial_net`), or
+    "label", from all the trials of its label. lr, weight_decay: AdamW. gain: range of the random factor every
     training trial's descriptors are multiplied by (with random left-right / up-down mirroring).
     stretch: every training trial is resampled in time by a factor drawn log-uniformly from
     [1 / stretch, stretch] (the same motion, slower or faster; 1: never). clip: each descriptor is
@@ -133,6 +136,7 @@ class TrialNetConfig:
     members: int = 5
     steps: int = 1600
     batch: int = 8
+    balance: str = "setup"
     lr: float = 3e-3
     weight_decay: float = 1e-2
     gain: tuple[float, float] = (0.8, 1.2)
@@ -150,6 +154,7 @@ class TrialNetConfig:
                 min(self.hidden, self.members, self.steps) >= 1,
             f"1 <= layers <= {MAX_LAYERS} (got {self.layers}; 2**layers frames of context)": 1 <= self.layers <= MAX_LAYERS,
             f"an even batch >= 2 (got {self.batch})": self.batch >= 2 and self.batch % 2 == 0,
+            f"balance one of {', '.join(BALANCES)} (got {self.balance!r})": self.balance in BALANCES,
             f"0 < gain[0] <= gain[1] (got {self.gain})": 0 < self.gain[0] <= self.gain[1],
             f"stretch >= 1 (got {self.stretch})": self.stretch >= 1,
             f"0 <= clip < 0.5 (got {self.clip})": 0 <= self.clip < 0.5,
@@ -360,16 +365,41 @@ def _without_onednn() -> Iterator[None]:
         torch.backends.mkldnn.enabled = enabled
 
 
+def _label_cells(labels: np.ndarray, setups: Sequence[str] | None) -> list[list[np.ndarray]]:
+    """Per label (slip, then no slip), the trial indices of each set-up that has trials of it (set-ups sorted;
+    None: one set-up)."""
+    names = np.zeros(len(labels), int) if setups is None else np.asarray(setups)
+    if names.shape != labels.shape:
+        raise ValueError(f"{names.size} set-ups given for {labels.size} trials")
+    cells = [[np.flatnonzero((labels == label) & (names == name)) for name in np.unique(names)] for label in (1, 0)]
+    return [[cell for cell in label_cells if cell.size] for label_cells in cells]
+
+
+def _balanced_picks(cells: list[list[np.ndarray]], batch: int, rng: np.random.Generator) -> np.ndarray:
+    """(batch,) trial indices: half from each label's ``cells``, spread alike over them (the remainder to cells
+    drawn at random); with one cell per label, ``batch`` / 2 of each label drawn from all its trials."""
+    picks = []
+    for label_cells in cells:
+        counts = np.full(len(label_cells), batch // 2 // len(label_cells))
+        if batch // 2 % len(label_cells):
+            counts[rng.permutation(len(label_cells))[:batch // 2 % len(label_cells)]] += 1
+        picks += [rng.choice(cell, n) for cell, n in zip(label_cells, counts)]
+    return np.concatenate(picks)
+
+
 def fit_trial_net(inputs: Sequence[TrialInput], labels: np.ndarray,
-                  config: TrialNetConfig = TrialNetConfig(), init: TrialNet | None = None) -> TrialNet:
+                  config: TrialNetConfig = TrialNetConfig(), init: TrialNet | None = None,
+                  setups: Sequence[str] | None = None) -> TrialNet:
     """Train a :class:`TrialNet` on ``inputs`` with ``labels`` (M,) 0/1 (both classes needed):
-    AdamW on every member's binary cross-entropy of balanced batches of augmented trials. ``init``: a
-    network to fine-tune (its weights are the start; ``config`` must give its hidden, layers and members),
-    its descriptors' clamp range set anew from ``inputs`` as for a new network."""
+    AdamW on every member's binary cross-entropy of balanced batches of augmented trials (``config.balance``
+    "setup": over the set-ups ``setups`` (M,) names, None: one set-up). ``init``: a network to fine-tune (its
+    weights are the start; ``config`` must give its hidden, layers and members), its descriptors' clamp range
+    set anew from ``inputs`` as for a new network."""
     labels = np.asarray(labels)
     slip, still = np.flatnonzero(labels == 1), np.flatnonzero(labels == 0)
     if slip.size == 0 or still.size == 0:
         raise ValueError(f"training needs slip and no-slip trials, got {slip.size} and {still.size}")
+    cells = _label_cells(labels, setups if config.balance == "setup" else None)
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     net = TrialNet(config.hidden, config.layers, config.members)
@@ -388,7 +418,7 @@ def fit_trial_net(inputs: Sequence[TrialInput], labels: np.ndarray,
     donors = [[inputs[i] for i in still], [inputs[i] for i in slip]]  # by label: the other label's starts
     with _without_onednn():
         for _ in range(config.steps):
-            picks = np.concatenate([rng.choice(slip, config.batch // 2), rng.choice(still, config.batch // 2)])
+            picks = _balanced_picks(cells, config.batch, rng)
             cut = [_held_prefix(inputs[i], rng, config.held_prefix) if labels[i] == 0 else inputs[i] for i in picks]
             swapped = [[_start_swap(x, donors[1 - labels[i]], rng, config.start_swap) for x in cameras]
                        for i, cameras in zip(picks, cut)]
@@ -481,11 +511,14 @@ def judge_trials(probability: np.ndarray, labels: np.ndarray) -> dict[str, objec
 
 
 def _held_out(inputs: Sequence[TrialInput], labels: np.ndarray, config: TrialNetConfig, online: bool,
-              init: TrialNet | None, test: np.ndarray) -> tuple[np.ndarray, list[list[np.ndarray]] | None]:
+              init: TrialNet | None, setups: Sequence[str] | None,
+              test: np.ndarray) -> tuple[np.ndarray, list[list[np.ndarray]] | None]:
     """Slip probability (T,) of the ``test`` trials (mask (M,)) from a network trained on the others (fine-tuned
-    from ``init`` when given), and when ``online`` each test trial's per-camera :func:`running_probability`
-    (else None)."""
-    net = fit_trial_net([inputs[i] for i in np.flatnonzero(~test)], labels[~test], config, init)
+    from ``init`` when given; batches balanced over their ``setups``), and when ``online`` each test trial's
+    per-camera :func:`running_probability` (else None)."""
+    train = np.flatnonzero(~test)
+    net = fit_trial_net([inputs[i] for i in train], labels[~test], config, init,
+                        None if setups is None else [setups[i] for i in train])
     tested = [inputs[i] for i in np.flatnonzero(test)]
     running = running_probabilities(net, tested) if online else None
     return trial_probability(net, tested), running
@@ -494,7 +527,7 @@ def _held_out(inputs: Sequence[TrialInput], labels: np.ndarray, config: TrialNet
 def cross_validate_trials(inputs: Sequence[TrialInput], labels: np.ndarray, objects: Sequence[str], folds: int,
                           seed: int = 0, config: TrialNetConfig = TrialNetConfig(), workers: int = 1,
                           progress: bool = False, online: bool = False,
-                          init: TrialNet | None = None) -> dict[str, object]:
+                          init: TrialNet | None = None, setups: Sequence[str] | None = None) -> dict[str, object]:
     """Object-held-out cross-validation of :class:`TrialNet`: ``folds`` object groups (dealt with
     ``seed``; ``folds`` = number of objects leaves one object out), a network trained per fold on
     the other objects' trials, the folds in ``workers`` spawned processes of one torch thread each
@@ -503,11 +536,12 @@ def cross_validate_trials(inputs: Sequence[TrialInput], labels: np.ndarray, obje
     trial accuracy, confusion; "summary": mean, std, min, worst fold, pooled accuracy and confusion}
     and, when ``online``, "running": per trial (in the order of ``inputs``), per camera, the held-out
     network's P(slip) after every frame as a list (:func:`running_probability`). ``init``: every fold's network is
-    fine-tuned from it (:func:`fit_trial_net`)."""
+    fine-tuned from it; ``setups``: each trial's set-up, over which training batches are balanced
+    (:func:`fit_trial_net`)."""
     names, labels = np.asarray(objects), np.asarray(labels)
     groups = object_folds(objects, folds, seed)
     tests = [np.isin(names, group) for group in groups]
-    results = map_folds(partial(_held_out, inputs, labels, config, online, init), tests, workers, progress)
+    results = map_folds(partial(_held_out, inputs, labels, config, online, init, setups), tests, workers, progress)
     rows = [{"fold": k, "objects": group, "trials": np.flatnonzero(test).tolist(),
              **judge_trials(probability, labels[test])}
             for k, (group, test, (probability, _)) in enumerate(zip(groups, tests, results))]

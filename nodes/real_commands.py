@@ -166,6 +166,11 @@ def _fit_args(p: argparse.ArgumentParser, window_steps: int) -> None:
     p.add_argument("--reference-frame", type=int, default=None,
                    help="trial: the frame of each video taken as the skin at rest, where the descriptors start "
                         "(default TrialNetConfig's: the cameras' stale start-up frames come before it)")
+    p.add_argument("--balance", default=None,
+                   help="trial: how each training batch is drawn: half slip, half no slip, each half drawn alike "
+                        "from every set-up with trials of its label (setup, the default: set-ups from the table's "
+                        "setup column, else told apart by their marker pitch) or from all the trials of its label "
+                        "(label)")
     p.add_argument("--steps", type=int, default=None,
                    help=f"optimizer steps (default: trial: TrialNetConfig's, windows: {window_steps})")
     p.add_argument("--batch-size", type=int, default=None, help="default: trial: TrialNetConfig's, windows: 32")
@@ -248,6 +253,7 @@ def _trial_config(args: argparse.Namespace):
                             stretch=_given(args.stretch, default.stretch), clip=_given(args.clip, default.clip),
                             held_prefix=_given(args.held_prefix, default.held_prefix),
                             start_swap=_given(args.start_swap, default.start_swap),
+                            balance=_given(args.balance, default.balance),
                             reference_frame=_given(args.reference_frame, default.reference_frame),
                             steps=_given(args.steps, default.steps),
                             batch=_given(args.batch_size, default.batch), lr=_given(args.lr, default.lr),
@@ -282,6 +288,19 @@ def _trial_inputs(args: argparse.Namespace, reference_frame: int, params: Contac
     return trials, fields, field_s, inputs, np.array([t.label for t in trials]), fps
 
 
+def _setups(args: argparse.Namespace, trials: Sequence[Trial], config) -> list[str] | None:
+    """Each trial's set-up (:func:`fv_algos.setups.trial_setups`) when the trial network's ``config`` balances
+    batches over them, else None."""
+    from fv_algos.setups import trial_setups
+    return trial_setups(trials, config.reference_frame, frame_crop(args)) if config.balance == "setup" else None
+
+
+def _setup_record(setups: Sequence[str] | None, labels) -> dict[str, dict[str, int]] | None:
+    """Trials per set-up and label, for a report (None without set-ups)."""
+    from fv_algos.setups import setup_counts
+    return None if setups is None else setup_counts(setups, labels)
+
+
 def _cv(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     check_online(args, args.method == "trial")
@@ -290,9 +309,12 @@ def _cv(args: argparse.Namespace) -> int:
         config, init = _trial_config(args)
         trials, _, _, inputs, labels, fps = _trial_inputs(args, config.reference_frame, stretch=config.stretch)
         config = replace(config, fps=fps)
+        setups = _setups(args, trials, config)
         report = cross_validate_trials(inputs, labels, [t.object for t in trials], args.folds, args.seed, config,
-                                       args.workers, progress=not args.no_progress, online=args.online, init=init)
-        report["config"] = {"method": "trial", **asdict(config), "folds": args.folds, "init": args.init}
+                                       args.workers, progress=not args.no_progress, online=args.online, init=init,
+                                       setups=setups)
+        report["config"] = {"method": "trial", **asdict(config), "folds": args.folds, "init": args.init,
+                            "setups": _setup_record(setups, labels)}
         if args.online:
             report["online"] = _online_report(report["running"], labels, args, fps)
     else:
@@ -420,14 +442,16 @@ def _train_trial(args: argparse.Namespace) -> int:
     config, init = _trial_config(args)
     trials, _, _, inputs, labels, fps = _trial_inputs(args, config.reference_frame, stretch=config.stretch)
     config = replace(config, fps=fps)
-    net = fit_trial_net(inputs, labels, config, init)
+    setups = _setups(args, trials, config)
+    net = fit_trial_net(inputs, labels, config, init, setups)
     path = save_trial_model(args.out, net, config)
     info = {
         "model": path.stem.removeprefix("slip_"),
         "kind": "trial-level temporal network on per-frame contact-motion and field descriptors (fv_algos.trial_net)",
         "trained_on": {"trials_dir": str(args.trials), "trials": len(trials), "slip": int(labels.sum()),
                        "objects": len({t.object for t in trials})},
-        "config": asdict(config), "init": args.init, "parameters": count_parameters(net),
+        "config": asdict(config), "setups": _setup_record(setups, labels), "init": args.init,
+        "parameters": count_parameters(net),
         "descriptors": list(DESCRIPTORS),
         "decision": "slip when p >= 0.5",
         "training_trial_accuracy": judge_trials(trial_probability(net, inputs), labels)["trial_accuracy"],

@@ -411,6 +411,7 @@ def test_real_train_writes_a_trial_model_that_fv_eval_reads(isd_data: Path, tmp_
     assert info["trained_on"]["trials"] == 3 and info["config"]["steps"] == 5 and info["config"]["members"] == 2
     assert info["parameters"] == 2 * 485  # per member: 224 + 3 * 84 in the convolutions, 9 in the head
     assert info["config"]["reference_frame"] == 5
+    assert info["config"]["balance"] == "setup" and list(info["setups"].values()) == [{"slip": 2, "no_slip": 1}]
     cached = sorted((tmp_path / "cache").glob("*.np[yz]"))
     assert len(cached) == 12  # fields and contact series of 6 videos, from frame 5 on
     capsys.readouterr()
@@ -420,8 +421,9 @@ def test_real_train_writes_a_trial_model_that_fv_eval_reads(isd_data: Path, tmp_
     assert sorted((tmp_path / "cache").glob("*.np[yz]")) == cached  # fv eval judged the model's frames
     tuned = tmp_path / "slip_tuned_trial.pt"  # fine-tuned from it: its shape, not --hidden's default 16
     assert main(["real", "train", "--trials", str(root), "--cache", str(tmp_path / "cache"), "--steps", "3",
-                 "--reference-frame", "5", "--init", str(out), "--out", str(tuned)]) == 0
+                 "--reference-frame", "5", "--init", str(out), "--balance", "label", "--out", str(tuned)]) == 0
     info = json.loads(tuned.with_suffix(".json").read_text())
+    assert info["config"]["balance"] == "label" and info["setups"] is None
     assert info["init"] == str(out) and info["parameters"] == 2 * 485
     assert (info["config"]["hidden"], info["config"]["members"], info["config"]["steps"]) == (4, 2, 3)
     windows = tmp_path / "slip_tuned_windows.pt"  # a window model fine-tuned: saved with its architecture
@@ -475,11 +477,12 @@ def test_real_cv_online_reports_how_early_the_held_out_networks_tell_slips(isd_d
     (["real", "cv", "--trials", "x", "--plot", "x.png"], "fv real: error: --plot needs --online"),  # exit 1
     (["real", "cv", "--trials", "x", "--online", "--method", "windows"], "--online needs a trial-level model"),
     (["real", "cv", "--trials", "x", "--init", "sim"], "is not a trial-level slip model"),  # a window model
+    (["real", "cv", "--trials", "x", "--balance", "labels"], "balance one of setup, label (got 'labels')"),
     (["eval", "--trials", "x", "--model", "sim", "--online"], "--online needs a trial-level model"),
     (["eval", "--trials", "x", "--model", "gelsight_trial", "--alarm", "0.9", "--plot", "x.png"],
      "fv eval: error: --alarm and --plot need --online"),
 ])
-def test_online_flags_are_checked(argv: list[str], message: str, capsys) -> None:
+def test_bad_flags_are_refused_by_name(argv: list[str], message: str, capsys) -> None:
     from nodes.cli import main
     assert main(argv) == 2 and message in capsys.readouterr().err
 

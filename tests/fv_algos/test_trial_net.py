@@ -18,7 +18,9 @@ from fv_algos.trial_net import (
     START_FRAMES,
     TrialNet,
     TrialNetConfig,
+    _balanced_picks,
     _held_prefix,
+    _label_cells,
     _start_swap,
     camera_descriptors,
     cross_validate_trials,
@@ -103,6 +105,50 @@ def test_trial_net_learns_a_burst_whatever_the_length_and_round_trips(tmp_path: 
         TrialNetConfig(fps=0.0)
     with pytest.raises(ValueError, match=r"0 < lr < 3.4e\+37 \(got 1e\+38; AdamW's first step"):
         TrialNetConfig(lr=1e38)  # torch's "value cannot be converted to type float without overflow" at its step
+    with pytest.raises(ValueError, match="balance one of setup, label \\(got 'labels'\\)"):
+        TrialNetConfig(balance="labels")
+
+
+def test_batches_draw_every_set_up_of_each_label_alike() -> None:
+    """Set-up A holds most held grasps and B most slips (the 150 grasps' two magnifications; C only slips): each
+    batch takes half slips, half held grasps, each half spread alike over the set-ups that have that label.
+    Without set-ups (or balance "label") a batch draws as before: half of each label from all its trials."""
+    labels = np.array([1] * 5 + [0] * 18 + [1] * 15 + [0] * 2 + [1] * 3)
+    setups = ["A"] * 23 + ["B"] * 17 + ["C"] * 3
+    cells = _label_cells(labels, setups)
+    assert [[c.size for c in label_cells] for label_cells in cells] == [[5, 15, 3], [18, 2]]
+    rng = np.random.default_rng(0)
+    drawn = np.stack([_balanced_picks(cells, 12, rng) for _ in range(300)])  # (batches, 12)
+    names = np.asarray(setups)[drawn]
+    assert (labels[drawn] == 1).sum(axis=1).tolist() == [6] * 300
+    for name in "ABC":
+        assert ((names == name) & (labels[drawn] == 1)).sum(axis=1).tolist() == [2] * 300  # 6 slips over 3
+    for name in "AB":
+        assert ((names == name) & (labels[drawn] == 0)).sum(axis=1).tolist() == [3] * 300  # 6 held over 2
+    uneven = np.stack([_balanced_picks(cells, 8, rng) for _ in range(400)])  # 4 held over A, B; 4 slips over A, B, C
+    assert set(((np.asarray(setups)[uneven] == "A") & (labels[uneven] == 0)).sum(axis=1)) == {2}
+    slips_in_a = ((np.asarray(setups)[uneven] == "A") & (labels[uneven] == 1)).sum(axis=1)
+    assert set(slips_in_a) == {1, 2} and 0.25 < (slips_in_a == 2).mean() < 0.42  # 4 over 3: one more at random
+    old, new = np.random.default_rng(5), np.random.default_rng(5)
+    for _ in range(20):
+        before = np.concatenate([old.choice(np.flatnonzero(labels == 1), 4), old.choice(np.flatnonzero(labels == 0), 4)])
+        np.testing.assert_array_equal(_balanced_picks(_label_cells(labels, None), 8, new), before)
+    with pytest.raises(ValueError, match="3 set-ups given for 43 trials"):
+        _label_cells(labels, ["A", "B", "C"])
+
+
+def test_balance_label_trains_on_the_batches_without_set_ups() -> None:
+    torch.set_num_threads(1)
+    inputs, labels = _toy_trials(12)
+    config = TrialNetConfig(steps=3, members=1, hidden=4, seed=1)
+    setups = ["A"] * 6 + ["B"] * 6  # each with both labels
+    by_label = fit_trial_net(inputs, labels, replace(config, balance="label"), setups=setups).state_dict()
+    for same in (fit_trial_net(inputs, labels, config).state_dict(),  # no set-ups: one
+                 fit_trial_net(inputs, labels, replace(config, balance="label")).state_dict()):
+        for name, weight in by_label.items():
+            torch.testing.assert_close(same[name], weight, atol=0, rtol=0)
+    by_setup = fit_trial_net(inputs, labels, config, setups=setups).state_dict()
+    assert any(not torch.equal(by_setup[name], weight) for name, weight in by_label.items())
 
 
 
