@@ -313,8 +313,8 @@ def _cv(args: argparse.Namespace) -> int:
         report = cross_validate_trials(inputs, labels, [t.object for t in trials], args.folds, args.seed, config,
                                        args.workers, progress=not args.no_progress, online=args.online, init=init,
                                        setups=setups)
-        report["config"] = {"method": "trial", **asdict(config), "folds": args.folds, "init": args.init,
-                            "setups": _setup_record(setups, labels)}
+        report["config"] = {"method": "trial", **asdict(config), "folds": args.folds, "init": args.init}
+        report["setups"] = _setup_record(setups, labels)
         if args.online:
             report["online"] = _online_report(report["running"], labels, args, fps)
     else:

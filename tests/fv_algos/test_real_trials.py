@@ -450,6 +450,7 @@ def test_real_cv_online_reports_how_early_the_held_out_networks_tell_slips(isd_d
     report = json.loads(capsys.readouterr().out)
     online = report["online"]
     assert "running" not in report and online["cameras"] == {"held": 4, "slip": 4} and online["fps"] == 25.0
+    assert list(report["setups"].values()) == [{"slip": 2, "no_slip": 2}]  # one magnification: one set-up
     assert [row["frame"] for row in online["at"]] == [10, 25, 50, 100, 200, 300]
     assert [row["rule"] for row in online["alarms"]] == ["P >= 0.5 from frame 25, 5 in a row"]
     assert plot.stat().st_size > 0 and online["plot"] == str(plot)
