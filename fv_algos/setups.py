@@ -4,8 +4,9 @@ and another mostly held grasps, a network can learn the set-up for the label.
 
 A trial's set-up is the ``setup`` column of its table (``labels.csv``) where every trial has one; else the
 markers' pitch in its first camera's reference frame, grouped: trials filmed through other optics or skins
-see their markers at other pitches (the 150 GelSight Mini grasps: 29 to 32 px in 94 trials, 43 to 45 px in
-56, none between)."""
+see their markers at other pitches (the 150 GelSight Mini grasps: 30 to 32 px in 94 trials, 43 to 44 px in
+56, none between). The pitch tells only magnifications apart: set-ups that film their markers at one pitch
+are one set-up to it."""
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -42,6 +43,8 @@ def pitch_setups(pitches: Sequence[float], step: float = PITCH_STEP) -> list[str
     pitches = np.asarray(pitches, np.float64)
     if pitches.size == 0:
         return []
+    if not np.all(np.isfinite(pitches) & (pitches > 0)):
+        raise ValueError(f"marker pitches must be finite and > 0, got {pitches[~(np.isfinite(pitches) & (pitches > 0))]}")
     order = np.argsort(pitches, kind="stable")
     sorted_pitches = pitches[order]
     group = np.concatenate([[0], np.cumsum(sorted_pitches[1:] > step * sorted_pitches[:-1])])
@@ -54,10 +57,15 @@ def pitch_setups(pitches: Sequence[float], step: float = PITCH_STEP) -> list[str
 
 
 def trial_setups(trials: Sequence[Trial], reference_frame: int = 1, crop: FrameCrop | None = None) -> list[str]:
-    """Each trial's set-up: its ``setup`` column where every trial has one (not empty), else
-    :func:`pitch_setups` of the marker pitch in frame ``reference_frame`` of its first camera."""
+    """Each trial's set-up: its ``setup`` column where the table has one, else :func:`pitch_setups` of the
+    marker pitch in frame ``reference_frame`` of its first camera. ValueError naming the trials (and their
+    table lines) whose cell is empty when others are filled."""
     column = [t.extra.get(SETUP_COLUMN, "").strip() for t in trials]
-    if all(column):
+    if any(column):
+        empty = [f"{t.name} ({t.row})" if t.row else t.name for t, name in zip(trials, column) if not name]
+        if empty:
+            raise ValueError(f"the {SETUP_COLUMN} column names the set-up of {len(trials) - len(empty)} trials but not "
+                             f"of {len(empty)}: {', '.join(empty[:5])}{' ...' if len(empty) > 5 else ''}")
         return column
     return pitch_setups([marker_pitch(t.videos[min(t.videos)], reference_frame, crop) for t in trials])
 

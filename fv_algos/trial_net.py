@@ -365,12 +365,16 @@ def _without_onednn() -> Iterator[None]:
         torch.backends.mkldnn.enabled = enabled
 
 
+def _check_setups(setups: Sequence[str] | None, trials: int) -> None:
+    """ValueError unless ``setups`` (None: not given) names one set-up per trial."""
+    if setups is not None and len(setups) != trials:
+        raise ValueError(f"{len(setups)} set-ups given for {trials} trials")
+
+
 def _label_cells(labels: np.ndarray, setups: Sequence[str] | None) -> list[list[np.ndarray]]:
     """Per label (slip, then no slip), the trial indices of each set-up that has trials of it (set-ups sorted;
     None: one set-up)."""
     names = np.zeros(len(labels), int) if setups is None else np.asarray(setups)
-    if names.shape != labels.shape:
-        raise ValueError(f"{names.size} set-ups given for {labels.size} trials")
     cells = [[np.flatnonzero((labels == label) & (names == name)) for name in np.unique(names)] for label in (1, 0)]
     return [[cell for cell in label_cells if cell.size] for label_cells in cells]
 
@@ -399,6 +403,7 @@ def fit_trial_net(inputs: Sequence[TrialInput], labels: np.ndarray,
     slip, still = np.flatnonzero(labels == 1), np.flatnonzero(labels == 0)
     if slip.size == 0 or still.size == 0:
         raise ValueError(f"training needs slip and no-slip trials, got {slip.size} and {still.size}")
+    _check_setups(setups, len(labels))
     cells = _label_cells(labels, setups if config.balance == "setup" else None)
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
@@ -539,6 +544,7 @@ def cross_validate_trials(inputs: Sequence[TrialInput], labels: np.ndarray, obje
     fine-tuned from it; ``setups``: each trial's set-up, over which training batches are balanced
     (:func:`fit_trial_net`)."""
     names, labels = np.asarray(objects), np.asarray(labels)
+    _check_setups(setups, len(inputs))
     groups = object_folds(objects, folds, seed)
     tests = [np.isin(names, group) for group in groups]
     results = map_folds(partial(_held_out, inputs, labels, config, online, init, setups), tests, workers, progress)

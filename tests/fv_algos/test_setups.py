@@ -20,6 +20,8 @@ def test_pitches_far_apart_are_set_ups_of_their_own() -> None:
     assert pitch_setups([30.0, 35.0, 41.0, 48.0], step=1.1) == ["pitch 30-30 px", "pitch 35-35 px",
                                                                  "pitch 41-41 px", "pitch 48-48 px"]
     assert pitch_setups([]) == []
+    with pytest.raises(ValueError, match=r"marker pitches must be finite and > 0, got \[nan  0.\]"):
+        pitch_setups([30.0, float("nan"), 45.0, 0.0])  # a NaN took 45 px into a set-up "pitch nan-nan px"
 
 
 def test_setup_counts_per_label() -> None:
@@ -27,8 +29,8 @@ def test_setup_counts_per_label() -> None:
     assert counts == {"a": {"slip": 0, "no_slip": 1}, "b": {"slip": 2, "no_slip": 1}}
 
 
-def _trial(name: str, folder: Path, extra: dict[str, str]) -> Trial:
-    return Trial(name, "object", 1, folder, {"camera_0": folder / "camera_0.avi"}, extra)
+def _trial(name: str, folder: Path, extra: dict[str, str], row: str = "") -> Trial:
+    return Trial(name, "object", 1, folder, {"camera_0": folder / "camera_0.avi"}, extra, row)
 
 
 def test_the_tables_setup_column_names_the_set_ups_else_the_marker_pitch(isd_data: Path) -> None:
@@ -38,8 +40,10 @@ def test_the_tables_setup_column_names_the_set_ups_else_the_marker_pitch(isd_dat
     assert trial_setups(pair) == ["pitch 32-32 px", "pitch 43-43 px"]
     named = [_trial(t.name, t.folder, {"setup": s}) for t, s in zip(pair, ["rig A", " rig B "])]
     assert trial_setups(named) == ["rig A", "rig B"]
-    half = [_trial(t.name, t.folder, {"setup": s}) for t, s in zip(pair, ["rig A", ""])]  # a cell left empty
-    assert trial_setups(half) == ["pitch 32-32 px", "pitch 43-43 px"]
+    half = [_trial(t.name, t.folder, {"setup": s}, row) for t, s, row in zip(pair, ["rig A", ""], ["", "x line 3"])]
+    with pytest.raises(ValueError, match=rf"the setup column names the set-up of 1 trials but not of 1: {SHORT} "
+                                         r"\(x line 3\)"):
+        trial_setups(half)  # a cell left empty: the pitch was taken for every trial, without a word
 
 
 def test_a_video_without_markers_or_frames_is_named(tmp_path: Path) -> None:

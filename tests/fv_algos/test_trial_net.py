@@ -19,6 +19,7 @@ from fv_algos.trial_net import (
     TrialNet,
     TrialNetConfig,
     _balanced_picks,
+    _check_setups,
     _held_prefix,
     _label_cells,
     _start_swap,
@@ -134,7 +135,7 @@ def test_batches_draw_every_set_up_of_each_label_alike() -> None:
         before = np.concatenate([old.choice(np.flatnonzero(labels == 1), 4), old.choice(np.flatnonzero(labels == 0), 4)])
         np.testing.assert_array_equal(_balanced_picks(_label_cells(labels, None), 8, new), before)
     with pytest.raises(ValueError, match="3 set-ups given for 43 trials"):
-        _label_cells(labels, ["A", "B", "C"])
+        _check_setups(["A", "B", "C"], 43)
 
 
 def test_balance_label_trains_on_the_batches_without_set_ups() -> None:
@@ -149,6 +150,11 @@ def test_balance_label_trains_on_the_batches_without_set_ups() -> None:
             torch.testing.assert_close(same[name], weight, atol=0, rtol=0)
     by_setup = fit_trial_net(inputs, labels, config, setups=setups).state_dict()
     assert any(not torch.equal(by_setup[name], weight) for name, weight in by_label.items())
+    for balance in ("setup", "label"):  # set-ups of another length are refused, whether used or not
+        with pytest.raises(ValueError, match="13 set-ups given for 12 trials"):
+            fit_trial_net(inputs, labels, replace(config, balance=balance), setups=setups + ["A"])
+    with pytest.raises(ValueError, match="11 set-ups given for 12 trials"):
+        cross_validate_trials(inputs, labels, ["a", "b"] * 6, 2, config=config, setups=setups[:11])
 
 
 
