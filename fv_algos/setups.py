@@ -50,10 +50,9 @@ def pitch_setups(pitches: Sequence[float], step: float = PITCH_STEP) -> list[str
     group = np.concatenate([[0], np.cumsum(sorted_pitches[1:] > step * sorted_pitches[:-1])])
     names = {g: f"pitch {sorted_pitches[group == g].min():.0f}-{sorted_pitches[group == g].max():.0f} px"
              for g in np.unique(group)}
-    out = [""] * pitches.size
-    for k, g in zip(order, group):
-        out[k] = names[g]
-    return out
+    out = np.empty(pitches.size, object)
+    out[order] = [names[g] for g in group]
+    return out.tolist()
 
 
 def trial_setups(trials: Sequence[Trial], reference_frame: int = 1, crop: FrameCrop | None = None) -> list[str]:

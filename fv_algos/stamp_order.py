@@ -63,7 +63,7 @@ class StampOrder(Generic[T]):
         if name in self.last_ns and stamp_ns < self.last_ns[name]:
             self.counters["restarts"] += 1
             due = self.flush()
-        self.last_ns[name] = max(stamp_ns, self.last_ns.get(name, stamp_ns))
+        self.last_ns[name] = stamp_ns  # not below the input's last: that was a restart, and cleared it
         self.arrived_s[name] = now_s
         self.first_s = now_s if self.first_s is None else self.first_s
         heapq.heappush(self.pending, _Pending(stamp_ns, rank, next(self._seq), name, now_s, item))
@@ -100,7 +100,8 @@ class StampOrder(Generic[T]):
     def _hand_on(self, pending: _Pending[T]) -> tuple[str, T]:
         if self.handed_ns is not None and pending.stamp_ns < self.handed_ns:
             self.counters["late"] += 1
-        self.handed_ns = max(pending.stamp_ns, self.handed_ns if self.handed_ns is not None else pending.stamp_ns)
+        else:
+            self.handed_ns = pending.stamp_ns
         return pending.name, pending.item
 
     def flush(self) -> list[tuple[str, T]]:

@@ -66,7 +66,6 @@ class SlipFusionParams:
         if not MIN_WAIT_S <= self.wait_s < math.inf:  # the timer, every wait_s / 5, would starve the inputs
             raise ValueError(f"wait_s {self.wait_s} must be at least {MIN_WAIT_S} s and finite")
         CameraVote(self.inputs, self.stale_after_s, self.same_grasp_s)  # ValueError names a bad duration
-        StampOrder(self.inputs, self.wait_s, self.stale_after_s)
 
 
 ORDERS = ("arrival", "stamp")
