@@ -88,11 +88,12 @@ def test_decisions_per_field_with_window_stamps(bus, spawn) -> None:
         pub.publish("/markers/reference", _reference(900_000_000, 320), latched=True)
         time.sleep(0.3)
         stamps = [1_000_000_000 + i * 66_000_000 for i in range(14)]
+        states = []  # 14 fields, window 10: 5 decisions
         for i, stamp in enumerate(stamps):
             pub.publish("/field", _field(stamp, 0.3 * i))
-            time.sleep(0.03)
-        states = [reader.recv(10.0) for _ in range(5)]  # 14 fields, window 10: 5 decisions
-        assert all(s is not None for s in states)
+            if i >= 9:  # a field queued behind a full window would have it skipped (only the newest is judged)
+                states.append(reader.recv(10.0))
+                assert states[-1] is not None, f"no decision on field {i}"
         for k, item in enumerate(states):
             s = item.msg
             assert 0.0 <= s.probability <= 1.0 and s.valid and s.model == "gelsight_windows"
