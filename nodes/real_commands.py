@@ -389,10 +389,11 @@ def _train(args: argparse.Namespace) -> int:
     from fv_algos.slip.models import count_parameters
     from fv_algos.trial_eval import fit, fit_train_config, trial_windows
     config = _fit_config(args)
+    init = _window_init(args)
+    _check_cv_report(args.cv_report, "windows", {"rule": asdict(config.rule), "init": init})
     trials, fields, _ = _load(args)
     data = trial_windows(trials, fields, config.train.model.window, config.rule)
     started = time.perf_counter()
-    init = _window_init(args)
     model, threshold, record = fit(data, np.arange(len(trials)), config, init=init)
     checkpoint = Checkpoint(fit_train_config(config, init).model, model.state_dict(), record["steps"], None, config.train.to_dict(), [])
     path = save_checkpoint(args.out, checkpoint)
@@ -425,6 +426,24 @@ def _cv_report(text: str) -> dict:
     return report
 
 
+def _check_cv_report(report: dict | None, method: str, config: dict) -> None:
+    """ValueError naming what differs when ``report`` (an `fv real cv --out` report to record beside a model, None:
+    none) cross-validated another method (``method``: "trial" or "windows") or networks trained otherwise than by
+    ``config`` (the training's config record; the deal's seed and folds may differ): its figures would be recorded
+    as this model's. Checked before the training, so that nothing is trained for a record refused after."""
+    if report is None:
+        return
+    made = report.get("config", {})
+    made_method = made.get("method", "windows")  # window reports name no method
+    if made_method != method:
+        raise ValueError(f"--cv-report: the report cross-validated the {made_method} model, this trains the {method} one")
+    config = json.loads(json.dumps(config))  # tuples as the report's lists
+    differ = [f"{key} {made[key]!r} (this training: {value!r})" for key, value in config.items()
+              if key in made and key not in ("seed", "folds") and made[key] != value]
+    if differ:
+        raise ValueError(f"--cv-report: the report's networks were trained otherwise: {'; '.join(differ)}")
+
+
 def _write_sidecar(path: Path, info: dict, cv_report: dict | None) -> None:
     """Write `info` (plus the summary of an `fv real cv --out` report, and its online part when it
     was run with --online) beside the model as JSON."""
@@ -442,6 +461,7 @@ def _train_trial(args: argparse.Namespace) -> int:
     config, init = _trial_config(args)
     trials, _, _, inputs, labels, fps = _trial_inputs(args, config.reference_frame, stretch=config.stretch)
     config = replace(config, fps=fps)
+    _check_cv_report(args.cv_report, "trial", {**asdict(config), "init": args.init})
     setups = _setups(args, trials, config)
     net = fit_trial_net(inputs, labels, config, init, setups)
     path = save_trial_model(args.out, net, config)

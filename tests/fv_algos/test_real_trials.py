@@ -472,6 +472,17 @@ def test_real_cv_online_reports_how_early_the_held_out_networks_tell_slips(isd_d
                  "--hidden", "4", "--members", "1", "--out", str(model), "--cv-report", str(out)]) == 0
     sidecar = json.loads(model.with_suffix(".json").read_text())
     assert sidecar["cross_validation_online"] == {k: v for k, v in online.items() if k != "plot"}
+    other = tmp_path / "other_trial.pt"  # trained otherwise than the report's networks: refused before training
+    assert main(["real", "train", "--trials", str(root), "--cache", str(tmp_path / "cache"), "--steps", "6",
+                 "--hidden", "4", "--members", "1", "--balance", "label", "--out", str(other),
+                 "--cv-report", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert ("the report's networks were trained otherwise: steps 5 (this training: 6); balance 'setup' (this "
+            "training: 'label')") in err and not other.exists()
+    assert main(["real", "train", "--trials", str(root), "--method", "windows", "--out", str(other),
+                 "--cv-report", str(out)]) == 2
+    assert "the report cross-validated the trial model, this trains the windows one" in capsys.readouterr().err
+    assert not other.exists()
 
 
 @pytest.mark.parametrize("argv, message", [
