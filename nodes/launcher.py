@@ -316,7 +316,7 @@ class Launch:
         alive = discover(NAMESAKE_WAIT_S)
         local = not self._address.is_tcp
         return sorted(child.spec.name for child in self.children if child.spec.name in alive
-                      and (not local or _process_state(alive[child.spec.name].pid) not in ("", "Z")))
+                      and (not local or process_state(alive[child.spec.name].pid) not in ("", "Z")))
 
     def wait(self, timeout_s: float | None = None) -> bool:
         """Block until the launch ended by itself (required node died, all nodes exited)
@@ -448,7 +448,7 @@ class Launch:
             running = child.proc is not None
             silent_s = (None if not running or child.last_status_s is None or bus_down
                         else now - max(child.last_status_s, self._bus_back_s))  # a forwarder's gap is not theirs
-            if running and _process_state(child.proc.pid) in ("T", "t"):
+            if running and process_state(child.proc.pid) in ("T", "t"):
                 kind, fault, state = "stopped", f"{name} is stopped (SIGSTOP?)", "error"
             elif silent_s is not None and silent_s > SILENT_AFTER_S:
                 kind, fault, state = "silent", f"{name} sent no /status for {silent_s:.0f} s (hung?)", "error"
@@ -630,7 +630,7 @@ def _numbers_masked(line: str) -> str:
     return re.sub(r"\d+", "#", line)
 
 
-def _process_state(pid: int) -> str:
+def process_state(pid: int) -> str:
     """The state letter of process `pid` from /proc (R, S, D, T stopped...; "" if gone)."""
     try:
         with open(f"/proc/{pid}/stat") as f:

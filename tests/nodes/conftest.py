@@ -22,6 +22,7 @@ from msgs import NodeStatus
 from nodes.bus import TopicReader
 from nodes.endpoints import BUS_ENV, BusAddress, bus_address
 from nodes.forwarder import Forwarder
+from nodes.launcher import process_state
 from nodes.node import Node
 
 REPO = Path(__file__).resolve().parents[2]
@@ -181,12 +182,9 @@ def wait_status(node: str, predicate: Callable[[NodeStatus], bool] = lambda st: 
 
 
 def pid_alive(pid: int) -> bool:
-    """True when `pid` exists and is not a zombie (read from /proc)."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rpartition(")")[2].split()[0] != "Z"
-    except FileNotFoundError:
-        return False
+    """True when `pid` exists and is not a zombie (read from /proc: a process reaped between the open and the
+    read of its stat file, ProcessLookupError, is gone too)."""
+    return process_state(pid) not in ("", "Z")
 
 
 def children_of(pid: int) -> list[int]:
