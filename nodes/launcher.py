@@ -54,6 +54,7 @@ from nodes.exit_codes import CONFIG, CONFIG_WHILE_RUNNING, FAILED, OK, TEMPFAIL,
 from nodes.launch_file import NodeSpec, load_launch, parse_arg_overrides
 from nodes.node import LAUNCH_ENV, STANDBY_READY
 from nodes.parent_death import parent_env
+from nodes.proc_stats import process_state
 
 if TYPE_CHECKING:
     from nodes.forwarder import ForwarderStart
@@ -628,15 +629,6 @@ def _numbers_masked(line: str) -> str:
     """`line` with each run of digits as "#": a waiting node's tries that differ only in their numbers
     (the time in OpenCV's `[ WARN:0@2.062]`) say the same."""
     return re.sub(r"\d+", "#", line)
-
-
-def process_state(pid: int) -> str:
-    """The state letter of process `pid` from /proc (R, S, D, T stopped...; "" if gone)."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rpartition(")")[2].split()[0]
-    except (OSError, IndexError):
-        return ""
 
 
 def _terminate_when_ready(procs: list[subprocess.Popen], deadline: float) -> None:

@@ -1,10 +1,20 @@
-"""CPU time and memory of a running process, read from /proc (Linux)."""
+"""State, CPU time and memory of a running process, read from /proc (Linux)."""
 from __future__ import annotations
 
 import os
 from pathlib import Path
 
 _TICK_S = 1.0 / os.sysconf("SC_CLK_TCK")
+
+
+def process_state(pid: int) -> str:
+    """The state letter of process `pid` from /proc (R, S, D, T stopped...; "" if gone, also when it is reaped
+    between the open and the read of its stat file)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rpartition(")")[2].split()[0]
+    except (OSError, IndexError):
+        return ""
 
 
 def cpu_seconds(pid: int) -> float:

@@ -22,8 +22,8 @@ from msgs import NodeStatus
 from nodes.bus import TopicReader
 from nodes.endpoints import BUS_ENV, BusAddress, bus_address
 from nodes.forwarder import Forwarder
-from nodes.launcher import process_state
 from nodes.node import Node
+from nodes.proc_stats import process_state
 
 REPO = Path(__file__).resolve().parents[2]
 

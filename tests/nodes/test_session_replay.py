@@ -119,7 +119,8 @@ def _assert_replayed_as_live(recorded: list[SlipState], replayed: list[SlipState
     loop's; a live camera's frames, without frame_index, start none at the loop). Replayed states after it are
     of frames the live run recorded but was stopped before answering (the launch stops its nodes together)."""
     live = {s.stamp_ns: s for s in recorded}
-    again = {s.stamp_ns: s for s in replayed if s.stamp_ns <= max(live)}
+    last_live_ns = max(live)
+    again = {s.stamp_ns: s for s in replayed if s.stamp_ns <= last_live_ns}
     assert sorted(again) == sorted(live), f"{topic}: {len(live)} live states, {len(again)} replayed"
     starts = len({int(s.window_stamps_ns[0]) for s in recorded})
     assert starts == grasps, f"{topic}: {starts} grasps, not {grasps}"
