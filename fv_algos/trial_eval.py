@@ -304,7 +304,6 @@ def cross_validate(data: TrialWindows, config: FitConfig, folds: int, seed: int 
     confusion}. ``init``: fine-tune every fold from this checkpoint."""
     groups = object_folds(data.objects, folds, seed)
     rows = map_folds(partial(_window_fold, data, config, seed, init), list(enumerate(groups)), workers, progress)
-    train_record = {**config.train.to_dict(), "model": asdict(fit_train_config(config, init).model)}
     window_acc = [r["window_accuracy"] for r in rows]
     return {
         "folds": rows,
@@ -312,8 +311,15 @@ def cross_validate(data: TrialWindows, config: FitConfig, folds: int, seed: int 
             **fold_summary(rows), "window_accuracy_mean": statistics.fmean(window_acc),
             "window_accuracy_std": statistics.pstdev(window_acc), "window_accuracy_min": min(window_acc),
         },
-        "config": {"train": train_record, "init": init, "rule": asdict(config.rule), "folds": folds, "seed": seed},
+        "config": {**fit_record(config, init), "folds": folds, "seed": seed},
     }
+
+
+def fit_record(config: FitConfig, init: str | None) -> dict[str, object]:
+    """How a fit's networks are trained, as a cross-validation report records it: {"train": ``config.train`` with
+    the architecture that ``init`` (a checkpoint to fine-tune, None: none) gives, "init", "rule"}."""
+    return {"train": {**config.train.to_dict(), "model": asdict(fit_train_config(config, init).model)},
+            "init": init, "rule": asdict(config.rule)}
 
 
 def fit_config(arch: str = "convlstm", hidden: int = 16, steps: int = 300, batch_size: int = 32, lr: float = 1e-3,

@@ -387,10 +387,10 @@ def _train(args: argparse.Namespace) -> int:
     import numpy as np
     from fv_algos.slip.classifier import Checkpoint, save_checkpoint
     from fv_algos.slip.models import count_parameters
-    from fv_algos.trial_eval import fit, fit_train_config, trial_windows
+    from fv_algos.trial_eval import fit, fit_record, fit_train_config, trial_windows
     config = _fit_config(args)
     init = _window_init(args)
-    _check_cv_report(args.cv_report, "windows", {"rule": asdict(config.rule), "init": init})
+    _check_cv_report(args.cv_report, "windows", fit_record(config, init))
     trials, fields, _ = _load(args)
     data = trial_windows(trials, fields, config.train.model.window, config.rule)
     started = time.perf_counter()
@@ -426,22 +426,36 @@ def _cv_report(text: str) -> dict:
     return report
 
 
-def _check_cv_report(report: dict | None, method: str, config: dict) -> None:
+def _check_cv_report(report: dict | None, method: str, config: dict, later: tuple[str, ...] = ()) -> None:
     """ValueError naming what differs when ``report`` (an `fv real cv --out` report to record beside a model, None:
     none) cross-validated another method (``method``: "trial" or "windows") or networks trained otherwise than by
-    ``config`` (the training's config record; the deal's seed and folds may differ): its figures would be recorded
-    as this model's. Checked before the training, so that nothing is trained for a record refused after."""
+    ``config`` (the training's config record, nested records compared key by key; the deal's seed and folds, and
+    whether a progress bar was drawn, may differ): its figures would be recorded as this model's. Checked before
+    the training, so that nothing is trained for a record refused after; ``later``: keys not known yet (the frame
+    rate, read from the videos), checked by a second call once they are."""
     if report is None:
         return
     made = report.get("config", {})
     made_method = made.get("method", "windows")  # window reports name no method
     if made_method != method:
         raise ValueError(f"--cv-report: the report cross-validated the {made_method} model, this trains the {method} one")
-    config = json.loads(json.dumps(config))  # tuples as the report's lists
-    differ = [f"{key} {made[key]!r} (this training: {value!r})" for key, value in config.items()
-              if key in made and key not in ("seed", "folds") and made[key] != value]
+    differ = _differences(made, json.loads(json.dumps(config)), ("seed", "folds", "progress", *later))  # tuples as lists
     if differ:
         raise ValueError(f"--cv-report: the report's networks were trained otherwise: {'; '.join(differ)}")
+
+
+def _differences(made: dict, config: dict, ignore: tuple[str, ...], prefix: str = "") -> list[str]:
+    """'key value (this training: value)' for every key of ``config`` that ``made`` holds with another value, keys
+    of nested dicts as 'outer.key'; keys in ``ignore`` are left out at every level."""
+    differ = []
+    for key, value in config.items():
+        if key in ignore or key not in made or made[key] == value:
+            continue
+        if isinstance(value, dict) and isinstance(made[key], dict):
+            differ += _differences(made[key], value, ignore, f"{prefix}{key}.")
+        else:
+            differ.append(f"{prefix}{key} {made[key]!r} (this training: {value!r})")
+    return differ
 
 
 def _write_sidecar(path: Path, info: dict, cv_report: dict | None) -> None:
@@ -459,6 +473,7 @@ def _train_trial(args: argparse.Namespace) -> int:
     from fv_algos.trial_net import DESCRIPTORS, fit_trial_net, judge_trials, save_trial_model, trial_probability
     started = time.perf_counter()
     config, init = _trial_config(args)
+    _check_cv_report(args.cv_report, "trial", {**asdict(config), "init": args.init}, later=("fps",))
     trials, _, _, inputs, labels, fps = _trial_inputs(args, config.reference_frame, stretch=config.stretch)
     config = replace(config, fps=fps)
     _check_cv_report(args.cv_report, "trial", {**asdict(config), "init": args.init})

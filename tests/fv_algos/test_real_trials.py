@@ -472,8 +472,8 @@ def test_real_cv_online_reports_how_early_the_held_out_networks_tell_slips(isd_d
                  "--hidden", "4", "--members", "1", "--out", str(model), "--cv-report", str(out)]) == 0
     sidecar = json.loads(model.with_suffix(".json").read_text())
     assert sidecar["cross_validation_online"] == {k: v for k, v in online.items() if k != "plot"}
-    other = tmp_path / "other_trial.pt"  # trained otherwise than the report's networks: refused before training
-    assert main(["real", "train", "--trials", str(root), "--cache", str(tmp_path / "cache"), "--steps", "6",
+    other = tmp_path / "other_trial.pt"  # trained otherwise than the report's networks: refused before any video
+    assert main(["real", "train", "--trials", str(tmp_path / "absent"), "--steps", "6",  # is read
                  "--hidden", "4", "--members", "1", "--balance", "label", "--out", str(other),
                  "--cv-report", str(out)]) == 2
     err = capsys.readouterr().err
@@ -483,6 +483,15 @@ def test_real_cv_online_reports_how_early_the_held_out_networks_tell_slips(isd_d
                  "--cv-report", str(out)]) == 2
     assert "the report cross-validated the trial model, this trains the windows one" in capsys.readouterr().err
     assert not other.exists()
+    window_argv = ["--trials", str(root), "--cache", str(tmp_path / "cache"), "--method", "windows"]
+    report = tmp_path / "windows_cv.json"  # a window model's report is checked against its training too
+    assert main(["real", "cv", *window_argv, "--steps", "2", "--folds", "2", "--out", str(report)]) == 0
+    capsys.readouterr()
+    assert main(["real", "train", *window_argv, "--steps", "3", "--out", str(other), "--cv-report", str(report)]) == 2
+    assert "trained otherwise: train.steps 2 (this training: 3)" in capsys.readouterr().err and not other.exists()
+    assert main(["real", "train", *window_argv, "--steps", "2", "--out", str(other), "--cv-report", str(report)]) == 0
+    assert json.loads(other.with_suffix(".json").read_text())["cross_validation"] == json.loads(
+        report.read_text())["summary"]
 
 
 @pytest.mark.parametrize("argv, message", [
