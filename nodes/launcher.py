@@ -54,7 +54,7 @@ from nodes.exit_codes import CONFIG, CONFIG_WHILE_RUNNING, FAILED, OK, TEMPFAIL,
 from nodes.launch_file import NodeSpec, load_launch, parse_arg_overrides
 from nodes.node import LAUNCH_ENV, STANDBY_READY
 from nodes.parent_death import parent_env
-from nodes.proc_stats import process_state
+from nodes.proc_stats import process_alive, process_state
 
 if TYPE_CHECKING:
     from nodes.forwarder import ForwarderStart
@@ -317,7 +317,7 @@ class Launch:
         alive = discover(NAMESAKE_WAIT_S)
         local = not self._address.is_tcp
         return sorted(child.spec.name for child in self.children if child.spec.name in alive
-                      and (not local or process_state(alive[child.spec.name].pid) not in ("", "Z")))
+                      and (not local or process_alive(alive[child.spec.name].pid)))
 
     def wait(self, timeout_s: float | None = None) -> bool:
         """Block until the launch ended by itself (required node died, all nodes exited)

@@ -432,7 +432,7 @@ def _check_cv_report(report: dict | None, method: str, config: dict, later: tupl
     ``config`` (the training's config record, nested records compared key by key; the deal's seed and folds, and
     whether a progress bar was drawn, may differ): its figures would be recorded as this model's. Checked before
     the training, so that nothing is trained for a record refused after; ``later``: keys not known yet (the frame
-    rate, read from the videos), checked by a second call once they are."""
+    rate, read from the videos), checked by a second call with those alone once they are."""
     if report is None:
         return
     made = report.get("config", {})
@@ -476,7 +476,7 @@ def _train_trial(args: argparse.Namespace) -> int:
     _check_cv_report(args.cv_report, "trial", {**asdict(config), "init": args.init}, later=("fps",))
     trials, _, _, inputs, labels, fps = _trial_inputs(args, config.reference_frame, stretch=config.stretch)
     config = replace(config, fps=fps)
-    _check_cv_report(args.cv_report, "trial", {**asdict(config), "init": args.init})
+    _check_cv_report(args.cv_report, "trial", {"fps": fps})
     setups = _setups(args, trials, config)
     net = fit_trial_net(inputs, labels, config, init, setups)
     path = save_trial_model(args.out, net, config)

@@ -23,7 +23,6 @@ from nodes.bus import TopicReader
 from nodes.endpoints import BUS_ENV, BusAddress, bus_address
 from nodes.forwarder import Forwarder
 from nodes.node import Node
-from nodes.proc_stats import process_state
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -179,12 +178,6 @@ def wait_status(node: str, predicate: Callable[[NodeStatus], bool] = lambda st: 
                 if predicate(last):
                     return last
     raise AssertionError(f"no matching NodeStatus from {node!r} within {timeout_s} s; last: {last}")
-
-
-def pid_alive(pid: int) -> bool:
-    """True when `pid` exists and is not a zombie (read from /proc: a process reaped between the open and the
-    read of its stat file, ProcessLookupError, is gone too)."""
-    return process_state(pid) not in ("", "Z")
 
 
 def children_of(pid: int) -> list[int]:

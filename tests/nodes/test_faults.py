@@ -28,7 +28,8 @@ from nodes.exit_codes import CONFIG
 from nodes.forwarder import ping
 from nodes.launcher import SILENT_AFTER_S, Launch
 from nodes.node import Node
-from tests.nodes.conftest import Bus, pid_alive, spinning, wait_for, wait_status
+from nodes.proc_stats import process_alive
+from tests.nodes.conftest import Bus, spinning, wait_for, wait_status
 
 RECOVERY_S = 2.0  # a killed node's output is back within this, on an idle machine
 IDLE_COLD_START_S = 0.9  # the tracker's cold start (Python, imports, setup) on an idle 2-core machine
@@ -471,7 +472,7 @@ def test_killed_tracker_respawns_and_pipeline_resumes(bus_env: Bus, tmp_path: Pa
         with TopicReader(["/status", "/markers", "/field"]) as reader:
             t0 = time.monotonic()
             os.kill(pid, signal.SIGKILL)
-            wait_for(lambda: not pid_alive(pid), 5.0, "the killed tracker's exit")
+            wait_for(lambda: not process_alive(pid), 5.0, "the killed tracker's exit")
             # what the killed tracker sent is of frames captured before its exit: read later, it is no resumption
             dead_ns = time.time_ns()
             spawned_s = None
@@ -521,7 +522,7 @@ def test_standby_spare_takes_over_a_killed_node_at_once(bus_env: Bus, tmp_path: 
     finally:
         run.stop()
     assert f"talker exited with code -9; spare pid {spare} took over (respawn 1)" in out.getvalue()
-    assert child.spare is None and not any(pid_alive(p) for p in (pid, spare))
+    assert child.spare is None and not any(process_alive(p) for p in (pid, spare))
     slowdown = max(1.0, os.getloadavg()[0] / os.cpu_count())
     assert back_s < 0.5 * slowdown, f"/chatter back {back_s:.2f} s after the kill"
 

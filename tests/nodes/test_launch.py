@@ -29,7 +29,8 @@ from nodes.exit_codes import CONFIG, OK, TEMPFAIL
 from nodes.forwarder import ping
 from nodes.launch_file import LaunchError, load_launch, parse_arg_overrides
 from nodes.launcher import START_TRIES, Launch
-from tests.nodes.conftest import REPO, Bus, children_of, kill_group, pid_alive, poll_until, run_fv, wait_status
+from nodes.proc_stats import process_alive
+from tests.nodes.conftest import REPO, Bus, children_of, kill_group, poll_until, run_fv, wait_status
 from tests.nodes.test_bag import write_bag
 
 GOOD_NODE = "  - kind: talker\n    name: t\n"
@@ -499,7 +500,7 @@ def test_killed_respawn_node_is_back_within_delay_plus_1s(bus_env: Bus, tmp_path
     finally:
         launch.stop()
     assert "respawn 1 in 0.3 s" in out.getvalue()
-    assert not pid_alive(first) and not pid_alive(pid)
+    assert not process_alive(first) and not process_alive(pid)
 
 
 @pytest.mark.parametrize("sig, launch_code", [("-KILL", 1), ("-TERM", 0)])
@@ -517,7 +518,7 @@ def test_required_node_death_stops_the_launch(bus_env: Bus, tmp_path: Path, sig:
     finally:
         code = launch.stop()
     assert code == launch_code and "talker is required" in out.getvalue()
-    assert not any(pid_alive(p) for p in pids)
+    assert not any(process_alive(p) for p in pids)
 
 
 def _video(path: Path) -> Path:
@@ -717,7 +718,7 @@ def test_ctrl_c_stops_everything_within_2s(bus_env: Bus, spawn) -> None:
     proc.send_signal(signal.SIGINT)
     proc.wait(5.0)
     stop_s = time.monotonic() - t0
-    leftover = [p for p in family if pid_alive(p)]
+    leftover = [p for p in family if process_alive(p)]
     assert not leftover and stop_s < 2.0, f"stopped in {stop_s:.2f} s, left {leftover}"
     output = proc.stdout.read()
     assert "[listener] INFO: SlipState seq=" in output and "[listener] [listener]" not in output
@@ -726,8 +727,8 @@ def test_ctrl_c_stops_everything_within_2s(bus_env: Bus, spawn) -> None:
 
 def _gone(pids: list[int], timeout_s: float) -> list[int]:
     """Poll until none of `pids` is alive; the ones still alive after `timeout_s`."""
-    poll_until(lambda: not any(map(pid_alive, pids)), timeout_s, period_s=0.05)
-    return [p for p in pids if pid_alive(p)]
+    poll_until(lambda: not any(map(process_alive, pids)), timeout_s, period_s=0.05)
+    return [p for p in pids if process_alive(p)]
 
 
 def _kill(pids: list[int]) -> None:

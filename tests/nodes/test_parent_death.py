@@ -13,7 +13,8 @@ import pytest
 
 from nodes.exit_codes import OK
 from nodes.parent_death import PARENT_PID_ENV
-from tests.nodes.conftest import REPO, Bus, pid_alive, wait_for
+from nodes.proc_stats import process_alive
+from tests.nodes.conftest import REPO, Bus, wait_for
 
 # a parent that starts a child (argv[1]) tied to its life, and sleeps; the child, once it has asked (HOW: by
 # the kernel, or the watcher where there is none), says its pid (on the parent's stdout) and sleeps
@@ -32,10 +33,10 @@ def test_a_process_stops_when_its_parent_is_killed(how: str) -> None:
     try:
         assert select.select([parent.stdout], [], [], 30.0)[0], "the child did not say its pid within 30 s"
         child = int(parent.stdout.readline())
-        assert pid_alive(child)
+        assert process_alive(child)
         parent.kill()
         parent.wait(5.0)
-        wait_for(lambda: not pid_alive(child), 10.0, f"the child ({how}) ending with its parent", period_s=0.05)
+        wait_for(lambda: not process_alive(child), 10.0, f"the child ({how}) ending with its parent", period_s=0.05)
     finally:
         try:
             os.killpg(parent.pid, signal.SIGKILL)  # the parent and the child, whatever failed
