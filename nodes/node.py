@@ -364,7 +364,10 @@ class Node:
             if self._watcher is not None:
                 self._watcher.join(2.0)
             if self._receiver is not None and self._receiver.is_alive():
-                self._ctl_out.send_string("stop")
+                try:  # a receiver not yet connected finds the node stopped once it is (`_receive_loop`)
+                    self._ctl_out.send_string("stop", zmq.NOBLOCK)
+                except zmq.Again:
+                    pass
                 self._receiver.join(2.0)
             self._ctl_out.close(linger=0)
             self._pub_sock.close()
@@ -377,15 +380,17 @@ class Node:
         connect_client(sub, self.address, self.address.sub)
         ctl = self.ctx.socket(zmq.PAIR)
         ctl.connect(self._ctl_addr)
-        with self._cond:
-            topics = list(self._subs)
-        for topic in topics:
-            for prefix in self._prefixes(topic):
-                sub.setsockopt(zmq.SUBSCRIBE, prefix)
-        poller = zmq.Poller()
-        poller.register(sub, zmq.POLLIN)
-        poller.register(ctl, zmq.POLLIN)
         try:
+            if self._stop.is_set():  # stopped before this connection: its "stop" could not be sent (`close`)
+                return
+            with self._cond:
+                topics = list(self._subs)
+            for topic in topics:
+                for prefix in self._prefixes(topic):
+                    sub.setsockopt(zmq.SUBSCRIBE, prefix)
+            poller = zmq.Poller()
+            poller.register(sub, zmq.POLLIN)
+            poller.register(ctl, zmq.POLLIN)
             while True:
                 ready = dict(poller.poll())
                 if ctl in ready:

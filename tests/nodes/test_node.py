@@ -227,6 +227,35 @@ def test_nodes_never_closed_do_not_block_the_next_ones(bus: Bus) -> None:
             sock.close()
 
 
+class LateReceiver(Node):
+    """A node whose receiving thread connects only once `connect` is set."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name)
+        self.connect = threading.Event()
+
+    def _receive_loop(self) -> None:
+        self.connect.wait(30.0)
+        super()._receive_loop()
+
+
+def test_a_node_stops_before_its_receiver_has_connected(bus: Bus) -> None:
+    """A node stopped before its receiving thread had connected its control socket waited in close() until that
+    thread connected (its "stop" could not be sent), with no limit; the thread, once connected, finds the node
+    stopped and ends."""
+    node = LateReceiver("late")
+    thread = threading.Thread(target=node.spin, kwargs={"install_signals": False}, daemon=True)
+    thread.start()
+    wait_for(lambda: node._receiver is not None and not node._starting, 10.0, "the node set up")
+    node.stop()
+    thread.join(5.0)
+    stopped = not thread.is_alive()
+    node.connect.set()
+    assert stopped, "close() waited for the receiver"
+    node._receiver.join(5.0)
+    assert not node._receiver.is_alive()
+
+
 @pytest.mark.parametrize("text, kind", [("[1]", "a list"), ('"x"', "a string"), ("3", "a number")])
 def test_params_json_that_is_not_an_object_is_refused(bus_env: Bus, text: str, kind: str) -> None:
     """`--params-json '[1]'` gave a traceback (AttributeError: 'list' object has no attribute 'update')."""
