@@ -151,7 +151,10 @@ class Perception:
         (ValueError naming what it refuses, and when the markers' look is unknown and `image` shows
         none to estimate it from: `estimate_marker_params`). The markers of
         `image` are matched to them as one tracking step (motions up to the tracker's
-        one-frame limit, about 1.5 marker pitches, are followed). The markers' reference area (the
+        one-frame limit, about 1.5 marker pitches, are followed); the markers are then taken as still
+        (`Tracker.hold_still`): that step's motion is the deformation since the reference, not a frame's, and
+        as the next step's prediction it put markers of a skin sheared by most of a pitch on a neighbour's
+        dot. The markers' reference area (the
         tracker's area check) is the median detection's, or the marker disc's
         (`MarkerParams.area_px2`) when `image` shows none (e.g. the camera still dark): what the
         detector measures of an undeformed marker, so the markers are picked up once they show.
@@ -173,7 +176,9 @@ class Perception:
         self.tracker = Tracker(Detections(ref, np.full(ref.shape[0], area)), self.params.tracking, cluttered=cluttered)
         self.interpolator = FieldInterpolator(ref, self.params.interpolation)
         self.frame_shape = image.shape[:2]  # the caller's reference was taken on frames of this size
-        return self.tracker.step(detections)
+        state = self.tracker.step(detections)
+        self.tracker.hold_still()  # this step's motion is the whole deformation, not a frame's
+        return state
 
     def step(self, image: np.ndarray) -> tuple[TrackState, DisplacementField]:
         """Track one frame; returns the `TrackState` and the `DisplacementField`."""

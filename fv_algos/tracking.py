@@ -343,6 +343,12 @@ class Tracker:
         self._since = np.where(seen, 0, self._since + 1)
         return self.state
 
+    def hold_still(self) -> None:
+        """Take the markers as still from here on (zero velocity): after a step whose motion spans more than
+        a frame (`Perception.resume`, from the reference to a deformed frame), that motion says nothing of the
+        next frame's and, taken as its prediction, it put markers a pitch off."""
+        self._velocity = np.zeros_like(self._ref)
+
     def _rest_match(self, det: np.ndarray, areas: np.ndarray, matched: np.ndarray) -> np.ndarray | None:
         """The return to rest (`TrackerParams.rest_ratio`): (N,) int64 detection index per
         marker (-1 = none), or None when the skin is not at rest or `matched` (N,) agrees

@@ -1,14 +1,19 @@
 """Tracking on arrays of detections with known identities (no images: fast and exact)."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from fv_algos.detection import Detections
 from fv_algos.perception import Perception, PerceptionParams
+from fv_algos.sim.scene import load_scene
+from fv_algos.sim.sensor import SimSensor
 from fv_algos.tracking import Tracker, TrackerParams, masked_median, neighbour_consistency
 from tests.fv_algos.test_detection import SIM_MARKER, grid_centres, render_markers
 
+SCENES = Path(__file__).resolve().parents[2] / "launch" / "scenes"
 PITCH = 25.0
 REF = grid_centres(16, 16, PITCH)
 AREA = np.pi / 4.0 * 9.0**2
@@ -344,6 +349,24 @@ def test_perception_resumed_on_a_blank_frame_tracks_the_markers_once_they_show()
         state, field = perception.step(render_markers(centres + shift))
         assert state.valid.all() and field.valid
         assert np.abs(field.field[:, :, :2] - shift).max() < 0.1
+
+
+def test_perception_resumed_on_a_skin_sheared_by_most_of_a_pitch_tracks_it_as_throughout() -> None:
+    """A tracker resumed on a sheared skin took the shear, the motion since the reference, as the markers'
+    velocity: stepped again on that frame (as the tracker node does) the prediction overshot by the shear,
+    and 6 markers of 256 went a pitch off or invalid, resumed at any of frames 62 to 74 of the press-shear-slide
+    scene (the slide: markers up to 18.6 to 19.0 px from rest, pitch 21.5 px). A tracker respawned there, or
+    a replay of a recording begun there, tracked them so."""
+    frames = [frame.image for frame, _ in zip(SimSensor(load_scene(SCENES / "press_shear_slide.yaml")), range(64))]
+    throughout = Perception(PerceptionParams.preset("default"))
+    throughout.reset(frames[1])
+    tracked = [throughout.step(image)[0] for image in frames[2:]]
+    resumed = Perception(PerceptionParams.preset("default"))
+    resumed.resume(frames[62], tracked[0].reference_px)
+    for image, live in zip(frames[62:], tracked[60:]):  # the frame resumed on, stepped again, then the next
+        state, _ = resumed.step(image)
+        assert np.array_equal(state.valid, live.valid)
+        assert np.abs(state.current_px - live.current_px)[live.valid].max() < 1.0
 
 
 def test_perception_resumed_among_clutter_takes_its_reference_as_cluttered() -> None:

@@ -944,47 +944,30 @@ SCENE = REPO / "launch" / "scenes" / "press_shear_slide.yaml"
 
 
 def _replays_as_live(bag: Path, spawn: Spawn) -> None:
-    """Replay `bag` through launch/replay.yaml as a batch to the bag's last live /slip state. A replayed state
-    of the same window of fields as live (`window_stamps_ns`) has the live decision, and P(slip) within 0.02
-    where the replay's tracker put every marker of the window's frames within 1 px of where the live one had
-    (the bag's `/markers`); the frames the pipeline leaves unanswered (the window model's first 9) cost no
-    sync timeout. A live node behind on a loaded host judges its latest field and drops those before, so
-    its window differs from the replay's, which judges every frame. A tracker resuming
-    the recorded reference on a skin sheared by most of a marker pitch can put a few markers on a
-    neighbour's dot until the shear eases: 4 of 256 for the bag's first 13 frames, a state's P(slip) 0.24
-    against 0.17 live (README, "A recording started mid-session")."""
+    """Replay `bag` through launch/replay.yaml as a batch to the bag's last live /slip state: a replayed state
+    of the same window of fields as live (`window_stamps_ns`) has the live decision and P(slip) within 0.02;
+    the frames the pipeline leaves unanswered (the window model's first 9) cost no sync timeout. A live node
+    behind on a loaded host judges its latest field and drops those before: its window then differs from
+    the replay's, which judges every frame."""
     recorded = {m.stamp_ns: m for m in (msg for _, msg, _ in read_bag(bag, topics=["/slip"]))}
-    live_markers = {m.stamp_ns: m for m in (msg for _, msg, _ in read_bag(bag, topics=["/markers"]))}
     last = max(recorded)
     replayed: dict[int, SlipState] = {}
-    markers: dict[int, MarkerArray] = {}
     output = bag.parent / f"{bag.name}_replay.log"
-    with TopicReader(["/slip", "/markers"]) as reader, open(output, "w") as log:
+    with TopicReader(["/slip"]) as reader, open(output, "w") as log:
         launch = spawn("launch", str(REPO / "launch" / "replay.yaml"), f"bag:={bag}", "fast:=true",
                        "sync_topic:=/slip", "standby:=false", stdout=log, stderr=subprocess.STDOUT)
         while last not in replayed:
             item = reader.recv(90.0 if not replayed else 10.0)
             assert item is not None, f"the replay stopped after {len(replayed)} states"
-            if item.topic == "/slip":
-                replayed[item.msg.stamp_ns] = item.msg
-            elif item.topic == "/markers":
-                markers[item.msg.stamp_ns] = item.msg
+            replayed[item.msg.stamp_ns] = item.msg
     assert launch.wait(30) == 0  # the bag played: the launch ends
     assert "sync timeouts 0" in output.read_text(), output.read_text()
-
-    def tracked_as_live(stamp: int) -> bool:
-        live, replay = live_markers.get(stamp), markers.get(stamp)
-        return (live is not None and replay is not None and np.array_equal(live.valid, replay.valid)
-                and np.allclose(live.cur_px[live.valid], replay.cur_px[live.valid], atol=1.0))
-
     common = sorted(set(recorded) & set(replayed))
     same = [stamp for stamp in common
             if np.array_equal(replayed[stamp].window_stamps_ns, recorded[stamp].window_stamps_ns)]
-    alike = [stamp for stamp in same if all(map(tracked_as_live, recorded[stamp].window_stamps_ns))]
-    assert len(alike) >= 15, f"{len(alike)} of {len(common)} replayed windows judged and tracked as live"
+    assert len(same) >= 20, f"{len(same)} of {len(common)} replayed states judged the live window"
     for stamp in same:
         assert replayed[stamp].slip == recorded[stamp].slip
-    for stamp in alike:
         assert replayed[stamp].probability == pytest.approx(recorded[stamp].probability, abs=0.02)
 
 
@@ -993,7 +976,9 @@ def test_a_recording_started_mid_session_replays_against_the_live_reference(bus:
     """A recording started while the skin was pressed holds the tracker's reference (latched) but not its
     frame. replay.yaml took the bag's first frame, a pressed skin, as the reference, and 103 of 106 states
     differed from the live ones (slip for the whole shear); it now plays the recorded reference to the
-    tracker, which tracks the bag against it as live."""
+    tracker, which tracks the bag against it as live. Resumed on a frame of the slide, the tracker took the
+    shear as the markers' velocity and put 6 of 256 a pitch off or invalid for 13 frames (P 0.24 against 0.17
+    live at one state, in 3 of 9 runs three at once)."""
     bag = tmp_path / "mid"
     with TopicReader(["/slip"], bus) as reader:
         live = spawn("launch", str(REPO / "launch" / "pipeline.yaml"), "fps:=15", f"scene:={SCENE}",
