@@ -344,9 +344,9 @@ class Tracker:
         return self.state
 
     def hold_still(self) -> None:
-        """Take the markers as still from here on (zero velocity): after a step whose motion spans more than
-        a frame (`Perception.resume`, from the reference to a deformed frame), that motion says nothing of the
-        next frame's and, taken as its prediction, it put markers a pitch off."""
+        """Take the markers as still (zero velocity) in the next step's prediction: after a step whose motion
+        spans more than a frame (`Perception.resume`, from the reference to a deformed frame), that motion says
+        nothing of the next frame's and, taken as its prediction, it put markers a pitch off."""
         self._velocity = np.zeros_like(self._ref)
 
     def _rest_match(self, det: np.ndarray, areas: np.ndarray, matched: np.ndarray) -> np.ndarray | None:

@@ -34,6 +34,7 @@ also the watchdog: besides the node's own `warn()`, the status reports
 from __future__ import annotations
 
 import collections
+import contextlib
 import itertools
 import logging
 import os
@@ -364,10 +365,8 @@ class Node:
             if self._watcher is not None:
                 self._watcher.join(2.0)
             if self._receiver is not None and self._receiver.is_alive():
-                try:  # a receiver not yet connected finds the node stopped once it is (`_receive_loop`)
+                with contextlib.suppress(zmq.Again):  # one not yet connected finds the node stopped (`_receive_loop`)
                     self._ctl_out.send_string("stop", zmq.NOBLOCK)
-                except zmq.Again:
-                    pass
                 self._receiver.join(2.0)
             self._ctl_out.close(linger=0)
             self._pub_sock.close()

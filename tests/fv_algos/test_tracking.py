@@ -1,6 +1,7 @@
 """Tracking on arrays of detections with known identities (no images: fast and exact)."""
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -357,7 +358,7 @@ def test_perception_resumed_on_a_skin_sheared_by_most_of_a_pitch_tracks_it_as_th
     and 6 markers of 256 went a pitch off or invalid, resumed at any of frames 62 to 74 of the press-shear-slide
     scene (the slide: markers up to 18.6 to 19.0 px from rest, pitch 21.5 px). A tracker respawned there, or
     a replay of a recording begun there, tracked them so."""
-    frames = [frame.image for frame, _ in zip(SimSensor(load_scene(SCENES / "press_shear_slide.yaml")), range(64))]
+    frames = [frame.image for frame in itertools.islice(SimSensor(load_scene(SCENES / "press_shear_slide.yaml")), 64)]
     throughout = Perception(PerceptionParams.preset("default"))
     throughout.reset(frames[1])
     tracked = [throughout.step(image)[0] for image in frames[2:]]
