@@ -977,7 +977,7 @@ def test_a_recording_started_mid_session_replays_against_the_live_reference(bus:
     frame. replay.yaml took the bag's first frame, a pressed skin, as the reference, and 103 of 106 states
     differed from the live ones (slip for the whole shear); it now plays the recorded reference to the
     tracker, which tracks the bag against it as live. Resumed on a frame of the slide, the tracker took the
-    shear as the markers' velocity and put 6 of 256 a pitch off or invalid for 13 frames (P 0.24 against 0.17
+    shear as the markers' velocity and put 4 of 256 a pitch off for 12 frames, 2 invalid for 13 (P 0.24 against 0.17
     live at one state, in 3 of 9 runs three at once)."""
     bag = tmp_path / "mid"
     with TopicReader(["/slip"], bus) as reader:
