@@ -259,8 +259,8 @@ class Node:
         with self._cond:
             first = sub.topic not in self._subs
             self._subs.setdefault(sub.topic, []).append(sub)
-        if (first or gone) and self._receiver is not None and self._receiver.is_alive():
-            self._ctl_out.send_string("sub " + sub.topic)
+        if first or gone:
+            self._tell_receiver("sub " + sub.topic)
         return sub
 
     def _prefixes(self, topic: str) -> list[bytes]:
@@ -364,14 +364,22 @@ class Node:
         finally:
             if self._watcher is not None:
                 self._watcher.join(2.0)
-            if self._receiver is not None and self._receiver.is_alive():
-                with contextlib.suppress(zmq.Again):  # one not yet connected finds the node stopped (`_receive_loop`)
-                    self._ctl_out.send_string("stop", zmq.NOBLOCK)
+            if self._receiver is not None:
+                self._tell_receiver("stop")
                 self._receiver.join(2.0)
             self._ctl_out.close(linger=0)
             self._pub_sock.close()
 
     # -- receiving -----------------------------------------------------------------
+    def _tell_receiver(self, command: str) -> None:
+        """Send the receiving thread ``command`` ("sub TOPIC" or "stop") without waiting. A PAIR send waits for
+        its peer: for a thread that has not connected yet, with no limit, and for one that has returned, for good.
+        Neither needs it: once connected, the thread returns if the node is stopped and subscribes every topic
+        subscribed by then (`_receive_loop`)."""
+        if self._receiver is not None and self._receiver.is_alive():
+            with contextlib.suppress(zmq.Again):
+                self._ctl_out.send_string(command, zmq.NOBLOCK)
+
     def _receive_loop(self) -> None:
         sub = self.ctx.socket(zmq.SUB)
         sub.linger = LINGER_MS

@@ -256,6 +256,28 @@ def test_a_node_stops_before_its_receiver_has_connected(bus: Bus) -> None:
     assert not node._receiver.is_alive()
 
 
+def test_a_subscription_made_before_the_receiver_has_connected_does_not_wait_and_gets_its_messages(
+        bus: Bus) -> None:
+    """subscribe() after setup told the receiving thread on its control socket, and waited, with no limit, while
+    that thread had not connected it. It returns at once; the thread, once connected, subscribes the topic."""
+    node = LateReceiver("late_sub")
+    got: list[SlipState] = []
+    with spinning(node):
+        wait_for(lambda: node._receiver is not None and not node._starting, 10.0, "the node set up")
+        subscribed = threading.Event()
+        threading.Thread(target=lambda: (node.subscribe("/late", SlipState, got.append), subscribed.set()),
+                         daemon=True).start()
+        returned = subscribed.wait(5.0)
+        node.connect.set()
+        assert returned, "subscribe() waited for the receiver"
+        pub = PublisherSocket("sender")
+        assert pub.wait_connected(5.0)
+        wait_for(lambda: got, 10.0, "a message on /late reaching the callback", period_s=0.05,
+                 between=lambda: pub.publish("/late", SlipState(stamp_ns=7)))
+        pub.close()
+    assert got[0].stamp_ns == 7
+
+
 @pytest.mark.parametrize("text, kind", [("[1]", "a list"), ('"x"', "a string"), ("3", "a number")])
 def test_params_json_that_is_not_an_object_is_refused(bus_env: Bus, text: str, kind: str) -> None:
     """`--params-json '[1]'` gave a traceback (AttributeError: 'list' object has no attribute 'update')."""
