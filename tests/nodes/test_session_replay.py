@@ -173,9 +173,15 @@ def test_two_finger_session_with_a_reset_replays_as_live(bus, spawn, isd_data: P
 
 # The trackers of a live run are stalled (SIGSTOP, as a loaded machine stalls a process) while the camera sends
 # the frames of each STALLS range: each node keeps only its latest frame, so once going on, a tracker takes one
-# or two of them and drops the others (`_live_drops` of the recording says which; a run that dropped none of a
-# camera's is recorded again, LIVE_RUNS runs at most). The stalls drop frames inside grasps; where a next grasp's
-# reference overtakes a grasp's last field, test_slip_detector_node holds the slip detector to judging it.
+# or two of them and drops the others (`_live_drops` of the recording says which). A run that dropped none of a
+# camera's is recorded again, and so is one where a later stage lost a frame the tracker took (`_lost_after_tracking`),
+# STALLED_RUNS runs at most. On a loaded machine a tracker may take every frame of a stall once it goes on (one such
+# recording: every frame of the stalls 8 to 11 and 26 to 29 answered, none of 0 to 2 missed); beside a 2-process cross-validation, in 5 of 26 tests of a live camera no frame was
+# missed before the reference in 3 runs in a row, and 2 others failed on a run whose replay gave states the live run
+# lacked (34 for 32, 58 for 57: the replay plays only the frames the tracker took, so a later stage had lost them).
+# The stalls drop frames inside grasps; where a next grasp's reference overtakes a grasp's
+# last field, test_slip_detector_node holds the slip detector to judging it.
+STALLED_RUNS = 6
 STALLS = [range(8, 12), range(18, 22), range(26, 30), range(40, 44), range(48, 52), range(64, 68), range(71, 75)]
 CAMERA_PERIOD_S = 0.04  # 25 fps, the videos' own rate
 PASS_FRAMES = [*range(57), *range(20)]  # frame_index of each frame sent: the video, then its next pass begun
@@ -241,13 +247,13 @@ def _session_that_dropped_frames(bus: Bus, spawn, isd_data: Path, folder: Path, 
                                  live_camera: bool = False) -> dict:
     """The states of a live session recorded in ``folder``/session (`_record_stalls`, ``live_camera`` or not) of
     the pipeline under each of ``namespaces`` (`_pipeline_launch`), the cameras those of peanuts 8, as {slip
-    topic: its states}; again, on a new forwarder, while a camera's tracker dropped no frame (`_live_drops`),
-    LIVE_RUNS runs at most."""
+    topic: its states}; again, on a new forwarder, while a camera's tracker dropped no frame (`_live_drops`) or a later
+    stage lost one (`_lost_after_tracking`), STALLED_RUNS runs at most."""
     prefixes = [f"/{ns}" if ns else "" for ns in namespaces]
     videos = {f"{p}/camera/image": isd_data / GRASP / f"camera_{2 * k}.avi" for k, p in enumerate(prefixes)}
     slips = {f"{p}/camera/image": f"{p}/slip" for p in prefixes}
     nodes = [f"{ns}_{n}" if ns else n for ns in namespaces for n in ("tracker", "interpolator", "slip_detector")]
-    for run in range(LIVE_RUNS):
+    for run in range(STALLED_RUNS):
         if run:
             shutil.rmtree(folder / "session")
             bus.stop_forwarder()  # no latched message of the run before is left on the bus
@@ -256,9 +262,24 @@ def _session_that_dropped_frames(bus: Bus, spawn, isd_data: Path, folder: Path, 
         _record_stalls(spawn, folder / "session", videos, nodes, list(slips.values()), live_camera)
         stop_process(launch, timeout_s=30.0)
         drops = _live_drops(folder / "session", slips, live_camera)
-        if set(drops) == set(videos):
+        lost = _lost_after_tracking(folder / "session", list(slips.values()))
+        if set(drops) == set(videos) and not lost:
             return {t: [m for _, m, _ in read_bag(folder / "session", topics=[t])] for t in slips.values()}
-    raise AssertionError(f"in each of {LIVE_RUNS} live runs a tracker dropped no frame; the last, {drops}")
+    raise AssertionError(f"in none of {STALLED_RUNS} live runs did every tracker drop a frame and no later stage lose "
+                         f"one; the last, dropped {drops}, lost {lost}")
+
+
+def _lost_after_tracking(bag: Path, slips: list[str]) -> dict[str, int]:
+    """Per slip topic of ``slips`` in ``bag``, the frames its tracker answered (on /markers of its namespace), up to
+    the topic's last state, that have no state: lost by a later stage (the interpolator or the slip detector fell
+    behind), which no replay of the frames the tracker took gives back."""
+    lost = {}
+    for topic in slips:
+        states = {m.stamp_ns for _, m, _ in read_bag(bag, topics=[topic])}
+        tracked = {m.stamp_ns for _, m, _ in read_bag(bag, topics=[topic.replace("/slip", "/markers")])}
+        if missing := len({s for s in tracked if s <= max(states, default=0)} - states):
+            lost[topic] = missing
+    return lost
 
 
 def _replay_as_recorded(spawn, bag: Path, launch: str, recorded: dict[str, list], as_recorded_by: bool) -> dict:
