@@ -16,9 +16,12 @@ import pytest
 from msgs import DisplacementField, MarkerArray, SlipState
 from nodes.bus import PublisherSocket, TopicReader
 from nodes.cli import build_parser
+from nodes.process_stop import stop_process
 from nodes.shipped_models import model_path, shipped_models
 from tests.conftest import dots_image, write_raw_mini
 from tests.nodes.conftest import EVERY_FRAME_FPS, REPO, poll_until, wait_status
+
+LAUNCH_RUNS = 3  # live launches of a video, again while one drops a frame (`_launched_running_p_slip`)
 
 
 def _field(stamp_ns: int, value: float, grid: int = 30) -> DisplacementField:
@@ -375,13 +378,21 @@ def _offline_running_p_slip(video: Path, name: str, start: int) -> list[float]:
 
 def _launched_running_p_slip(spawn, n: int, *launch_args: str) -> list[SlipState]:
     """The first `n` SlipStates of `fv launch launch/video.yaml ARGS...` at EVERY_FRAME_FPS, without standby
-    spares (their imports at start, beside the nodes', could make a loaded 2-core machine drop a frame)."""
-    with TopicReader(["/slip"]) as reader:
-        spawn("launch", str(REPO / "launch" / "video.yaml"), *launch_args, f"fps:={EVERY_FRAME_FPS}",
-              "standby:=false")
-        states = [reader.recv(60.0 if k == 0 else 10.0) for k in range(n)]
-    assert all(s is not None for s in states), f"{sum(s is not None for s in states)} of {n} decisions"
-    return [s.msg for s in states]
+    spares (their imports at start, beside the nodes', could make a loaded 2-core machine drop a frame). A run
+    whose pipeline dropped a frame gives fewer, and every later P(slip) of the grasp differs: it is launched
+    again, LAUNCH_RUNS runs at most. Beside the `fv eval` tests under `pytest -n 2`, 6 of 7 runs dropped frames
+    (8 and 1 of 52 where counted)."""
+    for _ in range(LAUNCH_RUNS):
+        states: list[SlipState] = []
+        with TopicReader(["/slip"]) as reader:
+            launch = spawn("launch", str(REPO / "launch" / "video.yaml"), *launch_args, f"fps:={EVERY_FRAME_FPS}",
+                           "standby:=false")
+            while len(states) < n and (item := reader.recv(60.0 if not states else 10.0)) is not None:
+                states.append(item.msg)
+        stop_process(launch, timeout_s=30.0)
+        if len(states) == n:
+            return states
+    raise AssertionError(f"{len(states)} of {n} decisions, in each of {LAUNCH_RUNS} runs too few")
 
 
 def test_video_launch_with_the_trial_model_judges_the_grasp_as_offline(bus_env, spawn, isd_data: Path) -> None:
@@ -419,8 +430,8 @@ def test_raw_gelsight_mini_frames_cropped_in_the_camera_are_judged_as_the_record
 def test_both_fingers_voted_on_slip_give_the_trial_score_of_fv_eval(bus_env, spawn, isd_data: Path) -> None:
     """launch/video_pair.yaml replays both cameras of a grasp through two finger pipelines and slip_fusion:
     each finger's /left/slip, /right/slip is that camera's running P(slip), and /slip at the end is the
-    trial network on both cameras, what `fv eval --trials` reports of the trial. The bag of peanuts 8's
-    cameras disagree (P 0.52 and 0.82 at the end)."""
+    trial network on both cameras, what `fv eval --trials` reports of the trial (the bag of peanuts 8: P 0.97 and
+    1.00 at the end, their vote 0.988; the mean of the two P would be 0.980)."""
     import torch
     from fv_algos.camera_vote import camera_vote
     from fv_algos.contact_motion import contact_series
