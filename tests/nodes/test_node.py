@@ -15,16 +15,17 @@ import zmq
 
 import msgs
 from msgs import DisplacementField, Image, MarkerArray, SlipState
-from nodes.bus import SUB_HWM, PublisherSocket, TopicReader, envelope
+from nodes.bus import PublisherSocket, TopicReader, envelope
 from nodes.forwarder import FWD_HWM
 from nodes.node import Node
 from tests.nodes.conftest import Bus, run_fv, spinning, wait_for, wait_status
 
 N_MALFORMED = 3_000
-# Malformed messages sent before waiting for the node to count them: fewer than the high-water
-# marks between the forwarder and a node hold, so however long a loaded machine stalls the node,
-# none is dropped in transit and every one must be counted.
-MALFORMED_ROUND = (FWD_HWM + SUB_HWM) * 3 // 4
+# Malformed messages sent before waiting for the node to count them: fewer than the forwarder's queue to a
+# subscriber holds alone, so however long a loaded machine stalls the forwarder's sending or the node, none is
+# dropped in transit and every one must be counted. Rounds of 3/4 of that queue and the node's together (300 of
+# FWD_HWM + SUB_HWM) lost 72 of the last round in a CI run: such a round fits only while the node's side drains.
+MALFORMED_ROUND = FWD_HWM * 3 // 4
 
 
 def _rate_hz(reader: TopicReader, duration_s: float) -> float:
@@ -90,14 +91,25 @@ def _malformed_messages(rng: random.Random, count: int) -> list[list[bytes]]:
     return out[-count:]
 
 
+def _await_subscription(pub: zmq.Socket, first_frame: bytes, timeout_s: float = 10.0) -> None:
+    """Wait until the XPUB socket ``pub`` has a subscription that a message whose first frame is ``first_frame``
+    matches: a message sent before is dropped unseen (0.3 s was waited, which a loaded machine can overrun)."""
+    deadline = time.monotonic() + timeout_s
+    while pub.poll(max(0, int((deadline - time.monotonic()) * 1000))):
+        subscription = pub.recv()
+        if subscription[:1] == b"\x01" and first_frame.startswith(subscription[1:]):
+            return
+    raise AssertionError(f"no subscription matching {first_frame!r} reached the publisher within {timeout_s} s")
+
+
 def test_malformed_messages_are_counted_and_never_crash(bus: Bus, spawn) -> None:
     node = spawn("node", "listener", "--name", "victim", "-p", "topic=/fuzz", "-p", f"depth={N_MALFORMED * 2}")
     wait_status("victim")
-    raw = zmq.Context.instance().socket(zmq.PUB)
+    raw = zmq.Context.instance().socket(zmq.XPUB)  # a publisher that also hears the subscriptions reaching it
     raw.linger = 1000
     raw.sndhwm = N_MALFORMED * 2
     raw.connect(bus.address.pub)
-    time.sleep(0.3)  # the node's subscription reaches the forwarder and this publisher
+    _await_subscription(raw, envelope("/fuzz", "fuzzer", False))
     messages = _malformed_messages(random.Random(7), N_MALFORMED)
     for start in range(0, N_MALFORMED, MALFORMED_ROUND):
         for frames in messages[start:start + MALFORMED_ROUND]:
