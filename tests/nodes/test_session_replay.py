@@ -171,16 +171,16 @@ def test_two_finger_session_with_a_reset_replays_as_live(bus, spawn, isd_data: P
 
 
 
-# The trackers of a live run are stalled (SIGSTOP, as a loaded machine stalls a process) while the camera sends
-# the frames of each STALLS range: each node keeps only its latest frame, so once going on, a tracker takes one
-# or two of them and drops the others (`_live_drops` of the recording says which). A run that dropped none of a
-# camera's is recorded again, and so is one where a later stage lost a frame the tracker took (`_lost_after_tracking`),
+# The trackers of a live run are stalled (SIGSTOP, as a loaded machine stalls a process) while the camera sends the
+# frames of each STALLS range: each node keeps only its latest frame, so once going on, a tracker takes one or two of
+# them and drops the others (`_live_drops` of the recording says which). A run that dropped none of a camera's is
+# recorded again, and so is one where a later stage lost a frame the tracker took (`_lost_after_tracking`),
 # STALLED_RUNS runs at most. On a loaded machine a tracker may take every frame of a stall once it goes on (one such
-# recording: every frame of the stalls 8 to 11 and 26 to 29 answered, none of 0 to 2 missed); beside a 2-process cross-validation, in 5 of 26 tests of a live camera no frame was
-# missed before the reference in 3 runs in a row, and 2 others failed on a run whose replay gave states the live run
-# lacked (34 for 32, 58 for 57: the replay plays only the frames the tracker took, so a later stage had lost them).
-# The stalls drop frames inside grasps; where a next grasp's reference overtakes a grasp's
-# last field, test_slip_detector_node holds the slip detector to judging it.
+# recording: every frame of the stalls 8 to 11 and 26 to 29 answered, none of 0 to 2 missed); beside a 2-process
+# cross-validation, in 5 of 26 tests of a live camera no frame was missed before the reference in 3 runs in a row, and
+# 2 others failed on a run whose replay gave states the live run lacked (34 for 32, 58 for 57: the replay plays only
+# the frames the tracker took, so a later stage had lost them). The stalls drop frames inside grasps; where a next
+# grasp's reference overtakes a grasp's last field, test_slip_detector_node holds the slip detector to judging it.
 STALLED_RUNS = 6
 STALLS = [range(8, 12), range(18, 22), range(26, 30), range(40, 44), range(48, 52), range(64, 68), range(71, 75)]
 CAMERA_PERIOD_S = 0.04  # 25 fps, the videos' own rate
