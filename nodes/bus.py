@@ -107,6 +107,19 @@ def new_context() -> zmq.Context:
     return zmq.Context.instance()
 
 
+def subscriber_socket(ctx: zmq.Context, address: BusAddress, rcvhwm: int = SUB_HWM) -> zmq.Socket:
+    """A SUB socket connected to the bus's subscribers' side, queueing up to `rcvhwm` messages. Its send queue
+    holds only its subscriptions and has no limit: ZeroMQ drops a subscription that finds a send queue full, and
+    the topic's messages then never come (the forwarder's queue to a publisher lost some of 1,600 topics
+    subscribed at once: `nodes.forwarder`)."""
+    sock = ctx.socket(zmq.SUB)
+    sock.linger = LINGER_MS
+    sock.rcvhwm = rcvhwm
+    sock.sndhwm = 0
+    connect_client(sock, address, address.sub)
+    return sock
+
+
 def connect_client(sock: zmq.Socket, address: BusAddress, endpoint: str) -> None:
     """Configure `sock` for the bus (CURVE and heartbeats on TCP) and connect it to
     `endpoint`. ZeroMQ reconnects by itself after the forwarder restarts; the heartbeat
@@ -376,10 +389,7 @@ class TopicReader:
     def __init__(self, topics: list[str], address: BusAddress | None = None, ctx: zmq.Context | None = None,
                  hwm: int = SUB_HWM) -> None:
         self.address = address or bus_address()
-        self._sock = (ctx or new_context()).socket(zmq.SUB)
-        self._sock.linger = LINGER_MS
-        self._sock.rcvhwm = hwm
-        connect_client(self._sock, self.address, self.address.sub)
+        self._sock = subscriber_socket(ctx or new_context(), self.address, hwm)
         for topic in topics:
             for prefix in subscription_prefixes(topic if topic == ALL_TOPICS else validate_topic(topic)):
                 self._sock.setsockopt(zmq.SUBSCRIBE, prefix)

@@ -96,6 +96,7 @@ class Forwarder:
         xpub.setsockopt(zmq.XPUB_VERBOSER, 1)
         xpub.sndhwm = FWD_HWM
         xsub.rcvhwm = FWD_HWM
+        xsub.sndhwm = 0  # subscriptions only: one that finds the queue full is dropped (`bus.subscriber_socket`)
         for sock, endpoint in ((xsub, address.pub), (xpub, address.sub), (ctl, address.ctl)):
             sock.linger = LINGER_MS
             if secure:

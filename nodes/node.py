@@ -48,8 +48,8 @@ import zmq
 
 import msgs
 from msgs import Message, MessageError, NodeStatus, Unanswered
-from nodes.bus import (ALL_TOPICS, GONE, LINGER_MS, SUB_HWM, PublisherSocket, SeqTracker, connect_client,
-                       new_context, absolute_namespace, parse_envelope, resolve_topic, subscription_prefixes)
+from nodes.bus import (ALL_TOPICS, GONE, PublisherSocket, SeqTracker, absolute_namespace, new_context,
+                       parse_envelope, resolve_topic, subscriber_socket, subscription_prefixes)
 from nodes.endpoints import BusAddress, bus_address
 from nodes.exit_codes import NodeFailed, Stopped, on_stop_signals
 from nodes.param_service import ParamService, is_param_topic
@@ -216,8 +216,9 @@ class Node:
         self._failure: str | None = None  # the error fail() stopped the node with
         self._starting = True  # spin() has not yet run setup to its end: a stop signal raises (`_on_stop_signal`)
         self._ctl_addr = f"inproc://fv-node-{next(_CONTROL_IDS)}"
-        self._ctl_out = self.ctx.socket(zmq.PAIR)
+        self._ctl_out = self.ctx.socket(zmq.PAIR)  # used under _ctl_lock: a ZeroMQ socket is not thread-safe
         self._ctl_out.bind(self._ctl_addr)
+        self._ctl_lock = threading.Lock()
         self._started = time.monotonic()
         self._status_pub = self.publisher(STATUS_TOPIC, NodeStatus, latched=True)
         self._unanswered_pub: Publisher | None = None  # made by the first subscription with answered_by
@@ -367,7 +368,8 @@ class Node:
             if self._receiver is not None:
                 self._tell_receiver("stop")
                 self._receiver.join(2.0)
-            self._ctl_out.close(linger=0)
+            with self._ctl_lock:
+                self._ctl_out.close(linger=0)
             self._pub_sock.close()
 
     # -- receiving -----------------------------------------------------------------
@@ -375,16 +377,16 @@ class Node:
         """Send the receiving thread ``command`` ("sub TOPIC" or "stop") without waiting. A PAIR send waits for
         its peer: for a thread that has not connected yet, with no limit, and for one that has returned, for good.
         Neither needs it: once connected, the thread returns if the node is stopped and subscribes every topic
-        subscribed by then (`_receive_loop`)."""
-        if self._receiver is not None and self._receiver.is_alive():
-            with contextlib.suppress(zmq.Again):
-                self._ctl_out.send_string(command, zmq.NOBLOCK)
+        subscribed by then (`_receive_loop`). Under `_ctl_lock`: `subscribe` may be called from any thread (a
+        callback, a thread of the node's own) while another subscribes or `close` runs; a command after `close` is
+        dropped."""
+        with self._ctl_lock:
+            if self._receiver is not None and self._receiver.is_alive() and not self._ctl_out.closed:
+                with contextlib.suppress(zmq.Again):
+                    self._ctl_out.send_string(command, zmq.NOBLOCK)
 
     def _receive_loop(self) -> None:
-        sub = self.ctx.socket(zmq.SUB)
-        sub.linger = LINGER_MS
-        sub.rcvhwm = SUB_HWM
-        connect_client(sub, self.address, self.address.sub)
+        sub = subscriber_socket(self.ctx, self.address)
         ctl = self.ctx.socket(zmq.PAIR)
         ctl.connect(self._ctl_addr)
         try:
