@@ -217,6 +217,7 @@ class Node:
         self._starting = True  # spin() has not yet run setup to its end: a stop signal raises (`_on_stop_signal`)
         self._ctl_addr = f"inproc://fv-node-{next(_CONTROL_IDS)}"
         self._ctl_out = self.ctx.socket(zmq.PAIR)  # used under _ctl_lock: a ZeroMQ socket is not thread-safe
+        self._ctl_out.sndhwm = 0  # no limit: a command that found the queue full would be dropped (`_tell_receiver`)
         self._ctl_out.bind(self._ctl_addr)
         self._ctl_lock = threading.Lock()
         self._started = time.monotonic()
