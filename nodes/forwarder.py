@@ -30,7 +30,7 @@ from zmq.utils.monitor import recv_monitor_message
 
 from nodes.bus import LATCHED, LINGER_MS, connect_client, new_context
 from nodes.endpoints import BUS_ENV, BusAddress, bus_address, secure_server
-from nodes.exit_codes import OK, on_stop_signals
+from nodes.exit_codes import CONFIG, OK, on_stop_signals
 from nodes.latched_cache import LatchedCache
 from nodes.parent_death import parent_env
 from nodes.process_stop import stop_process
@@ -46,6 +46,21 @@ class ForwarderRunning(RuntimeError):
     """Another forwarder already serves this bus."""
 
 
+def lock_path(address: BusAddress) -> Path:
+    """The file an IPC bus's forwarder holds locked while it runs, its pid written in it."""
+    return Path(address.url[len("ipc://"):] + ".lock")
+
+
+def lock_holder(address: BusAddress) -> int | None:
+    """The pid written in the lock file of `address` (an IPC bus) by the forwarder that holds it; None when
+    the file is absent or holds no pid (one written by a forwarder before pids were written in it)."""
+    try:
+        text = lock_path(address).read_text().strip()
+    except OSError:
+        return None
+    return int(text) if text.isdigit() else None
+
+
 class Forwarder:
     """Bind the bus endpoints (IPC, plus TCP+CURVE when `tcp_url` is given)."""
 
@@ -56,11 +71,17 @@ class Forwarder:
         self._lock_file = None
         if self.address.ipc_dir is not None:
             self.address.ipc_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
-            self._lock_file = open(self.address.url[len("ipc://"):] + ".lock", "w")
+            self._lock_file = open(lock_path(self.address), "a+")  # not emptied before it is locked: its pid
             try:
                 fcntl.flock(self._lock_file, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
-                raise ForwarderRunning(f"a forwarder already serves {self.address.url}") from None
+                self._lock_file.close()
+                holder = lock_holder(self.address)
+                raise ForwarderRunning(f"a forwarder{'' if holder is None else f' (pid {holder})'} already serves "
+                                       f"{self.address.url}") from None
+            self._lock_file.truncate(0)
+            self._lock_file.write(f"{os.getpid()}\n")
+            self._lock_file.flush()
         self.auth: ThreadAuthenticator | None = None
         self.authorized: Path | None = None  # the client keys' folder of a TCP bus
         self._authorized_seen: list[tuple[str, int]] | None = None  # its key files (name, mtime) when last loaded
@@ -199,6 +220,7 @@ class Forwarder:
             if self.sides:  # its IPC side was bound (the first)
                 for path in self.address.ipc_files:
                     path.unlink(missing_ok=True)
+                self._lock_file.truncate(0)  # its pid: no other forwarder's, read while that one writes its own
             self._lock_file.close()
 
 
@@ -264,16 +286,37 @@ class ForwarderStart:
 
     def answered(self) -> bool:
         """True once the forwarder answers a ping (of up to 0.2 s; at once while nothing listens on its socket
-        file), False while it may still. RuntimeError when it exited at its start (its code said), or when
-        `timeout_s` passed without an answer: then it is stopped (`stop`)."""
-        if ping(self.address, 0.2) is not None:
-            return True
+        file), False while it may still. ForwarderRunning when another forwarder answers (its pid is not this
+        process's: it took the bus as this one started, e.g. another launch's), this one then stopped; it was
+        taken for this one, which had exited. RuntimeError when this one exited at its start (its code said, and
+        for a bus held by a forwarder that does not answer, which), or when `timeout_s` passed without an answer:
+        then it is stopped (`stop`)."""
+        info = ping(self.address, 0.2)
+        if info is None and self.proc.poll() is not None and self.proc.returncode == CONFIG:
+            info = ping(self.address)  # the bus was taken: by a forwarder still starting, or one that is stuck
+        if info is not None:
+            if info.get("pid") == self.proc.pid:
+                return True
+            self.stop()
+            raise ForwarderRunning(f"another forwarder (pid {info.get('pid')}) serves {self.address.url}")
         if self.proc.poll() is not None:
-            raise RuntimeError(f"forwarder for {self.address.url} exited with code {self.proc.returncode} at start")
+            raise RuntimeError(f"forwarder for {self.address.url} exited with code {self.proc.returncode} at start"
+                               + self._why_refused())
         if time.monotonic() >= self._deadline:
             self.stop()
             raise RuntimeError(f"forwarder for {self.address.url} did not answer within {self.timeout_s} s")
         return False
+
+    def _why_refused(self) -> str:
+        """Why the process exited at its start, when it found the bus's lock held (`ForwarderRunning`, exit
+        CONFIG) by a forwarder that answers no ping: stopped (Ctrl-Z in its terminal) or hung. Every launch on
+        the bus failed, saying only "exited with code 2 at start"."""
+        if self.proc.returncode != CONFIG or self.address.ipc_dir is None:
+            return ""
+        holder = lock_holder(self.address)
+        who = "a forwarder" if holder is None else f"forwarder pid {holder}"
+        return (f": {who} holds the bus but does not answer (stopped, as by Ctrl-Z in its terminal, or hung); "
+                f"continue{'' if holder is None else f' (kill -CONT {holder})'} or end it, or use another FV_BUS")
 
     def stop(self) -> None:
         """Stop the process no longer waited for (SIGTERM, SIGKILL after 5 s) and reap it: it was left a
@@ -284,7 +327,7 @@ class ForwarderStart:
 def ensure_forwarder(address: BusAddress | None = None, timeout_s: float = START_TIMEOUT_S,
                      stop: threading.Event | None = None) -> subprocess.Popen | None:
     """Start a forwarder process unless one answers and wait for its answer (`ForwarderStart`, up to
-    `timeout_s`); returns it (the caller stops it) or None when one was already running. Once `stop` is set,
+    `timeout_s`); returns it (the caller stops it) or None when one was already running, or took the bus as this one started. Once `stop` is set,
     none is started and the one started is no longer waited for (it is stopped): RuntimeError, as when it
     cannot start. A launch stopped as it looked for a forwarder started one, waited for its answer, then
     stopped it: 0.5 to 0.7 s before its stop began. A forwarder that listens on the bus is waited for as long
@@ -298,10 +341,13 @@ def ensure_forwarder(address: BusAddress | None = None, timeout_s: float = START
     if stop.is_set():
         raise RuntimeError(f"stopped before a forwarder for {address.url} was started")
     start = ForwarderStart(address, timeout_s)
-    while not start.answered():
-        if stop.wait(0.05):
-            start.stop()
-            raise RuntimeError(f"stopped before the forwarder for {address.url} answered")
+    try:
+        while not start.answered():
+            if stop.wait(0.05):
+                start.stop()
+                raise RuntimeError(f"stopped before the forwarder for {address.url} answered")
+    except ForwarderRunning:  # another forwarder took the bus as this one started: it serves
+        return None
     return start.proc
 
 

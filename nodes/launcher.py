@@ -397,20 +397,31 @@ class Launch:
         if self._forwarder_retry_at is None or now < self._forwarder_retry_at or self._stop.is_set():
             return
         if ping(self._address) is not None:
-            self._forwarder_retry_at, self._bus_back_s = None, time.monotonic()
-            self.forwarder_restarts += 1
-            self.say(f"another forwarder now serves {self._address.url}; this launch does not supervise it")
+            self._another_forwarder_serves()
             return
         self._forwarder_start = ForwarderStart(self._address)
+
+    def _another_forwarder_serves(self) -> None:
+        """The bus is back, served by a forwarder this launch did not start: said, not supervised."""
+        self._forwarder_retry_at, self._bus_back_s = None, time.monotonic()
+        self.forwarder_restarts += 1
+        self.say(f"another forwarder now serves {self._address.url}; this launch does not supervise it")
 
     def _forwarder_answered(self) -> None:
         """Look once whether the forwarder being (re)started answers: then it is this launch's, said with its
         restart count. One that exited at its start, or did not answer within START_TIMEOUT_S (stopped), is said
-        and started again after FORWARDER_RETRY_S, unless the launch is stopping."""
+        and started again after FORWARDER_RETRY_S, unless the launch is stopping; when another forwarder took the
+        bus as it started, that one serves."""
+        from nodes.forwarder import ForwarderRunning
+
         start = self._forwarder_start
         try:
             if not start.answered():
                 return
+        except ForwarderRunning:
+            self._forwarder_start = None
+            self._another_forwarder_serves()
+            return
         except RuntimeError as exc:
             self._forwarder_start = None
             if not self._stop.is_set():  # the launch is stopping: no forwarder is wanted any more

@@ -20,7 +20,7 @@ import msgs
 from msgs import CameraInfo, NodeStatus, SlipState
 from nodes.bus import PublisherSocket, SeqTracker, TopicReader, envelope, parse_envelope
 from nodes.endpoints import BUS_ENV, CURVE_ENV, bus_address, make_keys, secure_server
-from nodes.forwarder import Forwarder, ForwarderStart, ensure_forwarder, ping
+from nodes.forwarder import Forwarder, ForwarderRunning, ForwarderStart, ensure_forwarder, ping
 from tests.nodes.conftest import REPO, Bus, poll_until, run_fv, wait_for
 
 
@@ -239,6 +239,36 @@ def test_a_started_forwarder_that_never_answers_is_looked_at_then_stopped_and_re
     with pytest.raises(RuntimeError, match=f"forwarder for {bus_env.address.url} did not answer within 1.0 s"):
         poll_until(start.answered, 30.0)
     assert start.proc.returncode == -signal.SIGTERM, "the forwarder was left running or unreaped"
+
+
+def test_a_forwarder_that_took_the_bus_as_another_started_is_not_taken_for_it(bus: Bus) -> None:
+    """A forwarder started while another takes the bus (two launches at once) exits at its start, the bus's lock
+    held; the other's answer was taken for its own (`answered` True, the launch supervising a process that had
+    exited). The answer's pid tells them apart: ForwarderRunning naming the serving forwarder, which
+    `ensure_forwarder` takes as the bus's (None), the one started stopped."""
+    start = ForwarderStart(bus.address)
+    with pytest.raises(ForwarderRunning, match=f"another forwarder \\(pid {os.getpid()}\\) serves {bus.address.url}"):
+        poll_until(start.answered, 30.0)
+    assert start.proc.returncode is not None, "the forwarder started was left running or unreaped"
+
+
+def test_a_bus_held_by_a_stopped_forwarder_is_said_with_its_pid(bus_env: Bus, spawn) -> None:
+    """A forwarder stopped in its terminal (Ctrl-Z) holds the bus and answers nothing: every launch started a
+    forwarder of its own, which exited at its start, and said only "exited with code 2 at start". The lock file
+    holds the pid of its forwarder, which `ensure_forwarder` names, saying why."""
+    held = spawn("forwarder")
+    wait_for(lambda: ping(bus_env.address, 0.2) is not None, 10.0, "the forwarder's start")
+    held.send_signal(signal.SIGSTOP)
+    try:
+        with pytest.raises(RuntimeError) as refused:
+            ensure_forwarder(bus_env.address)
+    finally:
+        held.send_signal(signal.SIGCONT)
+    assert str(refused.value) == (
+        f"forwarder for {bus_env.address.url} exited with code 2 at start: forwarder pid {held.pid} holds the bus but "
+        f"does not answer (stopped, as by Ctrl-Z in its terminal, or hung); continue (kill -CONT {held.pid}) or end "
+        "it, or use another FV_BUS")
+    assert ping(bus_env.address, 2.0)["pid"] == held.pid
 
 
 def test_a_launch_waits_for_a_slow_answer_from_a_serving_forwarder(bus: Bus, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -25,7 +25,7 @@ from msgs import CameraInfo, Image, SlipState
 from nodes.bus import PublisherSocket, TopicReader, envelope
 from nodes.camera_sources import FolderSource, SourceError, VideoFileSource
 from nodes.exit_codes import CONFIG
-from nodes.forwarder import ping
+from nodes.forwarder import ForwarderStart, ping
 from nodes.launcher import SILENT_AFTER_S, Launch
 from nodes.node import Node
 from nodes.proc_stats import process_alive
@@ -297,12 +297,14 @@ def test_forwarder_stops_cleanly_on_sigterm_and_sighup(bus_env: Bus, spawn, sig:
 
 
 def test_a_second_forwarder_on_a_served_bus_exits_with_the_configuration_code(bus_env: Bus, spawn) -> None:
-    """It exited 1, the code of an unexpected failure; a second launch of the same nodes on one bus exits 2."""
-    spawn("forwarder")
+    """It exited 1, the code of an unexpected failure; a second launch of the same nodes on one bus exits 2. It
+    names the serving forwarder's pid, which the bus's lock file holds."""
+    first = spawn("forwarder")
     wait_for(lambda: ping(bus_env.address) is not None, 10.0, "forwarder start")
     second = spawn("forwarder", stderr=subprocess.PIPE, text=True)
     assert second.wait(10) == CONFIG
-    assert second.stderr.read().strip() == f"fv forwarder: error: a forwarder already serves {bus_env.address.url}"
+    assert second.stderr.read().strip() == (f"fv forwarder: error: a forwarder (pid {first.pid}) already serves "
+                                            f"{bus_env.address.url}")
 
 
 def test_forwarder_killed_and_restarted(bus_env: Bus, spawn) -> None:
@@ -554,6 +556,22 @@ def test_a_launch_takes_over_when_the_forwarder_it_shared_is_gone(bus: Bus, tmp_
     print(f"listener receiving again {recovered_s:.2f} s after the shared forwarder stopped")
     assert ping(bus.address) is None, "the launch's forwarder outlived it"
 
+
+
+def test_a_launch_whose_forwarder_restart_meets_another_forwarder_leaves_that_one_serving(bus: Bus) -> None:
+    """A launch restarting its forwarder while another forwarder takes the bus (a second launch's) took that one's
+    answer for its restart's, and supervised a process that had exited: "restarted forwarder ... pid N", then
+    "forwarder pid N exited with code 2; restarting it". Now the other is said to serve, and not supervised."""
+    out = io.StringIO()
+    run = Launch([], out)
+    run._address = bus.address
+    run._forwarder_start = ForwarderStart(bus.address)  # the test's forwarder serves the bus already
+    started = run._forwarder_start.proc
+    wait_for(lambda: run._forwarder_answered() or run._forwarder_start is None, 30.0, "the restart's answer")
+    assert run._forwarder is None and run._forwarder_retry_at is None and run.forwarder_restarts == 1
+    assert out.getvalue() == (f"[launch] another forwarder now serves {bus.address.url}; this launch does not "
+                              "supervise it\n")
+    assert started.returncode is not None, "the forwarder the restart started was left running or unreaped"
 
 class Poked(Node):
     """Subscribes to /poke (SlipState)."""
