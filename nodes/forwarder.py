@@ -33,6 +33,7 @@ from nodes.endpoints import BUS_ENV, BusAddress, bus_address, secure_server
 from nodes.exit_codes import CONFIG, OK, on_stop_signals
 from nodes.latched_cache import LatchedCache
 from nodes.parent_death import parent_env
+from nodes.proc_stats import process_state
 from nodes.process_stop import stop_process
 
 log = logging.getLogger("fv.forwarder")
@@ -54,11 +55,30 @@ def lock_path(address: BusAddress) -> Path:
 def lock_holder(address: BusAddress) -> int | None:
     """The pid written in the lock file of `address` (an IPC bus) by the forwarder that holds it; None when
     the file is absent or holds no pid (one written by a forwarder before pids were written in it)."""
+    if address.ipc_dir is None:
+        return None
     try:
         text = lock_path(address).read_text().strip()
     except OSError:
         return None
     return int(text) if text.isdigit() else None
+
+
+def silent_forwarder(address: BusAddress) -> str:
+    """For a bus whose forwarder did not answer a ping: the forwarder process that holds it, and what to do,
+    (`forwarder pid 4242 holds the bus but does not answer (stopped, ...)`); "" when the bus's lock file names
+    no live forwarder process (none runs, or one killed by SIGKILL left its pid there). A forwarder stopped by
+    Ctrl-Z in its terminal, or hung, held the bus, and launches and tools said only that none answered."""
+    pid = lock_holder(address)
+    try:
+        if pid is None or b"forwarder" not in Path(f"/proc/{pid}/cmdline").read_bytes():
+            return ""
+    except OSError:
+        return ""
+    if process_state(pid) == "T":
+        return (f"forwarder pid {pid} holds the bus but is stopped (as by Ctrl-Z in its terminal): continue it "
+                f"(kill -CONT {pid}) or end it, or use another FV_BUS")
+    return f"forwarder pid {pid} holds the bus but does not answer (hung?): end it, or use another FV_BUS"
 
 
 class Forwarder:
@@ -300,23 +320,13 @@ class ForwarderStart:
             self.stop()
             raise ForwarderRunning(f"another forwarder (pid {info.get('pid')}) serves {self.address.url}")
         if self.proc.poll() is not None:
+            holder = silent_forwarder(self.address) if self.proc.returncode == CONFIG else ""
             raise RuntimeError(f"forwarder for {self.address.url} exited with code {self.proc.returncode} at start"
-                               + self._why_refused())
+                               + (f": {holder}" if holder else ""))
         if time.monotonic() >= self._deadline:
             self.stop()
             raise RuntimeError(f"forwarder for {self.address.url} did not answer within {self.timeout_s} s")
         return False
-
-    def _why_refused(self) -> str:
-        """Why the process exited at its start, when it found the bus's lock held (`ForwarderRunning`, exit
-        CONFIG) by a forwarder that answers no ping: stopped (Ctrl-Z in its terminal) or hung. Every launch on
-        the bus failed, saying only "exited with code 2 at start"."""
-        if self.proc.returncode != CONFIG or self.address.ipc_dir is None:
-            return ""
-        holder = lock_holder(self.address)
-        who = "a forwarder" if holder is None else f"forwarder pid {holder}"
-        return (f": {who} holds the bus but does not answer (stopped, as by Ctrl-Z in its terminal, or hung); "
-                f"continue{'' if holder is None else f' (kill -CONT {holder})'} or end it, or use another FV_BUS")
 
     def stop(self) -> None:
         """Stop the process no longer waited for (SIGTERM, SIGKILL after 5 s) and reap it: it was left a

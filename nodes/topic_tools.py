@@ -37,12 +37,13 @@ def require_forwarder(wait_s: float = DISCOVERY_S, address: BusAddress | None = 
     max(``wait_s``, ANSWER_WAIT_S) s: a tool would otherwise wait for messages for good, or report an empty
     list or a rate of 0 Hz as a finding (`fv topic`, `fv node list`, `fv param`, `fv bag record / play`)."""
     from nodes.endpoints import bus_address
-    from nodes.forwarder import ANSWER_WAIT_S, ping
+    from nodes.forwarder import ANSWER_WAIT_S, ping, silent_forwarder
 
     address = address or bus_address()
     if ping(address, max(wait_s, ANSWER_WAIT_S)) is None:
-        raise RuntimeError(f"no forwarder answers on {address.url}: no `fv launch` or `fv forwarder` runs on this bus "
-                           "(FV_BUS)")
+        why = (silent_forwarder(address)
+               or "no `fv launch` or `fv forwarder` runs on this bus (FV_BUS)")
+        raise RuntimeError(f"no forwarder answers on {address.url}: {why}")
 
 
 def discover(wait_s: float = DISCOVERY_S) -> dict[str, Any]:

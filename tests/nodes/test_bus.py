@@ -20,7 +20,8 @@ import msgs
 from msgs import CameraInfo, NodeStatus, SlipState
 from nodes.bus import PublisherSocket, SeqTracker, TopicReader, envelope, parse_envelope
 from nodes.endpoints import BUS_ENV, CURVE_ENV, bus_address, make_keys, secure_server
-from nodes.forwarder import Forwarder, ForwarderRunning, ForwarderStart, ensure_forwarder, ping
+from nodes.forwarder import (Forwarder, ForwarderRunning, ForwarderStart, ensure_forwarder, lock_path, ping,
+                             silent_forwarder)
 from tests.nodes.conftest import REPO, Bus, poll_until, run_fv, wait_for
 
 
@@ -254,21 +255,44 @@ def test_a_forwarder_that_took_the_bus_as_another_started_is_not_taken_for_it(bu
 
 def test_a_bus_held_by_a_stopped_forwarder_is_said_with_its_pid(bus_env: Bus, spawn) -> None:
     """A forwarder stopped in its terminal (Ctrl-Z) holds the bus and answers nothing: every launch started a
-    forwarder of its own, which exited at its start, and said only "exited with code 2 at start". The lock file
-    holds the pid of its forwarder, which `ensure_forwarder` names, saying why."""
+    forwarder of its own, which exited at its start, and said only "exited with code 2 at start"; the topic tools
+    said that no forwarder runs. The lock file holds the pid of its forwarder, which both name, saying what to do."""
     held = spawn("forwarder")
     wait_for(lambda: ping(bus_env.address, 0.2) is not None, 10.0, "the forwarder's start")
     held.send_signal(signal.SIGSTOP)
+    why = (f"forwarder pid {held.pid} holds the bus but is stopped (as by Ctrl-Z in its terminal): continue it "
+           f"(kill -CONT {held.pid}) or end it, or use another FV_BUS")
     try:
         with pytest.raises(RuntimeError) as refused:
             ensure_forwarder(bus_env.address)
+        listed = run_fv("topic", "list")
     finally:
         held.send_signal(signal.SIGCONT)
-    assert str(refused.value) == (
-        f"forwarder for {bus_env.address.url} exited with code 2 at start: forwarder pid {held.pid} holds the bus but "
-        f"does not answer (stopped, as by Ctrl-Z in its terminal, or hung); continue (kill -CONT {held.pid}) or end "
-        "it, or use another FV_BUS")
+    assert str(refused.value) == f"forwarder for {bus_env.address.url} exited with code 2 at start: {why}"
+    assert listed.returncode != 0
+    assert listed.stderr == f"fv topic: error: no forwarder answers on {bus_env.address.url}: {why}\n"
     assert ping(bus_env.address, 2.0)["pid"] == held.pid
+
+
+def test_a_bus_lock_naming_a_live_forwarder_or_none_is_told_apart(bus_env: Bus, tmp_path: Path) -> None:
+    """`silent_forwarder` names the process the bus's lock file names only while it is a live forwarder: not once
+    it is gone (a forwarder killed by SIGKILL leaves its pid there), nor another process given its pid since."""
+    hung = subprocess.Popen(["bash", "-c", "exec -a 'fv forwarder' sleep 60"])
+    other = subprocess.Popen(["sleep", "60"])
+    try:
+        lock_path(bus_env.address).write_text(f"{hung.pid}\n")
+        assert silent_forwarder(bus_env.address) == (f"forwarder pid {hung.pid} holds the bus but does not answer "
+                                                     "(hung?): end it, or use another FV_BUS")
+        lock_path(bus_env.address).write_text(f"{other.pid}\n")
+        assert silent_forwarder(bus_env.address) == ""
+        hung.kill()
+        hung.wait(5.0)
+        lock_path(bus_env.address).write_text(f"{hung.pid}\n")
+        assert silent_forwarder(bus_env.address) == ""
+    finally:
+        for proc in (hung, other):
+            proc.kill()
+            proc.wait(5.0)
 
 
 def test_a_launch_waits_for_a_slow_answer_from_a_serving_forwarder(bus: Bus, monkeypatch: pytest.MonkeyPatch) -> None:
