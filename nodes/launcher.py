@@ -137,6 +137,7 @@ class Launch:
         self._forwarder_retry_at: float | None = None  # when to (re)try starting the forwarder; None = not needed
         self._forwarder_start: ForwarderStart | None = None  # a forwarder (re)started, not answering yet
         self._forwarder_check_at = 0.0  # next ping of a shared forwarder
+        self._silent_forwarder = ""  # why the bus's forwarder runs but does not answer ("" while it answers)
         self._bus_back_s = 0.0  # when a (re)started forwarder last answered (monotonic s): nodes were silent before
         self._address = None
         self._status_pub = None
@@ -378,7 +379,7 @@ class Launch:
         process is not waited for (`_forwarder_answered` looks on each pass): a restart that waited for its
         answer held the supervise loop up to START_TIMEOUT_S (30 s), the nodes that died meanwhile not respawned
         and the launch's status not sent."""
-        from nodes.forwarder import ForwarderStart, ping
+        from nodes.forwarder import ForwarderStart, ping, silent_forwarder
 
         if self._forwarder_start is not None:
             self._forwarder_answered()
@@ -388,10 +389,17 @@ class Launch:
             self.say(f"forwarder pid {dead.pid} exited with code {dead.returncode}; restarting it")
             self._forwarder = None
             self._forwarder_retry_at = now
-        elif (self._forwarder is None and self._forwarder_retry_at is None and not self._address.is_tcp
-              and now >= self._forwarder_check_at):
+        elif self._forwarder is not None:
+            stopped = process_state(self._forwarder.pid) in ("T", "t")
+            self._forwarder_silent(f"forwarder pid {self._forwarder.pid} is stopped (SIGSTOP?)" if stopped else "")
+        elif (self._forwarder_retry_at is None and not self._address.is_tcp and now >= self._forwarder_check_at):
             self._forwarder_check_at = now + FORWARDER_CHECK_S
-            if ping(self._address, 0.5) is None:  # a busy forwarder answers in well under 0.5 s
+            if ping(self._address, 0.5) is not None:  # a busy forwarder answers in well under 0.5 s
+                self._forwarder_silent("")
+            elif holder := silent_forwarder(self._address):  # one of ours could not take the bus from it
+                self._forwarder_silent(holder)
+            else:
+                self._forwarder_silent("")
                 self.say(f"the forwarder this launch shared on {self._address.url} is gone; starting one")
                 self._forwarder_retry_at = now
         if self._forwarder_retry_at is None or now < self._forwarder_retry_at or self._stop.is_set():
@@ -400,6 +408,17 @@ class Launch:
             self._another_forwarder_serves()
             return
         self._forwarder_start = ForwarderStart(self._address)
+
+    def _forwarder_silent(self, why: str) -> None:
+        """Note whether the bus's forwarder runs but answers nothing (`why`, said once; "" when it answers, said
+        when it did not): stopped by Ctrl-Z or SIGSTOP, or hung. Meanwhile the nodes' silence is the bus's, not
+        theirs (`_check_nodes`), and no forwarder is started: it could not take the bus."""
+        if why and not self._silent_forwarder:
+            self.say(f"the bus's forwarder does not answer: {why}; the nodes cannot talk until it does")
+        elif not why and self._silent_forwarder:
+            self._bus_back_s = time.monotonic()
+            self.say(f"the bus's forwarder answers again on {self._address.url}")
+        self._silent_forwarder = why
 
     def _another_forwarder_serves(self) -> None:
         """The bus is back, served by a forwarder this launch did not start: said, not supervised."""
@@ -449,12 +468,13 @@ class Launch:
 
     def _check_nodes(self, now: float) -> list[tuple[str, str]]:
         """(state, message) per node in trouble: its process stopped or its NodeStatus
-        missing for SILENT_AFTER_S (error; said once when it starts; not while the forwarder is restarted, nor
+        missing for SILENT_AFTER_S (error; said once when it starts; not while the forwarder is restarted or silent, nor
         counted from before it answered: the silence is the bus's, and every node was said hung), it cannot
         start (error), it waits for what it needs (exit TEMPFAIL), waits to respawn or exited with an error
         code (warn)."""
         faults = []
-        bus_down = self._forwarder_start is not None or self._forwarder_retry_at is not None
+        bus_down = (self._forwarder_start is not None or self._forwarder_retry_at is not None
+                    or bool(self._silent_forwarder))
         for child in self.children:
             name, kind, fault, state = child.spec.name, "", "", "warn"
             running = child.proc is not None

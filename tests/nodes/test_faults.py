@@ -376,6 +376,38 @@ def test_launcher_restarts_the_forwarder_it_started(bus_env: Bus, tmp_path: Path
     assert ping(bus_env.address) is None, "the restarted forwarder outlived the launch"
 
 
+@pytest.mark.parametrize("whose", ["its own", "shared"])
+def test_a_launch_whose_forwarder_is_stopped_says_so_and_blames_no_node(bus_env: Bus, tmp_path: Path, spawn,
+                                                                       whose: str) -> None:
+    """A forwarder stopped by Ctrl-Z or SIGSTOP answers nothing: a launch said every node "sent no /status for 3 s
+    (hung?)" (its own forwarder), or that its shared forwarder was gone, and started one every 4 s that could not
+    take the bus. Now it names the forwarder, once, blames no node, starts none, and says when the bus is back."""
+    shared = spawn("forwarder") if whose == "shared" else None
+    if shared is not None:
+        wait_for(lambda: ping(bus_env.address, 0.2) is not None, 10.0, "the shared forwarder's start")
+    run, out = launch(tmp_path, "nodes:\n  - {kind: talker, params: {rate_hz: 20}}\n  - {kind: listener}\n")
+    run.start()
+    try:
+        before = wait_status("listener", lambda st: st.counters.get("received", 0) > 0, 10.0)
+        pid = run._forwarder.pid if shared is None else shared.pid
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            wait_for(lambda: "the bus's forwarder does not answer" in out.getvalue(), 10.0, "the stop said")
+            time.sleep(SILENT_AFTER_S + 1.5)
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        wait_for(lambda: "the bus's forwarder answers again" in out.getvalue(), 10.0, "the bus back, said")
+        wait_status("listener", lambda st: st.counters["received"] > before.counters["received"] + 5, 10.0)
+    finally:
+        run.stop()
+    said = [line for line in out.getvalue().splitlines() if "forwarder" in line or "/status" in line]
+    stopped = (f"forwarder pid {pid} is stopped (SIGSTOP?)" if shared is None else
+               f"forwarder pid {pid} holds the bus but is stopped (as by Ctrl-Z in its terminal): continue it "
+               f"(kill -CONT {pid}) or end it, or use another FV_BUS")
+    assert said[-2:] == [f"[launch] the bus's forwarder does not answer: {stopped}; the nodes cannot talk until it does",
+                         f"[launch] the bus's forwarder answers again on {bus_env.address.url}"], said
+
+
 @pytest.mark.parametrize("then", ["answers", "stop"])
 def test_the_launcher_respawns_a_node_while_its_forwarder_restarts(bus_env: Bus, tmp_path: Path,
                                                                    monkeypatch: pytest.MonkeyPatch, then: str) -> None:
