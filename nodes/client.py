@@ -55,7 +55,7 @@ from msgs import (CameraInfo, ContactSummary, DisplacementField, GraspStart, Ima
 from msgs.wire import check_message
 from nodes.bus import PublisherSocket, TopicReader, absolute_namespace, resolve_topic, validate_topic
 from nodes.endpoints import BusAddress
-from nodes.forwarder import ping
+from nodes.forwarder import ping, silent_forwarder
 from nodes.param_service import ANSWER_TIMEOUT_S, read_params, set_params
 
 log = logging.getLogger("fv.client")
@@ -80,24 +80,29 @@ def expected_type(topic: str) -> type[Message]:
 
 class SilenceError(TimeoutError):
     """No message on `topic` for `timeout_s` s. Its text says whether the forwarder at `address` answered
-    when the silence was raised (when it did not, the launch that served the bus is gone): a thread asks it
-    then (`ping`: up to `nodes.forwarder.ANSWER_WAIT_S`, 2 s), so the raise a gripper acts on is never held back; reading
-    the text, or `bus_answers`, waits for that answer. `answers` gives it instead (a copy, an unpickled one)."""
+    when the silence was raised (when it did not, the launch that served the bus is gone, or its forwarder is
+    stopped or hung, which it names: `nodes.forwarder.silent_forwarder`): a thread asks it then (`ping`: up to
+    `nodes.forwarder.ANSWER_WAIT_S`, 2 s), so the raise a gripper acts on is never held back; reading the text, or
+    `bus_answers`, waits for that answer. `answers` and `silent` give it instead (a copy, an unpickled one)."""
 
-    def __init__(self, topic: str, timeout_s: float, address: BusAddress, answers: bool | None = None) -> None:
+    def __init__(self, topic: str, timeout_s: float, address: BusAddress, answers: bool | None = None,
+                 silent: str = "") -> None:
         super().__init__(f"no message on {topic} within {timeout_s} s")
         self.topic = topic
         self.timeout_s = timeout_s
         self.address = address
         self._answers = answers
+        self._silent = silent  # the forwarder that holds the bus but did not answer ("" when none)
         self._asking: threading.Thread | None = None
         if answers is None:
             self._asking = threading.Thread(target=self._ask, name=f"fv-silence{topic}", daemon=True)
             self._asking.start()
 
     def _ask(self) -> None:
-        """Ping the forwarder (the thread started at the raise)."""
+        """Ping the forwarder (the thread started at the raise); name it when it runs but does not answer."""
         self._answers = ping(self.address) is not None
+        if not self._answers:
+            self._silent = silent_forwarder(self.address)
 
     @property
     def bus_answers(self) -> bool:
@@ -109,15 +114,15 @@ class SilenceError(TimeoutError):
     def __str__(self) -> str:
         url = self.address.url
         why = (f"the forwarder at {url} still answers" if self.bus_answers
-               else f"no forwarder answers on {url}: the launch is gone or not started")
+               else f"no forwarder answers on {url}: {self._silent or 'the launch is gone or not started'}")
         return f"{self.args[0]} ({why})"
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({str(self)!r})"
 
-    def __reduce__(self) -> tuple[type[SilenceError], tuple[str, float, BusAddress, bool]]:
+    def __reduce__(self) -> tuple[type[SilenceError], tuple[str, float, BusAddress, bool, str]]:
         """Copied and pickled with its answer (the exception's args are its text alone)."""
-        return type(self), (self.topic, self.timeout_s, self.address, self.bus_answers)
+        return type(self), (self.topic, self.timeout_s, self.address, self.bus_answers, self._silent)
 
 
 def check_timeout(timeout_s: float | None) -> None:

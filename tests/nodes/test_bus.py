@@ -256,7 +256,10 @@ def test_a_forwarder_that_took_the_bus_as_another_started_is_not_taken_for_it(bu
 def test_a_bus_held_by_a_stopped_forwarder_is_said_with_its_pid(bus_env: Bus, spawn) -> None:
     """A forwarder stopped in its terminal (Ctrl-Z) holds the bus and answers nothing: every launch started a
     forwarder of its own, which exited at its start, and said only "exited with code 2 at start"; the topic tools
-    said that no forwarder runs. The lock file holds the pid of its forwarder, which both name, saying what to do."""
+    and a robot's SilenceError said that no forwarder runs. The lock file holds the pid of its forwarder, which all
+    three name, saying what to do (a pickled SilenceError too)."""
+    from nodes.client import SilenceError, wait_for_message
+
     held = spawn("forwarder")
     wait_for(lambda: ping(bus_env.address, 0.2) is not None, 10.0, "the forwarder's start")
     held.send_signal(signal.SIGSTOP)
@@ -266,8 +269,13 @@ def test_a_bus_held_by_a_stopped_forwarder_is_said_with_its_pid(bus_env: Bus, sp
         with pytest.raises(RuntimeError) as refused:
             ensure_forwarder(bus_env.address)
         listed = run_fv("topic", "list")
+        with pytest.raises(SilenceError) as silence:
+            wait_for_message("/slip", timeout_s=0.1, address=bus_env.address)
+        silent = str(silence.value)
     finally:
         held.send_signal(signal.SIGCONT)
+    assert silent == f"no message on /slip within 0.1 s (no forwarder answers on {bus_env.address.url}: {why})"
+    assert str(pickle.loads(pickle.dumps(silence.value))) == silent
     assert str(refused.value) == f"forwarder for {bus_env.address.url} exited with code 2 at start: {why}"
     assert listed.returncode != 0
     assert listed.stderr == f"fv topic: error: no forwarder answers on {bus_env.address.url}: {why}\n"
