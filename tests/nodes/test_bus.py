@@ -256,8 +256,8 @@ def test_a_forwarder_that_took_the_bus_as_another_started_is_not_taken_for_it(bu
 def test_a_bus_held_by_a_stopped_forwarder_is_said_with_its_pid(bus_env: Bus, spawn) -> None:
     """A forwarder stopped in its terminal (Ctrl-Z) holds the bus and answers nothing: every launch started a
     forwarder of its own, which exited at its start, and said only "exited with code 2 at start"; the topic tools
-    and a robot's SilenceError said that no forwarder runs. The lock file holds the pid of its forwarder, which all
-    three name, saying what to do (a pickled SilenceError too)."""
+    and a robot's SilenceError said that no forwarder runs, and a node started then to start one. The lock file
+    holds the pid of its forwarder, which all four name, saying what to do (a pickled SilenceError too)."""
     from nodes.client import SilenceError, wait_for_message
 
     held = spawn("forwarder")
@@ -272,8 +272,12 @@ def test_a_bus_held_by_a_stopped_forwarder_is_said_with_its_pid(bus_env: Bus, sp
         with pytest.raises(SilenceError) as silence:
             wait_for_message("/slip", timeout_s=0.1, address=bus_env.address)
         silent = str(silence.value)
+        node = spawn("node", "talker", stderr=subprocess.PIPE, text=True)
+        warned = node.stderr.readline()  # after the node's CONNECT_WAIT_S
+        node.kill()
     finally:
         held.send_signal(signal.SIGCONT)
+    assert warned == f"[talker] WARNING: no forwarder answers on {bus_env.address.url}; {why} (waiting for it)\n"
     assert silent == f"no message on /slip within 0.1 s (no forwarder answers on {bus_env.address.url}: {why})"
     assert str(pickle.loads(pickle.dumps(silence.value))) == silent
     assert str(refused.value) == f"forwarder for {bus_env.address.url} exited with code 2 at start: {why}"
