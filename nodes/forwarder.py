@@ -65,10 +65,11 @@ def lock_holder(address: BusAddress) -> int | None:
 
 
 def silent_forwarder(address: BusAddress) -> str:
-    """For a bus whose forwarder did not answer a ping: the forwarder process that holds it, and what to do,
-    (`forwarder pid 4242 holds the bus but does not answer (stopped, ...)`); "" when the bus's lock file names
-    no live forwarder process (none runs, or one killed by SIGKILL left its pid there). A forwarder stopped by
-    Ctrl-Z in its terminal, or hung, held the bus, and launches and tools said only that none answered."""
+    """For a bus whose forwarder did not answer a ping: the forwarder process that holds it and what to do
+    (`forwarder pid 4242 holds the bus but is stopped (as by Ctrl-Z in its terminal): continue it ...`, or `...
+    does not answer (hung?) ...`); "" when the bus's lock file names no live forwarder process (none runs, or one
+    killed by SIGKILL left its pid there). A forwarder stopped by Ctrl-Z in its terminal, or hung, held the bus,
+    and launches and tools said only that none answered."""
     pid = lock_holder(address)
     try:
         if pid is None or b"forwarder" not in Path(f"/proc/{pid}/cmdline").read_bytes():
@@ -337,9 +338,9 @@ class ForwarderStart:
 def ensure_forwarder(address: BusAddress | None = None, timeout_s: float = START_TIMEOUT_S,
                      stop: threading.Event | None = None) -> subprocess.Popen | None:
     """Start a forwarder process unless one answers and wait for its answer (`ForwarderStart`, up to
-    `timeout_s`); returns it (the caller stops it) or None when one was already running, or took the bus as this one started. Once `stop` is set,
-    none is started and the one started is no longer waited for (it is stopped): RuntimeError, as when it
-    cannot start. A launch stopped as it looked for a forwarder started one, waited for its answer, then
+    `timeout_s`); returns it (the caller stops it) or None when one was already running, or took the bus as
+    this one started. Once `stop` is set, none is started and the one started is no longer waited for (it is
+    stopped): RuntimeError, as when it cannot start. A launch stopped as it looked for a forwarder started one, waited for its answer, then
     stopped it: 0.5 to 0.7 s before its stop began. A forwarder that listens on the bus is waited for as long
     as `ping` waits (a killed one's socket file is told at once): a quick look of 0.3 s missed a serving one
     on a loaded host, and the forwarder started then could not take the bus's lock ("exited with code 2 at

@@ -468,8 +468,8 @@ class Launch:
 
     def _check_nodes(self, now: float) -> list[tuple[str, str]]:
         """(state, message) per node in trouble: its process stopped or its NodeStatus
-        missing for SILENT_AFTER_S (error; said once when it starts; not while the forwarder is restarted or silent, nor
-        counted from before it answered: the silence is the bus's, and every node was said hung), it cannot
+        missing for SILENT_AFTER_S (error; said once when it starts; not while the forwarder is restarted or
+        silent, nor counted from before it answered: the silence is the bus's, and every node was said hung), it cannot
         start (error), it waits for what it needs (exit TEMPFAIL), waits to respawn or exited with an error
         code (warn)."""
         faults = []

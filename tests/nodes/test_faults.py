@@ -404,8 +404,9 @@ def test_a_launch_whose_forwarder_is_stopped_says_so_and_blames_no_node(bus_env:
     stopped = (f"forwarder pid {pid} is stopped (SIGSTOP?)" if shared is None else
                f"forwarder pid {pid} holds the bus but is stopped (as by Ctrl-Z in its terminal): continue it "
                f"(kill -CONT {pid}) or end it, or use another FV_BUS")
-    assert said[-2:] == [f"[launch] the bus's forwarder does not answer: {stopped}; the nodes cannot talk until it does",
-                         f"[launch] the bus's forwarder answers again on {bus_env.address.url}"], said
+    assert said[-2:] == [
+        f"[launch] the bus's forwarder does not answer: {stopped}; the nodes cannot talk until it does",
+        f"[launch] the bus's forwarder answers again on {bus_env.address.url}"], said
 
 
 @pytest.mark.parametrize("then", ["answers", "stop"])
