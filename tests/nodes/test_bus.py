@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import os
 import pickle
+import shutil
 import signal
 import socket
 import subprocess
@@ -289,7 +290,7 @@ def test_a_bus_held_by_a_stopped_forwarder_is_said_with_its_pid(bus_env: Bus, sp
 def test_a_bus_lock_naming_a_live_forwarder_or_none_is_told_apart(bus_env: Bus, tmp_path: Path) -> None:
     """`silent_forwarder` names the process the bus's lock file names only while it is a live forwarder: not once
     it is gone (a forwarder killed by SIGKILL leaves its pid there), nor another process given its pid since."""
-    hung = subprocess.Popen(["bash", "-c", "exec -a 'fv forwarder' sleep 60"])
+    hung = subprocess.Popen(["fv forwarder", "60"], executable=shutil.which("sleep"))  # named as one, from its exec
     other = subprocess.Popen(["sleep", "60"])
     try:
         lock_path(bus_env.address).write_text(f"{hung.pid}\n")
