@@ -257,7 +257,7 @@ def test_a_forwarder_that_took_the_bus_as_another_started_is_not_taken_for_it(bu
 def test_a_bus_held_by_a_stopped_forwarder_is_said_with_its_pid(bus_env: Bus, spawn) -> None:
     """A forwarder stopped in its terminal (Ctrl-Z) holds the bus and answers nothing: every launch started a
     forwarder of its own, which exited at its start, and said only "exited with code 2 at start"; the topic tools
-    and a robot's SilenceError said that no forwarder runs, and a node started then to start one. The lock file
+    and a robot's SilenceError said that no forwarder runs, and a node started then told to start one. The lock file
     holds the pid of its forwarder, which all four name, saying what to do (a pickled SilenceError too)."""
     from nodes.client import SilenceError, wait_for_message
 
@@ -287,7 +287,7 @@ def test_a_bus_held_by_a_stopped_forwarder_is_said_with_its_pid(bus_env: Bus, sp
     assert ping(bus_env.address, 2.0)["pid"] == held.pid
 
 
-def test_a_bus_lock_naming_a_live_forwarder_or_none_is_told_apart(bus_env: Bus, tmp_path: Path) -> None:
+def test_a_bus_lock_naming_a_live_forwarder_or_none_is_told_apart(bus_env: Bus) -> None:
     """`silent_forwarder` names the process the bus's lock file names only while it is a live forwarder: not once
     it is gone (a forwarder killed by SIGKILL leaves its pid there), nor another process given its pid since."""
     hung = subprocess.Popen(["fv forwarder", "60"], executable=shutil.which("sleep"))  # named as one, from its exec

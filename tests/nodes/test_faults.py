@@ -590,7 +590,6 @@ def test_a_launch_takes_over_when_the_forwarder_it_shared_is_gone(bus: Bus, tmp_
     assert ping(bus.address) is None, "the launch's forwarder outlived it"
 
 
-
 def test_a_launch_whose_forwarder_restart_meets_another_forwarder_leaves_that_one_serving(bus: Bus) -> None:
     """A launch restarting its forwarder while another forwarder takes the bus (a second launch's) took that one's
     answer for its restart's, and supervised a process that had exited: "restarted forwarder ... pid N", then
@@ -605,6 +604,7 @@ def test_a_launch_whose_forwarder_restart_meets_another_forwarder_leaves_that_on
     assert out.getvalue() == (f"[launch] another forwarder now serves {bus.address.url}; this launch does not "
                               "supervise it\n")
     assert started.returncode is not None, "the forwarder the restart started was left running or unreaped"
+
 
 class Poked(Node):
     """Subscribes to /poke (SlipState)."""
