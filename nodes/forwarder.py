@@ -313,7 +313,7 @@ class ForwarderStart:
         for a bus held by a forwarder that does not answer, which), or when `timeout_s` passed without an answer:
         then it is stopped (`stop`)."""
         info = ping(self.address, 0.2)
-        if info is None and self.proc.poll() is not None and self.proc.returncode == CONFIG:
+        if info is None and self.proc.poll() == CONFIG:
             info = ping(self.address)  # the bus was taken: by a forwarder still starting, or one that is stuck
         if info is not None:
             if info.get("pid") == self.proc.pid:

@@ -52,7 +52,6 @@ from nodes.bus import (ALL_TOPICS, GONE, PublisherSocket, SeqTracker, absolute_n
                        parse_envelope, resolve_topic, subscriber_socket, subscription_prefixes)
 from nodes.endpoints import BusAddress, bus_address
 from nodes.exit_codes import NodeFailed, Stopped, on_stop_signals
-from nodes.forwarder import silent_forwarder
 from nodes.param_service import ParamService, is_param_topic
 from nodes.params import build_params
 
@@ -335,6 +334,8 @@ class Node:
             self._receiver.start()
             started_s = time.monotonic()
             if not self._pub_sock.wait_connected(self.CONNECT_WAIT_S):
+                from nodes.forwarder import silent_forwarder  # only then: a node's start does without the module
+
                 self._no_forwarder_since_s = started_s
                 self.log.warning("no forwarder answers on %s; %s (waiting for it)", self.address.url,
                                  silent_forwarder(self.address) or "start one with `fv forwarder` or `fv launch`")

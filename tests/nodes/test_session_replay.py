@@ -262,22 +262,24 @@ def _session_that_dropped_frames(bus: Bus, spawn, isd_data: Path, folder: Path, 
         _record_stalls(spawn, folder / "session", videos, nodes, list(slips.values()), live_camera)
         stop_process(launch, timeout_s=30.0)
         drops = _live_drops(folder / "session", slips, live_camera)
-        lost = _lost_after_tracking(folder / "session", list(slips.values()))
+        states = {t: [m for _, m, _ in read_bag(folder / "session", topics=[t])] for t in slips.values()}
+        lost = _lost_after_tracking(folder / "session", states)
         if set(drops) == set(videos) and not lost:
-            return {t: [m for _, m, _ in read_bag(folder / "session", topics=[t])] for t in slips.values()}
+            return states
     raise AssertionError(f"in none of {STALLED_RUNS} live runs did every tracker drop a frame and no later stage lose "
                          f"one; the last, dropped {drops}, lost {lost}")
 
 
-def _lost_after_tracking(bag: Path, slips: list[str]) -> dict[str, int]:
-    """Per slip topic of ``slips`` in ``bag``, the frames its tracker answered (on /markers of its namespace), up to
-    the topic's last state, that have no state: lost by a later stage (the interpolator or the slip detector fell
-    behind), which no replay of the frames the tracker took gives back."""
+def _lost_after_tracking(bag: Path, states: dict[str, list]) -> dict[str, int]:
+    """Per slip topic of ``states`` ({slip topic: its states recorded in ``bag``}), the frames its tracker answered
+    (on /markers of its namespace in ``bag``), up to the topic's last state, that have no state: lost by a later
+    stage (the interpolator or the slip detector fell behind), which no replay of the frames the tracker took gives
+    back."""
     lost = {}
-    for topic in slips:
-        states = {m.stamp_ns for _, m, _ in read_bag(bag, topics=[topic])}
+    for topic, recorded in states.items():
+        stamps = {m.stamp_ns for m in recorded}
         tracked = {m.stamp_ns for _, m, _ in read_bag(bag, topics=[topic.replace("/slip", "/markers")])}
-        if missing := len({s for s in tracked if s <= max(states, default=0)} - states):
+        if missing := len({s for s in tracked if s <= max(stamps, default=0)} - stamps):
             lost[topic] = missing
     return lost
 
