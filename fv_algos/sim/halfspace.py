@@ -176,8 +176,9 @@ class HalfSpace:
         self._spectra = _kernel_spectra(grid.n_cells, float(grid.cell_mm), material.youngs_modulus_mpa, material.poisson_ratio)
         self._shape = (2 * grid.n_cells, 2 * grid.n_cells)
         sxx, syy, sxy = (self._spectra[k].real for k in ("xx", "yy", "xy"))
-        # Largest eigenvalue of the 2x2 tangential symbol: a bound on the tangential operator norm.
-        self.tangential_norm_mm_per_mpa = float(np.max(0.5 * (sxx + syy) + np.sqrt(0.25 * (sxx - syy) ** 2 + sxy**2)))
+        # Largest eigenvalue of the 2x2 tangential symbol: a bound on the tangential operator norm
+        # (hypot: the squares overflowed for moduli near the smallest float).
+        self.tangential_norm_mm_per_mpa = float(np.max(0.5 * (sxx + syy) + np.hypot(0.5 * (sxx - syy), sxy)))
 
     def _forward(self, values: np.ndarray) -> np.ndarray:
         return sfft.rfft2(values, s=self._shape, workers=1)
