@@ -61,8 +61,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     mode.add_argument("--stream", type=positive_float, metavar="SECONDS",
                    help="judge a window --model frame by frame on SECONDS of the simulated camera's random grasps "
                         "(the main job's stream) against the simulator's truth; --fps, --seed set the camera")
-    p.add_argument("--fps", type=positive_float, default=30.0, help="with --stream: camera rate, Hz (default 30, "
-                   "the pipeline's)")
+    p.add_argument("--fps", type=positive_float, default=None, help=f"with --stream: camera rate, Hz (default "
+                   f"{STREAM_FPS:g}, the pipeline's; a video's rate is labels.csv's fps column, else its container's)")
     p.add_argument("--cache", type=Path, help="with --trials: folder to cache the fields in (default: none)")
     p.add_argument("--workers", type=positive_int, default=2,
                    help="with --trials: processes for the fields (default 2)")
@@ -81,6 +81,33 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--repeats", type=positive_int, default=50, help="timed calls per ms/window figure (default 50)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=_eval)
+    p.set_defaults(option_defaults={dest: p.get_default(dest) for dest in set().union(*_EVAL_READS.values())})
+
+
+STREAM_FPS = 30.0  # Hz: `fv eval --stream`'s camera rate by default, the pipeline's
+# The options each of fv eval's three evaluations reads, beside --json: one given to another is refused by name, as
+# it would be ignored (`--fps 50` with --trials judged a 50 fps camera's frames at its container's 25 fps).
+_EVAL_READS = {
+    "data": frozenset({"out", "models", "splits", "models_list", "hidden", "kernel", "window", "lr", "batch",
+                       "precision", "seed", "test_fraction", "threads", "device", "no_progress", "steps",
+                       "no_variants", "timing_threads", "repeats"}),
+    "trials": frozenset({"model", "cache", "workers", "crop", "size", "online", "alarm", "plot", "no_progress"}),
+    "stream": frozenset({"model", "fps", "seed"}),
+}
+
+
+def _refuse_unread(args: argparse.Namespace, mode: str) -> None:
+    """Refuse, naming each and the evaluations that read it, the options given to fv eval (other than their
+    defaults) that its ``mode`` evaluation ("data", "trials" or "stream") does not read."""
+    unread = sorted(dest for dest in set().union(*_EVAL_READS.values()) - _EVAL_READS[mode]
+                    if getattr(args, dest) != args.option_defaults[dest])
+    if not unread:
+        return
+    named = "; ".join(f"--{dest.replace('_', '-')} (read with "
+                      f"{' or '.join(f'--{m}' for m, reads in _EVAL_READS.items() if dest in reads)})" for dest in unread)
+    hint = (": a video's frame rate is the fps column of labels.csv, else its container's"
+            if mode == "trials" and "fps" in unread else "")
+    raise ValueError(f"fv eval --{mode} does not read {named}; given, it would be ignored{hint}")
 
 
 def _eval_stream(args: argparse.Namespace) -> int:
@@ -91,15 +118,16 @@ def _eval_stream(args: argparse.Namespace) -> int:
     if not args.model:
         raise ValueError("--stream needs --model (a shipped window model such as sim_cnn_lstm, or a checkpoint)")
     started = time.perf_counter()
-    scores = judge_stream(SlipClassifier(model_path(args.model), threads=1), args.stream, args.fps, args.seed)
-    report = {"model": args.model, "fps": args.fps, "seconds": args.stream, "seed": args.seed, **scores,
+    fps = STREAM_FPS if args.fps is None else args.fps
+    scores = judge_stream(SlipClassifier(model_path(args.model), threads=1), args.stream, fps, args.seed)
+    report = {"model": args.model, "fps": fps, "seconds": args.stream, "seed": args.seed, **scores,
               "wall_s": time.perf_counter() - started}
     if args.json:
         print(json.dumps(report, indent=2))
         return 0
     held, slipping = ("-" if scores[key] is None else f"{scores[key]:.3f}"
                       for key in ("held_called_slip", "slip_called_slip"))
-    print(f"{args.model} at {args.fps:g} fps, {report['frames_judged']} frames (seed {args.seed}): accuracy "
+    print(f"{args.model} at {fps:g} fps, {report['frames_judged']} frames (seed {args.seed}): accuracy "
           f"{report['accuracy']:.3f}, held frames called slip {held}, slipping frames called slip {slipping} "
           f"({report['wall_s']:.0f} s)")
     for action, row in report["phases"].items():
@@ -360,12 +388,7 @@ class _ModelStore:
 
 
 def _eval(args: argparse.Namespace) -> int:
-    if args.trials is None and (args.online or args.alarm or args.plot):
-        raise ValueError("--online, --alarm and --plot need --trials (a trial-level model judged frame by frame)")
-    if args.trials is None and (args.crop or args.size):
-        raise ValueError("--crop and --size need --trials (the frames of its videos are cut as they are read)")
-    if args.device != "cpu" and args.data is None:
-        raise ValueError("--device is the device --data's models are trained on (--trials and --stream judge on the cpu)")
+    _refuse_unread(args, "stream" if args.stream is not None else "trials" if args.trials is not None else "data")
     if args.stream is not None:
         return _eval_stream(args)
     if args.trials is not None:

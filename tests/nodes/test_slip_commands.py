@@ -140,7 +140,12 @@ def test_bad_input_gives_clear_errors(data: Path, tmp_path: Path, capsys: pytest
         assert main([*command, "--data", str(data), "--device", "gpu"]) == 2  # before any data is read
         assert "device 'gpu' is not a torch device" in capsys.readouterr().err
     assert main(["eval", "--stream", "0.2", "--device", "cpu:0" if torch.cuda.is_available() else "cuda"]) == 2
-    assert "--device is the device --data's models are trained on" in capsys.readouterr().err
+    assert "fv eval --stream does not read --device (read with --data)" in capsys.readouterr().err
+    # an option another evaluation reads was ignored: a 50 fps camera's --fps with --trials judged it at 25 fps
+    for option in (["--fps", "30"], ["--out", str(tmp_path / "report")]):
+        assert main(["eval", "--trials", str(tmp_path / "none"), "--model", "gelsight", *option]) == 2
+        assert f"fv eval --trials does not read {option[0]} (read with" in capsys.readouterr().err
+    assert not (tmp_path / "report").exists()
 
 
 def test_bench_slip_times_the_shipped_model(capsys: pytest.CaptureFixture) -> None:
