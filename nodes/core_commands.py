@@ -55,7 +55,10 @@ def parse_remaps(items: list[str]) -> dict[str, str]:
 
 
 def _node(args: argparse.Namespace) -> int:
-    from nodes.exit_codes import OK, interrupted_code
+    """`fv node KIND`: run one node until it stops; exit FAILED when it ended in its own error (a player's
+    damaged bag, a recorder's full disk: a launch whose required player failed exited 0, as if it had played
+    its bag), OK otherwise."""
+    from nodes.exit_codes import FAILED, OK, interrupted_code
     from nodes.params import parse_assignments
     from nodes.registry import NODES, node_class
     if args.kind == "kinds":
@@ -72,7 +75,7 @@ def _node(args: argparse.Namespace) -> int:
         if not args.standby or _wait_for_takeover(cls, params):
             node = cls(args.name or args.kind, params, namespace=args.ns, remap=parse_remaps(args.remap))
             node.spin()
-        code = OK
+        code = FAILED if node is not None and node.state == "error" else OK
     except KeyboardInterrupt as stop:  # stopped as it imported or set up (`Node.spin`), a spare as it preloaded
         code = interrupted_code(stop)
     _leave(node, code)

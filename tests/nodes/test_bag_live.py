@@ -43,7 +43,7 @@ from nodes.launch_file import load_launch
 from nodes.node import Node
 from nodes.params import ParamError
 from tests.nodes.conftest import hangup_as_from_a_terminal, poll_until, wait_for, wait_status
-from tests.nodes.test_bag import T0_NS, frames_of, sample_messages, write_bag
+from tests.nodes.test_bag import T0_NS, bag_chunks, frames_of, sample_messages, write_bag
 
 REPO = Path(__file__).resolve().parents[2]
 Spawn = Callable[..., subprocess.Popen]
@@ -923,8 +923,19 @@ def test_replay_launch_plays_the_camera_topics(bus: BusAddress, spawn: Spawn, tm
         got = [reader.recv(10.0) for _ in range(31)]
     assert [f.msg.seq for f in got if f.topic == "/camera/image"] == list(range(30))
     assert [(f.latched, f.msg.width) for f in got if f.topic == "/camera/info"] == [(True, 32)]
-    launch.wait(30)  # bag_play is required: the launch ends with it (the launcher then exits 1)
+    assert launch.wait(30) == 0  # bag_play is required: the launch ends with it, well when it played its bag
     assert "bag_play exited with code 0" in launch.stdout.read() + launch.stderr.read()
+    # a bag damaged past its start fails the player as it plays, and the launch (both exited 0, as if played)
+    write_bag(tmp_path / "d", messages, chunk_size_b=4_000)
+    file = BagReader(tmp_path / "d").files[0]
+    data = bytearray(file.read_bytes())
+    chunk = bag_chunks(file)[-1]
+    data[chunk.chunk_start_offset + chunk.chunk_length - 40] ^= 0xFF
+    file.write_bytes(bytes(data))
+    launch = spawn("launch", str(only_bag), f"bag:={tmp_path / 'd'}", "fast:=true")
+    assert launch.wait(30) == 1
+    out = launch.stdout.read() + launch.stderr.read()
+    assert "damaged data" in out and "bag_play exited with code 1" in out
 
 
 def test_bench_bag_reports_completeness_and_cpu(bus: BusAddress, spawn: Spawn) -> None:
