@@ -11,7 +11,10 @@ naming the file and what is wrong (a crashed recording: run `fv bag recover FILE
 from __future__ import annotations
 
 import json
+import mmap
 import struct
+import zlib
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
@@ -34,6 +37,17 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 # length field of garbage)
 READ_ERRORS = (McapError, CRCValidationError, ZstdError, struct.error, OSError, ValueError, RuntimeError, OverflowError,
                IndexError, EOFError)
+FOOTER = struct.Struct("<BQQQI")  # the footer record: opcode, length, summary start, summary offsets start, summary CRC
+_FOOTER_CRC_END = FOOTER.size - 4  # the footer's bytes the summary CRC covers, from its start
+
+
+def summary_crc_matches(data: mmap.mmap | bytes, footer_pos: int) -> bool:
+    """Whether the summary section of an MCAP file (`data`, its bytes), with its footer record at byte
+    `footer_pos`, gives the CRC its footer holds (True when the footer holds none: 0). Nothing else checks the
+    summary: zeros written into its chunk indexes were read as they were, and a replay of that file stopped
+    in a thread's KeyError."""
+    _opcode, _length, start, _offsets, crc = FOOTER.unpack_from(data, footer_pos)
+    return crc == 0 or zlib.crc32(data[start or footer_pos:footer_pos + _FOOTER_CRC_END]) == crc
 
 
 class BagError(ValueError):
@@ -152,6 +166,10 @@ class _File:
                                      f"a crashed recording? run `fv bag recover {path}`") from None
         if summary is None or summary.statistics is None:
             raise BagError(path, f"MCAP without summary; run `fv bag recover {path}` to index it")
+        with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
+            if not summary_crc_matches(data, self.size_b - len(MCAP_MAGIC) - FOOTER.size):
+                raise BagError(path, f"damaged summary (it does not match its CRC); run `fv bag recover {path}` to "
+                                     "index it again")
         self.summary: Summary = summary
         for channel in summary.channels.values():
             if channel.message_encoding != MESSAGE_ENCODING:
@@ -176,6 +194,18 @@ class _File:
                                               f"`fv bag recover {self.path}` keeps the readable part") from None
                 yield BagMessage(channel.topic, channel.metadata.get(META_NODE, ""),
                                  _latched(channel), rec.log_time, rec.publish_time, rec.sequence, rec.data)
+
+
+@contextmanager
+def _damaged_records(path: Path, kind: str) -> Iterator[None]:
+    """Read the `kind` records (attachments, metadata) of the file `path` within: one that cannot be read is a
+    BagError naming the file (it was the reader's own error, `'utf-8' codec can't decode byte ...`, naming none,
+    or a MemoryError for a length of garbage)."""
+    try:
+        yield
+    except (*READ_ERRORS, MemoryError) as exc:
+        raise BagError(path, f"cannot read its {kind} ({type(exc).__name__}: {str(exc) or 'a length past any file'}): "
+                             f"damaged? `fv bag recover {path}` keeps the readable part") from None
 
 
 def _latched(channel: Channel) -> bool:
@@ -265,7 +295,7 @@ class BagReader:
         """All attachments of every file (a split bag repeats the sticky ones per file)."""
         out = []
         for f in self._files:
-            with open(f.path, "rb") as stream:
+            with open(f.path, "rb") as stream, _damaged_records(f.path, "attachments"):
                 for att in f.reader(stream).iter_attachments():
                     out.append(Attachment(att.name, att.media_type, att.data, att.log_time, f.path))
         return out
@@ -274,7 +304,7 @@ class BagReader:
         """Metadata records by name (later files and records override earlier ones)."""
         out: dict[str, dict[str, str]] = {}
         for f in self._files:
-            with open(f.path, "rb") as stream:
+            with open(f.path, "rb") as stream, _damaged_records(f.path, "metadata"):
                 for rec in f.reader(stream).iter_metadata():
                     out.setdefault(rec.name, {}).update(rec.metadata)
         return out

@@ -24,7 +24,8 @@ from mcap.records import Attachment, Channel, Chunk, Footer, Message, Metadata, 
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import Writer
 
-from nodes.bag.reader import MCAP_MAGIC, READ_ERRORS, check_magic
+from fv_algos.atomic_file import write_atomically
+from nodes.bag.reader import MCAP_MAGIC, READ_ERRORS, check_magic, summary_crc_matches
 from nodes.bag.writer import open_mcap
 
 BROKEN_SUFFIX = ".broken"
@@ -159,10 +160,13 @@ def _readable_records(source: Path, report: RecoverReport) -> Iterator[tuple[obj
                 report.damaged.append((pos, resume))
                 if found is None:
                     return
-            record, contents, pos = found
+            record, contents, end = found
             if isinstance(record, Footer):
+                if not summary_crc_matches(data, pos):  # its records are copied whole, the summary built anew
+                    report.damaged.append((record.summary_start or pos, end))
                 report.complete = not report.damaged
                 return
+            pos = end
             yield record, contents
 
 
@@ -176,10 +180,20 @@ def _start(output: Path, compression: str, report: RecoverReport, early: list) -
 
 def recover(source: Path, output: Path) -> RecoverReport:
     """Copy every complete record of `source` into the new file `output` (chunks
-    compressed as the source's first chunk); returns what was kept and lost."""
+    compressed as the source's first chunk), whole or not at all: a recovery stopped part way (Ctrl-C)
+    left a valid, indexed file of the records copied so far, which looked like the whole recovery.
+    Returns what was kept and lost."""
     source, output = Path(source), Path(output)
     check_magic(source)
+    if output.exists():
+        raise ValueError(f"{output} already exists (not overwritten)")
     report = RecoverReport(str(source), str(output))
+    write_atomically(output, lambda tmp: _copy_records(source, tmp, report))
+    return report
+
+
+def _copy_records(source: Path, output: Path, report: RecoverReport) -> None:
+    """Copy every readable record of `source` into the new file `output`, counting them in `report`."""
     early: list = []  # attachments and metadata before the first chunk, which sets the compression
     stream = copier = None
     try:
@@ -194,13 +208,12 @@ def recover(source: Path, output: Path) -> RecoverReport:
                 copier.copy(item)
         if copier is None:
             stream, copier = _start(output, "zstd", report, early)
+        copier.writer.finish()
     finally:
-        if copier is not None:
-            copier.writer.finish()
+        if stream is not None:
             stream.close()
     report.lost_b = sum(b - a for a, b in report.damaged)
     report.unplaced_messages = copier.unplaced()
-    return report
 
 
 def recover_in_place(path: Path) -> RecoverReport:

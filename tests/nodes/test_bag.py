@@ -3,6 +3,8 @@ export, the errors for files that are not bags, and record / play's when no forw
 from __future__ import annotations
 
 import json
+import re
+import struct
 from dataclasses import replace
 from pathlib import Path
 
@@ -195,6 +197,35 @@ def test_recover_keeps_every_complete_chunk(bag: tuple[Path, list], tmp_path: Pa
     assert whole.complete and whole.messages == len(messages) and whole.lost_b == 0
 
 
+def test_a_recovery_stopped_part_way_leaves_no_file(bag: tuple[Path, list], tmp_path: Path,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ctrl-C during `fv bag recover` left a valid, indexed file of the records copied so far, which looked
+    like the whole recovery (and a second run was refused: the output existed); in place, a `.recovering` file."""
+    import nodes.bag.recover as recovering
+    path, _ = bag
+    file = BagReader(path).files[0]
+    work = tmp_path / "work"
+    work.mkdir()
+    cut = work / "cut.mcap"
+    cut.write_bytes(file.read_bytes()[:file.stat().st_size * 2 // 3])
+    copy, copied = recovering._Copier.copy, []
+
+    def stopped_part_way(self, record: object) -> None:
+        copied.append(record)
+        if len(copied) == 50:
+            raise KeyboardInterrupt
+        copy(self, record)
+
+    monkeypatch.setattr(recovering._Copier, "copy", stopped_part_way)
+    for run in (lambda: recover(cut, work / "fixed.mcap"), lambda: recover_in_place(cut)):
+        copied.clear()
+        with pytest.raises(KeyboardInterrupt):
+            run()
+        assert [p.name for p in work.iterdir()] == ["cut.mcap"]
+    monkeypatch.undo()
+    assert recover(cut, work / "fixed.mcap").messages > 0
+
+
 @pytest.mark.parametrize("where", ["inside the first chunk", "inside a middle chunk", "a middle chunk's header"])
 def test_recover_skips_a_damaged_chunk_and_keeps_every_other(bag: tuple[Path, list], tmp_path: Path,
                                                              where: str) -> None:
@@ -219,6 +250,29 @@ def test_recover_skips_a_damaged_chunk_and_keeps_every_other(bag: tuple[Path, li
     start = lost.chunk_start_offset
     assert [a for a, _ in report.damaged] == [start] and report.damaged[0][1] >= start + lost.chunk_length
     assert "1 damaged or cut stretch(es)" in report.summary_line()
+
+
+@pytest.mark.parametrize("where", ["header", "metadata", "attachment", "summary"])
+def test_a_bag_damaged_outside_its_chunks_is_named_and_recovered(tmp_path: Path, where: str) -> None:
+    """Bytes overwritten outside the chunks, which their CRCs do not cover: `fv bag info` and the player ended in
+    a traceback (header), an error naming no file (metadata: `'utf-8' codec can't decode ...`), a MemoryError
+    (attachment), or read it as it was (summary: the player's thread then died on a KeyError); and `fv bag
+    recover` called the file complete and left it as it was."""
+    messages = sample_messages(30, np.random.default_rng(2))
+    write_bag(tmp_path / "b", messages, finished=True, chunk_size_b=4_000).close()
+    file = BagReader(tmp_path / "b").files[0]
+    data = bytearray(file.read_bytes())
+    summary_start = struct.unpack_from("<Q", data, len(data) - 28)[0]
+    hit, size, value = {"header": (9, 64, 0), "metadata": (73, 4, 0xAA), "attachment": (128, 8, 0),
+                        "summary": (summary_start + 50, 32, 0)}[where]
+    data[hit:hit + size] = bytes([value]) * size
+    file.write_bytes(bytes(data))
+    with pytest.raises(BagError, match=f"bag {re.escape(str(file))}: .*fv bag recover"):
+        bag = BagReader(file)
+        bag.metadata(), bag.attachments()
+    report = recover_in_place(file)
+    assert not report.complete and report.messages == len(messages)
+    assert [m.log_time_ns for m in BagReader(file).messages()] == [t for *_, t in messages]
 
 
 def test_recover_in_place_keeps_the_original(bag: tuple[Path, list], capsys: pytest.CaptureFixture) -> None:
