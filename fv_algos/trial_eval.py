@@ -223,16 +223,19 @@ def fit(data: TrialWindows, train_trials: np.ndarray, config: FitConfig, monitor
 
 def judge(model: nn.Module, data: TrialWindows, trials: np.ndarray, threshold: float, top_k: int) -> dict[str, object]:
     """Window- and trial-level metrics of ``model`` on ``trials`` (trial indices): window_accuracy
-    (labelled windows, p >= 0.5), trial_accuracy, confusion (trial level, [[TN, FP], [FN, TP]]),
-    n_trials, n_windows, and per-trial scores."""
+    (labelled windows, p >= 0.5; None when the rule labels none of them, as in a slip trial too short
+    for its slip windows: that ended in an error), trial_accuracy, confusion (trial level, [[TN, FP],
+    [FN, TP]]), n_trials, n_windows (labelled), and per-trial scores."""
     rows = np.flatnonzero(np.isin(data.trial, trials))
     probability = predict_rows(partial(predict_proba, model, width_px=data.windows.sequences.frame_width_px),
                                data.windows, rows)
     labelled = data.labelled[rows]
-    window = classification_metrics(data.labels[rows][labelled], (probability[labelled] >= 0.5).astype(np.int64))
+    window = (classification_metrics(data.labels[rows][labelled], (probability[labelled] >= 0.5).astype(np.int64))
+              if labelled.any() else None)
     scores = trial_scores(probability, data.trial[rows], len(data.objects), top_k)[trials]
     trial = classification_metrics(data.trial_labels[trials], (scores >= threshold).astype(np.int64))
-    return {"window_accuracy": window.accuracy, "n_windows": window.n, "trial_accuracy": trial.accuracy,
+    return {"window_accuracy": window.accuracy if window else None, "n_windows": window.n if window else 0,
+            "trial_accuracy": trial.accuracy,
             "trial_f1": trial.f1, "confusion": [list(r) for r in trial.confusion], "n_trials": trial.n,
             "threshold": threshold, "scores": scores.tolist()}
 
@@ -304,12 +307,13 @@ def cross_validate(data: TrialWindows, config: FitConfig, folds: int, seed: int 
     confusion}. ``init``: fine-tune every fold from this checkpoint."""
     groups = object_folds(data.objects, folds, seed)
     rows = map_folds(partial(_window_fold, data, config, seed, init), list(enumerate(groups)), workers, progress)
-    window_acc = [r["window_accuracy"] for r in rows]
+    window_acc = [r["window_accuracy"] for r in rows if r["window_accuracy"] is not None]  # (a fold may label none)
     return {
         "folds": rows,
         "summary": {
-            **fold_summary(rows), "window_accuracy_mean": statistics.fmean(window_acc),
-            "window_accuracy_std": statistics.pstdev(window_acc), "window_accuracy_min": min(window_acc),
+            **fold_summary(rows), "window_accuracy_mean": statistics.fmean(window_acc) if window_acc else None,
+            "window_accuracy_std": statistics.pstdev(window_acc) if window_acc else None,
+            "window_accuracy_min": min(window_acc, default=None),
         },
         "config": {**fit_record(config, init), "folds": folds, "seed": seed},
     }

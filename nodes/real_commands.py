@@ -322,7 +322,8 @@ def _cv(args: argparse.Namespace) -> int:
         config = _fit_config(args)
         trials, fields, _ = _load(args)
         data = trial_windows(trials, fields, config.train.model.window, config.rule)
-        report = cross_validate(data, config, args.folds, args.seed, _window_init(args), workers=args.workers)
+        report = cross_validate(data, config, args.folds, args.seed, _window_init(args), progress=not args.no_progress,
+                                workers=args.workers)
     report["wall_s"] = time.perf_counter() - started
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -332,11 +333,11 @@ def _cv(args: argparse.Namespace) -> int:
         print(json.dumps(report, indent=2))
     else:
         for r in report["folds"]:
-            window = f"window acc {r['window_accuracy']:.3f}  " if "window_accuracy" in r else ""
+            window = (f"window acc {_figure(r['window_accuracy'])}  " if "window_accuracy" in r else "")
             print(f"fold {r['fold']}: trials {r['n_trials']:3d}  {window}"
                   f"trial acc {r['trial_accuracy']:.3f}  objects {', '.join(r['objects'])}")
         s = report["summary"]
-        window = (f"; window accuracy {s['window_accuracy_mean']:.3f} +/- {s['window_accuracy_std']:.3f}"
+        window = (f"; window accuracy {_figure(s['window_accuracy_mean'])} +/- {_figure(s['window_accuracy_std'])}"
                   if "window_accuracy_mean" in s else "")
         print(f"object-held-out trial accuracy {s['trial_accuracy_mean']:.3f} +/- {s['trial_accuracy_std']:.3f} "
               f"(worst fold {s['worst_fold']}: {s['trial_accuracy_min']:.3f}; pooled {s['pooled_trial_accuracy']:.3f})"
@@ -563,7 +564,7 @@ def eval_trials_command(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(out, indent=2))
     else:
-        window = "n/a" if out["window_accuracy"] is None else f"{out['window_accuracy']:.3f}"
+        window = _figure(out["window_accuracy"])
         print(f"{out['n_trials']} trials: trial accuracy {out['trial_accuracy']:.3f}, window accuracy "
               f"{window}, confusion {out['confusion']} ({wall:.0f} s, {out['s_per_trial']:.2f} s/trial)")
         for t in out["trials"]:
@@ -572,6 +573,11 @@ def eval_trials_command(args: argparse.Namespace) -> int:
         if "online" in out:
             _print_online(out["online"])
     return 0
+
+
+def _figure(value: float | None) -> str:
+    """A figure of a report to 3 decimals, "n/a" for None (a trial model's window accuracy, or no window labelled)."""
+    return "n/a" if value is None else f"{value:.3f}"
 
 
 def _eval_windows(args: argparse.Namespace, path: Path) -> dict[str, object]:

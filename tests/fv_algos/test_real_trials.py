@@ -37,6 +37,7 @@ from fv_algos.trial_eval import (
     choose_threshold,
     cross_validate,
     fit_config,
+    judge,
     object_folds,
     trial_scores,
     trial_windows,
@@ -515,6 +516,20 @@ def test_real_cv_refuses_a_bad_alarm_rule_by_name(rule: str, capsys) -> None:
         main(["real", "cv", "--trials", "x", "--online", "--alarm", rule])
     err = capsys.readouterr().err
     assert exit_info.value.code == 2 and "argument --alarm" in err and f"alarm rule {rule!r}" in err
+
+
+def test_a_set_whose_rule_labels_no_window_is_judged_at_trial_level(tmp_path: Path) -> None:
+    """A still grasp labelled slip: the rule labels none of its windows (no motion to call slip). Its
+    window accuracy is None (it ended `fv eval --trials` and `fv real cv --method windows` in "labels and
+    predicted must be equal-length non-empty 1-D arrays"); the trial is still judged."""
+    trial = Trial("t0", "o0", 1, tmp_path, {"camera_0": tmp_path / "camera_0.avi"})
+    fields = {("t0", "camera_0"): VideoFields(np.zeros((20, 30, 30, 3), np.float16), np.ones(20, bool),
+                                              np.ones(20, np.float32), np.zeros(20, np.int32), 40, 0.1, 320)}
+    data = trial_windows([trial], fields, 10, TrialRule(stride=5))
+    assert not data.labelled.any()
+    report = judge(build_model(ModelConfig(arch="lstm", hidden=8)).eval(), data, np.arange(1), 0.5, 3)
+    assert report["window_accuracy"] is None and report["n_windows"] == 0
+    assert report["n_trials"] == 1 and sum(map(sum, report["confusion"])) == 1
 
 
 def test_window_cross_validation_gives_the_same_folds_in_two_processes(tmp_path: Path) -> None:
