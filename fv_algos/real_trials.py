@@ -101,13 +101,13 @@ def read_trials(root: str | Path) -> list[Trial]:
     table = root / LABELS_FILE
     if not table.is_file():
         raise FileNotFoundError(f"trial table not found: {table} (needs columns {', '.join(REQUIRED_COLUMNS)})")
-    reader = csv.reader(io.StringIO(read_utf8(table, " (a spreadsheet's \"CSV UTF-8\")"), newline=""))
-    lines = [(reader.line_num, cells) for cells in reader]
+    lines = _table_rows(table)
     header = [name.strip().lower() for name in lines[0][1]] if lines else []  # as a spreadsheet may write it: " Label"
+    named = [name for name in header if name]  # columns without a name (a spreadsheet's used range) are left out
     missing = [c for c in REQUIRED_COLUMNS if c not in header]
-    if missing or len(set(header)) < len(header):
-        raise ValueError(f"{table}: missing columns {missing} (has {header})" if missing
-                         else f"{table}: a column is named twice ({header})")
+    if missing or len(set(named)) < len(named):
+        raise ValueError(f"{table}: missing columns {missing} (has {named})" if missing
+                         else f"{table}: a column is named twice ({named})")
     trials, seen = [], {}
     for line, cells in lines[1:]:
         where = f"{table} line {line}"
@@ -115,7 +115,7 @@ def read_trials(root: str | Path) -> list[Trial]:
             continue  # an empty line, or the empty rows (,,) a spreadsheet leaves below its table
         if len(cells) < len(header) or any(cell.strip() for cell in cells[len(header):]):
             raise ValueError(f"{where}: {len(cells)} fields, the header has {len(header)}")
-        row = dict(zip(header, cells))
+        row = {name: cell for name, cell in zip(header, cells) if name}
         name, label, obj = row["trial"].strip(), row["label"].strip().lower(), row["object"].strip()
         if label not in LABEL_VALUES:
             raise ValueError(f"{where}: label {row['label']!r} is not slip / no_slip (or 1 / 0)")
@@ -134,6 +134,24 @@ def read_trials(root: str | Path) -> list[Trial]:
     if not trials:
         raise ValueError(f"{table} lists no trials")
     return trials
+
+
+def _table_rows(table: Path) -> list[tuple[int, list[str]]]:
+    """(line, cells) of each row of the CSV file ``table``, with the line it starts on. ValueError naming the
+    file and that line for a quote that is never closed: it swallowed the lines after it into one cell (the
+    error named a later, well-formed line, or a long table ended in the csv module's "field larger than field
+    limit")."""
+    reader = csv.reader(io.StringIO(read_utf8(table, " (a spreadsheet's \"CSV UTF-8\")"), newline=""))
+    rows, start = [], 1
+    try:
+        for cells in reader:
+            if any("\n" in cell or "\r" in cell for cell in cells):  # no column of the table holds a line end
+                raise csv.Error(f"a quoted cell runs on to line {reader.line_num}")
+            rows.append((start, cells))
+            start = reader.line_num + 1
+    except csv.Error as exc:
+        raise ValueError(f"{table} line {start}: {exc} (a quote never closed?)") from None
+    return rows
 
 
 def _camera_videos(folder: Path, where: str) -> dict[str, Path]:

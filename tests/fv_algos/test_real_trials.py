@@ -100,6 +100,11 @@ def test_a_missing_table_is_named(tmp_path: Path) -> None:
     ("trial,object,label\nt1,cup,slip,extra\n", ValueError, r"labels.csv line 2: 4 fields, the header has 3"),
     ("trial,object,label,Label\nt1,cup,slip,slip\n", ValueError, r"labels.csv: a column is named twice"),
     ("trial,object,label\n,cup,slip\n", ValueError, r"labels.csv line 2: no trial"),
+    # a quote never closed swallowed the lines after it: a later line was named, or a long table's cell too large
+    pytest.param('trial,object,label\nt1,"cup,slip\nt2,mug,slip\nt3,mug,slip\n', ValueError,
+                 r"labels.csv line 2: a quoted cell runs on to line 4 \(a quote never closed\?\)", id="open quote"),
+    pytest.param('trial,object,label\nt1,"cup,slip\n' + "t2,mug,slip\n" * 12_000, ValueError,
+                 r"labels.csv line 2: .*\(a quote never closed\?\)", id="open quote, long table"),
 ])
 def test_bad_tables_name_the_file_and_line(tmp_path: Path, table: str, error: type, message: str) -> None:
     (tmp_path / "labels.csv").write_text(table)
@@ -123,6 +128,9 @@ def test_a_spreadsheet_table_reads_as_the_user_meant_it(tmp_path: Path) -> None:
         (tmp_path / name / "camera_0.avi").write_bytes(b"")
     (tmp_path / "labels.csv").write_text("Trial, Object ,LABEL\nt1/,cup,slip,\n./t2,mug,No_Slip\n,,\n,,\n")
     assert [(t.name, t.object, t.label) for t in read_trials(tmp_path)] == [("t1", "cup", 1), ("t2", "mug", 0)]
+    # columns without a name, a notes column among them (two or more were "a column is named twice")
+    (tmp_path / "labels.csv").write_text("trial,object,label,,\r\nt1,cup,slip,,\r\nt2,mug,no_slip,,a note\r\n")
+    assert [(t.name, t.label, t.extra) for t in read_trials(tmp_path)] == [("t1", 1, {}), ("t2", 0, {})]
     (tmp_path / "labels.csv").write_text("trial,object,label\nt1/,cup,slip\nt2,mug,no_slip\n./t1,cup,slip\n")
     with pytest.raises(ValueError, match=r"line 4: trial 't1' is listed twice \(also on line 2\)"):
         read_trials(tmp_path)
