@@ -199,6 +199,7 @@ def _load(args: argparse.Namespace, reference_frame: int = 1):
     from fv_algos.real_trials import read_trials, trial_fields
     crop = frame_crop(args)
     trials = read_trials(args.trials)
+    _check_cv_trials(getattr(args, "cv_report", None), trials)
     started = time.perf_counter()
     fields = trial_fields(trials, args.cache, workers=args.workers, reference_frame=reference_frame, crop=crop,
                           progress=not args.no_progress)
@@ -443,6 +444,22 @@ def _check_cv_report(report: dict | None, method: str, config: dict, later: tupl
     differ = _differences(made, json.loads(json.dumps(config)), ("seed", "folds", "progress", *later))  # tuples as lists
     if differ:
         raise ValueError(f"--cv-report: the report's networks were trained otherwise: {'; '.join(differ)}")
+
+
+def _check_cv_trials(report: dict | None, trials: list) -> None:
+    """ValueError when ``report`` (an `fv real cv --out` report to record beside a model; None: none) cross-validated
+    other trials than ``trials``, the training's: its folds' objects and trial count must be theirs (another set's
+    figures were recorded as this model's). Checked once the table is read, before any video is."""
+    if report is None:
+        return
+    folds = report.get("folds", [])
+    theirs, mine = {o for fold in folds for o in fold["objects"]}, {t.object for t in trials}
+    count = sum(len(fold["trials"]) for fold in folds)
+    if theirs != mine or count != len(trials):
+        only = "; ".join(f"objects only {where}: {', '.join(sorted(names)[:5])}" + (" ..." if len(names) > 5 else "")
+                         for where, names in (("there", theirs - mine), ("here", mine - theirs)) if names)
+        raise ValueError(f"--cv-report: the report cross-validated other trials: {count} trials of {len(theirs)} "
+                         f"objects (this training: {len(trials)} of {len(mine)})" + (f"; {only}" if only else ""))
 
 
 def _differences(made: dict, config: dict, ignore: tuple[str, ...], prefix: str = "") -> list[str]:

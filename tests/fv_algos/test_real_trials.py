@@ -481,8 +481,13 @@ def test_real_cv_online_reports_how_early_the_held_out_networks_tell_slips(isd_d
                  "--hidden", "4", "--members", "1", "--out", str(model), "--cv-report", str(out)]) == 0
     sidecar = json.loads(model.with_suffix(".json").read_text())
     assert sidecar["cross_validation_online"] == {k: v for k, v in online.items() if k != "plot"}
-    other = tmp_path / "other_trial.pt"  # trained otherwise than the report's networks: refused before any video
-    assert main(["real", "train", "--trials", str(tmp_path / "absent"), "--steps", "6",  # is read
+    other = tmp_path / "other_trial.pt"  # trained on other trials than the report's: refused before any video is read
+    fewer = _subset(isd_data, tmp_path / "fewer", dict(list(trials.items())[:-1]))  # (its figures were recorded)
+    assert main(["real", "train", "--trials", str(fewer), "--steps", "5", "--hidden", "4", "--members", "1",
+                 "--out", str(other), "--cv-report", str(out)]) == 2
+    assert (f"the report cross-validated other trials: {len(trials)} trials of 2 objects (this training: "
+            f"{len(trials) - 1} of 2)") in capsys.readouterr().err and not other.exists()
+    assert main(["real", "train", "--trials", str(tmp_path / "absent"), "--steps", "6",  # trained otherwise
                  "--hidden", "4", "--members", "1", "--balance", "label", "--out", str(other),
                  "--cv-report", str(out)]) == 2
     err = capsys.readouterr().err
