@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import time
 from collections.abc import Sequence
@@ -23,6 +24,8 @@ from typing import TYPE_CHECKING
 
 from nodes.arg_types import output_file, output_with_suffix, positive_float, positive_int, random_seed
 from nodes.shipped_models import model_help
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:  # torch is imported only where a model is used
     from fv_algos.contact_motion import ContactMotionParams
@@ -604,6 +607,9 @@ def _eval_windows(args: argparse.Namespace, path: Path) -> dict[str, object]:
     from fv_algos.trial_eval import TrialRule, judge, trial_windows
     sidecar = path.with_suffix(".json")
     info = json.loads(sidecar.read_text()) if sidecar.is_file() else {}
+    if not info:  # (a checkpoint copied without it was judged with another threshold, without a word)
+        log.warning("no %s beside %s: judged with trial threshold 0.5 and the default window rule (a trained "
+                    "model's own are in that file, which fv real train writes beside it)", sidecar.name, path)
     rule = TrialRule(**info["fit"]["rule"]) if "fit" in info else TrialRule()
     threshold = float(info.get("trial_threshold", 0.5))
     classifier = SlipClassifier(path, threads=1)

@@ -445,7 +445,7 @@ def test_real_train_writes_a_trial_model_that_fv_eval_reads(isd_data: Path, tmp_
 
 
 def test_real_cv_online_reports_how_early_the_held_out_networks_tell_slips(isd_data: Path, tmp_path: Path,
-                                                                           capsys) -> None:
+                                                                           capsys, caplog) -> None:
     from nodes.cli import main
     # two groups, each with a slip and a held grasp, so that every training fold has both
     trials = {**{name: ("a" if name.startswith("train/nylon") or name.startswith("train/blue") else "b", label)
@@ -506,6 +506,12 @@ def test_real_cv_online_reports_how_early_the_held_out_networks_tell_slips(isd_d
     assert main(["real", "train", *window_argv, "--steps", "2", "--out", str(other), "--cv-report", str(report)]) == 0
     assert json.loads(other.with_suffix(".json").read_text())["cross_validation"] == json.loads(
         report.read_text())["summary"]
+    alone = tmp_path / "alone" / other.name  # copied without its .json: judged with threshold 0.5, said so
+    alone.parent.mkdir()
+    alone.write_bytes(other.read_bytes())
+    with caplog.at_level("WARNING"):
+        assert main(["eval", "--trials", str(root), "--cache", str(tmp_path / "cache"), "--model", str(alone)]) == 0
+    assert f"no {other.with_suffix('.json').name} beside {alone}: judged with trial threshold 0.5" in caplog.text
 
 
 @pytest.mark.parametrize("argv, message", [
