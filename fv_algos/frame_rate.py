@@ -120,14 +120,14 @@ def trial_rate(trial: Trial, camera: str) -> float:
     return fps
 
 
-def check_rate(name: str, video_fps: float, model_fps: float, stretch: float) -> None:
+def check_rate(name: str, video_fps: float, model_fps: float, stretch: float, advice: str) -> None:
     """ValueError naming ``name`` when a video of ``video_fps`` Hz is slower than a model of
     ``model_fps`` Hz trained with time stretch ``stretch`` (>= 1) can take: its frames would show
-    more motion each than any training trial's."""
+    more motion each than any training trial's. ``advice`` ends the error."""
     if video_fps * stretch < model_fps * (1 - 1e-6):
         raise ValueError(f"{name}: {video_fps:g} fps is slower than the model's {model_fps:g} fps allows "
                          f"(its training stretched time by up to {stretch:g}x, so {model_fps / stretch:.3g} fps at "
-                         f"least): record faster, or train a model on recordings at this rate (fv real train)")
+                         f"least): {advice}")
 
 
 def judged_rates(trials: Sequence[Trial], fps: float | None = None,
@@ -136,8 +136,11 @@ def judged_rates(trials: Sequence[Trial], fps: float | None = None,
     camera) -> their rate), all in Hz. ``fps``: a model's rate (None: the rate most of the videos
     have, for training); :func:`check_rate` refuses, naming the first, videos too slow for it."""
     rates = {(t.name, camera): trial_rate(t, camera) for t in trials for camera in t.videos}
+    advice = "record faster, or train a model on recordings at this rate (fv real train)"
     if fps is None:
         fps = collections.Counter(rates.values()).most_common(1)[0][0]
+        advice = (f"the training takes the rate most of its videos have; --fps {min(rates.values()):g} trains at the "
+                  f"slowest (the faster videos' frames picked at it), or leave the slower videos out")
     for (name, camera), rate in rates.items():
-        check_rate(f"trial {name} {camera}", rate, fps, stretch)
+        check_rate(f"trial {name} {camera}", rate, fps, stretch, advice)
     return fps, {key: rate for key, rate in rates.items() if rate > fps}

@@ -166,6 +166,9 @@ def _fit_args(p: argparse.ArgumentParser, window_steps: int) -> None:
                    help="trial: probability that a training camera's first 14 frames are traded for those of a "
                         "camera of the other label, so camera start-up bursts say nothing of the label (0: never; "
                         "default TrialNetConfig's)")
+    p.add_argument("--fps", type=positive_float, default=None,
+                   help="trial: the rate, Hz, the descriptors are taken at (faster videos' frames picked at it; "
+                        "default: the rate most of the videos have)")
     p.add_argument("--reference-frame", type=int, default=None,
                    help="trial: the frame of each video taken as the skin at rest, where the descriptors start "
                         "(default TrialNetConfig's: the cameras' stale start-up frames come before it)")
@@ -195,14 +198,26 @@ def _rule(args: argparse.Namespace):
     return TrialRule(stride=args.stride, **overrides)
 
 
-def _load(args: argparse.Namespace, reference_frame: int = 1):
-    """(trials, fields, seconds) of the trials in ``args.trials`` from ``reference_frame`` of each video on,
-    the frames cut by --crop / --size, fields cached under ``args.cache`` (None: no cache) and computed in
-    ``args.workers`` processes."""
-    from fv_algos.real_trials import read_trials, trial_fields
-    crop = frame_crop(args)
+def _read_trials(args: argparse.Namespace) -> list[Trial]:
+    """The trials of ``args.trials``, checked against what needs the table alone before any video is read: an
+    `fv real train --cv-report` (its trials), an `fv real cv` deal (--folds against the objects; it was refused
+    once every video's fields were computed)."""
+    from fv_algos.real_trials import read_trials
+    from fv_algos.trial_eval import object_folds
     trials = read_trials(args.trials)
     _check_cv_trials(getattr(args, "cv_report", None), trials)
+    if getattr(args, "folds", None) is not None:
+        object_folds([t.object for t in trials], args.folds, args.seed)
+    return trials
+
+
+def _load(args: argparse.Namespace, reference_frame: int = 1, trials: list[Trial] | None = None):
+    """(trials, fields, seconds) of the trials in ``args.trials`` (``trials``: those, read already) from
+    ``reference_frame`` of each video on, the frames cut by --crop / --size, fields cached under ``args.cache``
+    (None: no cache) and computed in ``args.workers`` processes."""
+    from fv_algos.real_trials import trial_fields
+    crop = frame_crop(args)
+    trials = _read_trials(args) if trials is None else trials
     started = time.perf_counter()
     fields = trial_fields(trials, args.cache, workers=args.workers, reference_frame=reference_frame, crop=crop,
                           progress=not args.no_progress)
@@ -280,8 +295,9 @@ def _trial_inputs(args: argparse.Namespace, reference_frame: int, params: Contac
     from fv_algos.contact_motion import ContactMotionParams, trial_series
     from fv_algos.frame_rate import judged_rates, picked_frames
     from fv_algos.trial_net import trial_inputs
-    trials, fields, field_s = _load(args, reference_frame)
-    fps, faster = judged_rates(trials, fps, stretch)
+    trials = _read_trials(args)
+    fps, faster = judged_rates(trials, fps, stretch)  # (from the table and the containers: before the fields)
+    trials, fields, field_s = _load(args, reference_frame, trials)
     paths = {(t.name, camera): path for t in trials for camera, path in t.videos.items()}
     series = trial_series(trials, args.cache, reference_frame, params or ContactMotionParams(), workers=args.workers,
                           rates={paths[key]: (rate, fps) for key, rate in faster.items()}, crop=frame_crop(args),
@@ -311,7 +327,8 @@ def _cv(args: argparse.Namespace) -> int:
     if args.method == "trial":
         from fv_algos.trial_net import cross_validate_trials
         config, init = _trial_config(args)
-        trials, _, _, inputs, labels, fps = _trial_inputs(args, config.reference_frame, stretch=config.stretch)
+        trials, _, _, inputs, labels, fps = _trial_inputs(args, config.reference_frame, fps=args.fps,
+                                                          stretch=config.stretch)
         config = replace(config, fps=fps)
         setups = _setups(args, trials, config)
         report = cross_validate_trials(inputs, labels, [t.object for t in trials], args.folds, args.seed, config,
@@ -495,7 +512,8 @@ def _train_trial(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     config, init = _trial_config(args)
     _check_cv_report(args.cv_report, "trial", {**asdict(config), "init": args.init}, later=("fps",))
-    trials, _, _, inputs, labels, fps = _trial_inputs(args, config.reference_frame, stretch=config.stretch)
+    trials, _, _, inputs, labels, fps = _trial_inputs(args, config.reference_frame, fps=args.fps,
+                                                      stretch=config.stretch)
     config = replace(config, fps=fps)
     _check_cv_report(args.cv_report, "trial", {"fps": fps})
     setups = _setups(args, trials, config)

@@ -85,6 +85,12 @@ def test_judged_rates_take_the_most_common_rate_and_refuse_videos_too_slow_for_i
     assert judged_rates(trials, fps=50.0, stretch=2.0) == (50.0, {})
     with pytest.raises(ValueError, match="trial t0 camera_0: 25 fps is slower than the model's 50 fps allows"):
         judged_rates(trials, fps=50.0, stretch=1.4)
-    check_rate("v", 25.0 / 1.4, 25.0, 1.4)  # the slowest the training's stretch covers
-    with pytest.raises(ValueError, match="v: 15 fps .* 17.9 fps at least"):
-        check_rate("v", 15.0, 25.0, 1.4)
+    slow = [Trial(f"t{k}", "cup", 0, tmp_path, {"camera_0": video}, {"fps": str(fps)}) for k, fps in
+            enumerate((60, 60, 25))]  # a training of mixed rates: its advice was the command that refused it
+    with pytest.raises(ValueError, match=r"t2 camera_0: 25 fps is slower than the model's 60 fps allows .*: the "
+                                         r"training takes the rate most of its videos have; --fps 25 trains at the"):
+        judged_rates(slow, stretch=1.4)
+    assert judged_rates(slow, fps=25.0, stretch=1.4)[0] == 25.0
+    check_rate("v", 25.0 / 1.4, 25.0, 1.4, "")  # the slowest the training's stretch covers
+    with pytest.raises(ValueError, match="v: 15 fps .* 17.9 fps at least\\): record faster"):
+        check_rate("v", 15.0, 25.0, 1.4, "record faster")

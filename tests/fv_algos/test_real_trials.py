@@ -528,6 +528,25 @@ def test_bad_flags_are_refused_by_name(argv: list[str], message: str, capsys) ->
     assert main(argv) == 2 and message in capsys.readouterr().err
 
 
+def test_what_the_table_alone_refuses_is_refused_before_any_video_is_read(tmp_path: Path, capsys) -> None:
+    """A deal of more folds than objects, and a training set of mixed rates whose slower videos its rate (the
+    most common) cannot take, were refused once every video's fields were computed (here the videos are empty
+    files: reading one is an error of its own); the rates' advice named the command that refused them."""
+    from nodes.cli import main
+    for k in range(3):
+        (tmp_path / f"t{k}").mkdir()
+        (tmp_path / f"t{k}" / "camera_0.avi").write_bytes(b"")
+    (tmp_path / "labels.csv").write_text("trial,object,label,fps\nt0,cup,slip,60\nt1,mug,no_slip,60\nt2,mug,slip,25\n")
+    cache = tmp_path / "cache"
+    assert main(["real", "cv", "--trials", str(tmp_path), "--cache", str(cache), "--folds", "3"]) == 2
+    assert "folds must be in [2, 2] (the number of objects), got 3" in capsys.readouterr().err
+    assert main(["real", "train", "--trials", str(tmp_path), "--cache", str(cache), "--out", str(tmp_path / "m.pt")]) == 2
+    assert ("trial t2 camera_0: 25 fps is slower than the model's 60 fps allows (its training stretched time by up "
+            "to 1.4x, so 42.9 fps at least): the training takes the rate most of its videos have; --fps 25 trains at "
+            "the slowest") in capsys.readouterr().err
+    assert not cache.exists()
+
+
 @pytest.mark.parametrize("rule", ["0.5:x", "1.5", "0.5:1:2:3", "0.5:-1"])
 def test_real_cv_refuses_a_bad_alarm_rule_by_name(rule: str, capsys) -> None:
     from nodes.cli import main
