@@ -199,11 +199,12 @@ def _rule(args: argparse.Namespace):
 
 
 def _read_trials(args: argparse.Namespace) -> list[Trial]:
-    """The trials of ``args.trials``, checked against what needs the table alone before any video is read: an
+    """The trials of ``args.trials``, checked before any video is read against what needs the table alone: an
     `fv real train --cv-report` (its trials), an `fv real cv` deal (--folds against the objects; it was refused
-    once every video's fields were computed)."""
+    once every video's fields were computed). --crop / --size are checked before the table is read."""
     from fv_algos.real_trials import read_trials
     from fv_algos.trial_eval import object_folds
+    frame_crop(args)  # a bad --crop / --size first: it needs no table
     trials = read_trials(args.trials)
     _check_cv_trials(getattr(args, "cv_report", None), trials)
     if getattr(args, "folds", None) is not None:
