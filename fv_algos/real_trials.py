@@ -155,14 +155,14 @@ def _table_rows(table: Path) -> list[tuple[int, list[str]]]:
 
 
 def _camera_videos(folder: Path, where: str) -> dict[str, Path]:
-    """Camera name -> video of a trial ``folder`` (``camera_0`` always): one file per camera, of any of
-    ``VIDEO_SUFFIXES`` in any case (`camera_2.MP4` was neither read nor warned of). FileNotFoundError
+    """Camera name -> video of a trial ``folder`` (``camera_0`` always): one file per camera, its name and any of
+    ``VIDEO_SUFFIXES`` in any case (`camera_2.MP4` and `Camera_0.avi` were neither read nor warned of). FileNotFoundError
     without a ``camera_0`` video, ValueError for a camera with two; both start with ``where`` (the
     table's line)."""
     videos = {}
     entries = sorted(folder.iterdir()) if folder.is_dir() else []
     for camera in CAMERAS:
-        named = [path for path in entries if path.stem == camera and path.suffix.lower() in VIDEO_SUFFIXES]
+        named = [path for path in entries if path.stem.lower() == camera and path.suffix.lower() in VIDEO_SUFFIXES]
         broken = [path for path in named if (path.is_symlink() and not path.is_file()) or path.is_dir()]
         if broken:
             raise ValueError(f"{where}: {broken[0]} is not a video file (a broken link or a folder)")
@@ -172,8 +172,8 @@ def _camera_videos(folder: Path, where: str) -> dict[str, Path]:
         videos.update({camera: path for path in found})
     if CAMERAS[0] not in videos:
         raise FileNotFoundError(f"{where}: video not found: {folder / CAMERAS[0]}{{{','.join(VIDEO_SUFFIXES)}}}")
-    stray = sorted(path.name for path in folder.glob("camera_*") if path.suffix.lower() in VIDEO_SUFFIXES
-                   and path.stem not in CAMERAS)
+    stray = sorted(path.name for path in entries if path.stem.lower().startswith("camera_")
+                   and path.suffix.lower() in VIDEO_SUFFIXES and path.stem.lower() not in CAMERAS)
     if stray:
         log.warning("%s: %s left out: the cameras read are %s (one video each)", where, ", ".join(stray),
                     " and ".join(CAMERAS))

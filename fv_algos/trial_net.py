@@ -503,7 +503,8 @@ def load_trial_model(path: str | Path) -> TrialModel:
     """:func:`read_trial_model`, with a ValueError when ``path`` holds another kind of file."""
     model = read_trial_model(path)
     if model is None:
-        raise ValueError(f"{path} is not a trial-level slip model (kind {KIND!r})")
+        raise ValueError(f"{path} is not a trial-level slip model (its kind is not {KIND!r}: a window model, or no "
+                         "model)")
     return model
 
 

@@ -103,8 +103,8 @@ def _refuse_unread(args: argparse.Namespace, mode: str) -> None:
                     if getattr(args, dest) != args.option_defaults[dest])
     if not unread:
         return
-    named = "; ".join(f"--{dest.replace('_', '-')} (read with "
-                      f"{' or '.join(f'--{m}' for m, reads in _EVAL_READS.items() if dest in reads)})" for dest in unread)
+    readers = {dest: " or ".join(f"--{m}" for m, reads in _EVAL_READS.items() if dest in reads) for dest in unread}
+    named = "; ".join(f"--{dest.replace('_', '-')} (read with {modes})" for dest, modes in readers.items())
     hint = (": a video's frame rate is the fps column of labels.csv, else its container's"
             if mode == "trials" and "fps" in unread else "")
     raise ValueError(f"fv eval --{mode} does not read {named}; given, it would be ignored{hint}")

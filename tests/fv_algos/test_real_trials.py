@@ -170,6 +170,8 @@ def test_a_camera_video_may_be_any_common_container_but_only_one(tmp_path: Path)
     (tmp_path / "t2/camera_2.MP4").write_bytes(b"")  # was neither read nor warned of
     assert read_trials(tmp_path)[1].videos == {"camera_0": tmp_path / "t2/camera_0.mkv",
                                                "camera_2": tmp_path / "t2/camera_2.MP4"}
+    (tmp_path / "t2/camera_0.mkv").rename(tmp_path / "t2/Camera_0.mkv")  # was "video not found", naming no file
+    assert read_trials(tmp_path)[1].videos["camera_0"] == tmp_path / "t2/Camera_0.mkv"
 
 
 def test_video_fields_track_every_frame_without_swaps(isd_data: Path) -> None:
@@ -540,7 +542,8 @@ def test_what_the_table_alone_refuses_is_refused_before_any_video_is_read(tmp_pa
     cache = tmp_path / "cache"
     assert main(["real", "cv", "--trials", str(tmp_path), "--cache", str(cache), "--folds", "3"]) == 2
     assert "folds must be in [2, 2] (the number of objects), got 3" in capsys.readouterr().err
-    assert main(["real", "train", "--trials", str(tmp_path), "--cache", str(cache), "--out", str(tmp_path / "m.pt")]) == 2
+    assert main(["real", "train", "--trials", str(tmp_path), "--cache", str(cache), "--out",
+                 str(tmp_path / "m.pt")]) == 2
     assert ("trial t2 camera_0: 25 fps is slower than the model's 60 fps allows (its training stretched time by up "
             "to 1.4x, so 42.9 fps at least): the training takes the rate most of its videos have; --fps 25 trains at "
             "the slowest") in capsys.readouterr().err
