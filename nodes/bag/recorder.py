@@ -294,7 +294,8 @@ class BagRecord(Node):
 
     def _finish(self) -> None:
         """Close the bag with its totals; a file that cannot be finished (the disk full, the MCAP writer's own
-        error: the last, or the one a split closed) is named, with the command that indexes what reached it. After
+        error: the last, or the one a split closed) is named, with the command that indexes what reached it (none for
+        a file removed as it was written: its messages are counted lost). After
         a split whose new file could not be opened (the node's error) there is none open to close. The messages
         received but not stored, the writing having failed, are named in the node's error by topic."""
         stats, gaps = self.writer.stats, self.gaps
@@ -317,8 +318,9 @@ class BagRecord(Node):
             self._backlog.abandon(unstored=unstored)
         if unfinished is not None:
             self.state, self.message = "error", f"could not finish {unfinished}{why}{self._lost_words()}"
-            self.log.error("%s; what was flushed is kept: run `fv bag recover %s` to index it", self.message,
-                           unfinished)
+            kept = (f"; what was flushed is kept: run `fv bag recover {unfinished}` to index it" if unfinished.exists()
+                    else "")  # (removed with its folder as it was written: nothing to recover)
+            self.log.error("%s%s", self.message, kept)
         elif self.error:  # a drop warning of the receive thread, as the writer failed, may have come after it
             self.state, self.message = "error", self.error + self._lost_words()
             if self._backlog.lost:

@@ -9,6 +9,7 @@ file, so a crash loses at most the chunk in progress (`fv bag recover` restores 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import re
 import time
@@ -37,6 +38,14 @@ def open_mcap(path: Path, compression: str, chunk_size_b: int = DEFAULT_CHUNK_B)
     writer = Writer(stream, chunk_size=chunk_size_b, compression=COMPRESSIONS[compression])
     writer.start(profile=PROFILE)
     return stream, writer
+
+
+def _size_on_disk(path: Path) -> int:
+    """The size of the file ``path``, bytes; 0 when it is not there."""
+    try:
+        return path.stat().st_size
+    except FileNotFoundError:
+        return 0
 
 
 def bag_file_index(path: Path) -> int | None:
@@ -100,6 +109,7 @@ class BagWriter:
         self._file_start_ns = 0
         self.unfinished: Path | None = None  # a file whose summary and index could not be written (a full disk...)
         self.unflushed: dict[str, int] = {}  # per topic, messages written since the file last took them (flushed)
+        self._in_file: dict[str, int] = {}  # per topic, messages written to the open file
         self._open_next()
 
     # -- files -----------------------------------------------------------------------
@@ -107,6 +117,7 @@ class BagWriter:
         path = self.output / f"{self.output.name}_{len(self.files)}.mcap"
         self._stream, self._writer = open_mcap(path, self.compression, self.chunk_size_b)
         self.files.append(path)
+        self._in_file = {}
         self._schemas.clear()
         self._channels.clear()
         self._file_start_ns = 0
@@ -193,6 +204,7 @@ class BagWriter:
         st.payload_b += len(payload)
         st.last_ns = log_time_ns
         self.unflushed[topic] = self.unflushed.get(topic, 0) + 1
+        self._in_file[topic] = self._in_file.get(topic, 0) + 1
 
     def flush(self) -> None:
         """Close the chunk in progress and push everything to the file (and the disk
@@ -202,6 +214,11 @@ class BagWriter:
         self._writer.flush()
         if self.fsync:
             os.fsync(self._stream.fileno())
+        if os.fstat(self._stream.fileno()).st_nlink == 0:  # its folder deleted: the file was written on, unseen
+            self.unflushed = dict(self._in_file)  # every message of the file went with it
+            self.abandon()
+            raise FileNotFoundError(errno.ENOENT, "removed while being written (its messages went with it)",
+                                    str(self.files[-1]))
         self.unflushed.clear()
 
     @property
@@ -211,9 +228,10 @@ class BagWriter:
 
     @property
     def size_b(self) -> int:
-        """Bytes written so far over all files."""
-        done = sum(p.stat().st_size for p in self.files[:-1])
-        return done + (self._stream.tell() if self._stream is not None else self.files[-1].stat().st_size)
+        """Bytes written so far over all files that are still there (a folder removed while recording ended the
+        closing summary in a FileNotFoundError)."""
+        closed = self.files if self._stream is None else self.files[:-1]
+        return sum(_size_on_disk(p) for p in closed) + (self._stream.tell() if self._stream is not None else 0)
 
     def close(self) -> None:
         """Write the summary and index of the last file and close it."""

@@ -1234,6 +1234,35 @@ def test_a_bag_that_cannot_be_closed_is_named_with_recover_and_summed_up(
     assert 0 < recover(file, tmp_path / "kept.mcap").messages <= 20
 
 
+def test_a_bag_folder_removed_while_recording_ends_the_recording_naming_the_file(
+        bus: BusAddress, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """`rm -rf` of the bag folder as it records: the recorder wrote on into the removed file without a word, and its
+    closing summary ended in a thread's FileNotFoundError (no summary line, exit 0). Now the next flush ends it
+    with an error naming the file, every message it held counted lost, and no `fv bag recover` advice."""
+    node = BagRecord("rec", {"output": str(tmp_path / "gone"), "topics": ["/a"], "flush_period_s": 0.2}, address=bus)
+    thread = in_thread(node)
+    pub = PublisherSocket("src", bus)
+    try:
+        wait_subscribed(pub, ["/a"])
+        for i in range(20):
+            pub.publish("/a", SlipState(stamp_ns=i))
+        wait_for(lambda: node.counters.get("recorded") == 20, 10.0, "20 messages flushed")
+        shutil.rmtree(tmp_path / "gone")
+        with caplog.at_level("INFO"):
+            pub.publish("/a", SlipState(stamp_ns=20))
+            wait_for(lambda: bool(node.error), 10.0, "the removal said")
+            node.stop()
+            thread.join(10)
+    finally:
+        pub.close()
+        node.stop()
+    file = tmp_path / "gone" / "gone_0.mcap"
+    assert node.state == "error" and f"removed while being written (its messages went with it): '{file}'" in node.message
+    assert "21 messages received were not stored (/a 21)" in node.message, node.message
+    assert {k: node.counters.get(k) for k in ("recorded", "lost")} == {"recorded": 0, "lost": 21}
+    assert "fv bag recover" not in caplog.text and node.summary_line() in caplog.text
+
+
 def test_a_disk_full_at_a_flush_counts_the_chunk_in_progress_lost_not_recorded(
         bus: BusAddress, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The disk fills as a flush writes the chunk in progress: the messages of that chunk never reached the
