@@ -30,7 +30,7 @@ from zstandard import ZstdError
 import msgs
 from msgs import Message, MessageError
 from nodes.bag.codec import MESSAGE_ENCODING, META_LATCHED, META_NODE, RECORDING_END_META, split_payload
-from nodes.bag.writer import bag_file_index
+from nodes.bag.writer import bag_file_index, being_written
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 # what the mcap package, zstandard, lz4 (RuntimeError) and struct raise on damaged bytes (OverflowError: a
@@ -162,9 +162,11 @@ class _File:
             try:
                 summary = make_reader(f).get_summary()
             except READ_ERRORS as exc:
+                _refuse_being_written(path)
                 raise BagError(path, f"unfinished or damaged MCAP ({type(exc).__name__}: {str(exc) or 'cut short'}); "
                                      f"a crashed recording? run `fv bag recover {path}`") from None
         if summary is None or summary.statistics is None:
+            _refuse_being_written(path)
             raise BagError(path, f"MCAP without summary; run `fv bag recover {path}` to index it")
         with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
             if not summary_crc_matches(data, self.size_b - len(MCAP_MAGIC) - FOOTER.size):
@@ -194,6 +196,14 @@ class _File:
                                               f"`fv bag recover {self.path}` keeps the readable part") from None
                 yield BagMessage(channel.topic, channel.metadata.get(META_NODE, ""),
                                  _latched(channel), rec.log_time, rec.publish_time, rec.sequence, rec.data)
+
+
+def _refuse_being_written(path: Path) -> None:
+    """BagError for a file a recording in progress writes (:func:`nodes.bag.writer.being_written`): it is read once
+    the recording ends (its unfinished state had been called a crash, with `fv bag recover` as the advice)."""
+    if being_written(path):
+        raise BagError(path, "still being written (a recording in progress): it can be read once the recording "
+                             "ends; `fv topic echo` shows what is published meanwhile")
 
 
 @contextmanager

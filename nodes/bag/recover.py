@@ -26,7 +26,7 @@ from mcap.writer import Writer
 
 from fv_algos.atomic_file import write_atomically
 from nodes.bag.reader import MCAP_MAGIC, READ_ERRORS, check_magic, summary_crc_matches
-from nodes.bag.writer import open_mcap
+from nodes.bag.writer import being_written, open_mcap
 
 BROKEN_SUFFIX = ".broken"
 _FRAME = struct.Struct("<BQ")  # a record's opcode and content length (bytes)
@@ -185,6 +185,9 @@ def recover(source: Path, output: Path) -> RecoverReport:
     Returns what was kept and lost."""
     source, output = Path(source), Path(output)
     check_magic(source)
+    if being_written(source):  # in place, it took the file away: the recorder wrote on into the `.broken` copy
+        raise ValueError(f"{source} is still being written (a recording in progress): recover it, if need be, once "
+                         "the recording has ended")
     if output.exists():
         raise ValueError(f"{output} already exists (not overwritten)")
     report = RecoverReport(str(source), str(output))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import os
 import re
 import time
@@ -28,16 +29,32 @@ PROFILE = "fv"
 
 
 def open_mcap(path: Path, compression: str, chunk_size_b: int = DEFAULT_CHUNK_B) -> tuple[IO[bytes], Writer]:
-    """A started MCAP writer on a new file `path` (refuses to overwrite)."""
+    """A started MCAP writer on a new file `path` (refuses to overwrite), locked while it is open
+    (:func:`being_written`)."""
     if compression not in COMPRESSIONS:
         raise ValueError(f"compression {compression!r} is not one of {sorted(COMPRESSIONS)}")
     try:
         stream = open(path, "xb")
     except FileExistsError:
         raise ValueError(f"{path} already exists (not overwritten)") from None
+    with contextlib.suppress(OSError):  # a file system without locks: the file is written all the same
+        fcntl.flock(stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
     writer = Writer(stream, chunk_size=chunk_size_b, compression=COMPRESSIONS[compression])
     writer.start(profile=PROFILE)
     return stream, writer
+
+
+def being_written(path: Path) -> bool:
+    """Whether an open writer (a recording in progress, a recovery) holds the file `path`: such a file has no
+    summary yet, and is neither damaged nor for `fv bag recover` (which took a live recording's file away)."""
+    try:
+        with open(path, "rb") as f:
+            fcntl.flock(f.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    return False
 
 
 def _size_on_disk(path: Path) -> int:

@@ -32,7 +32,7 @@ from nodes.bag.reader import BagError, BagReader, read_bag
 from nodes.bag.commands import parse_size
 from nodes.bag.recorder import BagRecord
 from nodes.bag.player import BagPlay
-from nodes.bag.recover import recover
+from nodes.bag.recover import recover, recover_in_place
 from nodes.bag.writer import BagWriter
 from nodes.process_stop import stop_process
 from nodes.bus import PublisherSocket, TopicReader
@@ -1232,6 +1232,29 @@ def test_a_bag_that_cannot_be_closed_is_named_with_recover_and_summed_up(
     assert not node.writer.is_open and node.counters["recorded"] == 20
     monkeypatch.undo()  # the MCAP writer that `recover` uses too
     assert 0 < recover(file, tmp_path / "kept.mcap").messages <= 20
+
+
+def test_a_recording_in_progress_is_said_so_and_not_recovered(bus: BusAddress, tmp_path: Path) -> None:
+    """`fv bag info` of a recording in progress called it unfinished or damaged, advising `fv bag recover`, which
+    took the file away: the recorder wrote on into its `.broken` copy, and the bag kept the few messages before."""
+    node = BagRecord("rec", {"output": str(tmp_path / "live"), "topics": ["/a"], "flush_period_s": 0.2}, address=bus)
+    thread = in_thread(node)
+    pub = PublisherSocket("src", bus)
+    file = tmp_path / "live" / "live_0.mcap"
+    try:
+        wait_subscribed(pub, ["/a"])
+        pub.publish("/a", SlipState(stamp_ns=1))
+        wait_for(lambda: node.counters.get("recorded") == 1, 10.0, "a message flushed")
+        with pytest.raises(BagError, match="still being written \\(a recording in progress\\)"):
+            BagReader(tmp_path / "live")
+        with pytest.raises(ValueError, match="is still being written"):
+            recover_in_place(file)
+        assert sorted(p.name for p in file.parent.iterdir()) == ["live_0.mcap"]
+    finally:
+        pub.close()
+        node.stop()
+        thread.join(10)
+    assert BagReader(tmp_path / "live").message_count == 1
 
 
 def test_a_bag_folder_removed_while_recording_ends_the_recording_naming_the_file(
