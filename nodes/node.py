@@ -194,6 +194,7 @@ class Node:
         self.ctx = new_context()
         self._pub_sock = PublisherSocket(name, self.address, self.ctx)
         self._answering: list[PublisherSocket] = [self._pub_sock]  # updated by the status thread (`keep_answering`)
+        self._announced: list[list[str]] = []  # [topic, type] published through sockets of its own (`announce`)
         self._publishers: list[Publisher] = []
         self._subs: dict[str, list[Subscription]] = {}
         self._arrivals = 0  # messages queued so far: each queued message carries its arrival number
@@ -243,6 +244,12 @@ class Node:
         own besides its publishers' (a bag player's), also while it publishes nothing: a paused player's latched
         messages were taken for a gone publisher's, and a node started during the pause got no CameraInfo."""
         self._answering.append(sock)
+
+    def announce(self, topic: str, type_name: str) -> None:
+        """List `topic` (messages of `type_name`) among this node's publications in NodeStatus, for one it publishes
+        through a socket of its own (a bag player's `publish_raw`): `fv topic list / info` did not see a player's
+        topics, nor a node started beside it find their publisher."""
+        self._announced.append([topic, type_name])
 
     def subscribe(self, topic: str, msg_type: type[Message] | None, callback: Callable[[Message], None],
                   depth: int | None = 10, stale_after_s: float | None = None, gone: bool = False,
@@ -584,7 +591,7 @@ class Node:
             proc_ms_mean=float(proc.mean()), proc_ms_p99=float(np.percentile(proc, 99)),
             drops=self._totals["drops"], gaps=self._seq.gaps, malformed=self._totals["malformed"],
             errors=self._totals["errors"], cpu_percent=100.0 * (time.process_time() - st.cpu0) / wall,
-            rss_bytes=rss, publishes=[[p.topic, p.msg_type.TYPE] for p in self._publishers],
+            rss_bytes=rss, publishes=[[p.topic, p.msg_type.TYPE] for p in self._publishers] + self._announced,
             subscribes=subs, counters={**self.counters, "bus_reconnects": self._pub_sock.reconnects,
                                        "stuck_callbacks": self._stuck_count})
 

@@ -312,6 +312,8 @@ class BagPlay(Node):
         self._answer_stream = {topic: k for k, topic in enumerate(self.sync_topics)}
         self._pub = PublisherSocket(self.name, self.address, self.ctx)
         self.keep_answering(self._pub)
+        for topic in self.played_topics:
+            self.announce(self.out_topic[topic], known[topic].type_name)
         self._notice_streams: dict[str, list[int]] = {}  # unanswered topic -> the streams whose answers it concerns
         for k, topic in enumerate(self.sync_topics):
             if unanswered_topic(topic) not in self.sync_topics:

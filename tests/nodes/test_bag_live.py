@@ -623,6 +623,9 @@ def test_start_paused_until_sigusr1(bus: BusAddress, spawn: Spawn, tmp_path: Pat
         while "paused" not in play.stderr.readline():
             assert play.poll() is None
         assert reader.recv(0.8) is None
+        # the player is listed as the publisher of what it plays (`fv topic list / info` saw none of it)
+        status = wait_status("bag_play", lambda st: bool(st.publishes), timeout_s=5.0)
+        assert status.publishes == [["/status", "NodeStatus"], ["/slip", "SlipState"]]
         play.send_signal(signal.SIGUSR1)
         got = [reader.recv(2.0) for _ in range(20)]
     assert [r.msg.seq for r in got] == list(range(20))
