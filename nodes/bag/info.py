@@ -35,9 +35,19 @@ def bag_info(path: Path | str, gaps: bool = False) -> dict[str, Any]:
     return {"path": str(bag.path), "files": [str(p) for p in bag.files], "size_b": bag.size_b,
             "duration_s": duration, "start_ns": bag.start_ns, "end_ns": bag.end_ns,
             "messages": bag.message_count, **bag.chunk_stats(), "topics": topics,
-            "attachments": [{"name": a.name, "media_type": a.media_type, "size_b": len(a.data), "file": str(a.file)}
-                            for a in bag.attachments()],
-            "metadata": bag.metadata()}
+            "attachments": _distinct_attachments(bag), "metadata": bag.metadata()}
+
+
+def _distinct_attachments(bag: BagReader) -> list[dict[str, Any]]:
+    """The bag's attachments, each distinct one once (name, media type, size in bytes) with the files that hold it:
+    a split recording repeats its sticky ones (the launch file, the calibration) in every file, which `fv bag info`
+    listed once per file."""
+    out: dict[tuple[str, str, bytes], dict[str, Any]] = {}
+    for a in bag.attachments():
+        entry = out.setdefault((a.name, a.media_type, a.data), {"name": a.name, "media_type": a.media_type,
+                                                                "size_b": len(a.data), "files": []})
+        entry["files"].append(str(a.file))
+    return list(out.values())
 
 
 def _when(ns: int) -> str:
@@ -61,7 +71,9 @@ def format_info(info: dict[str, Any]) -> str:
         lines.append(f"  {t['topic']:<{width}}  {t['type']:<17} {t['count']:>8} msgs {t['rate_hz']:8.2f} Hz"
                      f"  from {','.join(t['nodes'])}{extra}")
     lines.append("Attachments:" + ("" if info["attachments"] else " none"))
-    lines += [f"  {a['name']} ({a['media_type']}, {a['size_b']} B)" for a in info["attachments"]]
+    for a in info["attachments"]:
+        lines.append(f"  {a['name']} ({a['media_type']}, {a['size_b']} B)"
+                     + (f" in {len(a['files'])} files" if len(a["files"]) > 1 else ""))
     lines.append("Metadata:" + ("" if info["metadata"] else " none"))
     for name, data in info["metadata"].items():
         lines.append(f"  {name}:")

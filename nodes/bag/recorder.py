@@ -97,7 +97,8 @@ class BagRecordParams:
             raise ValueError("max_bag_size_b and max_bag_duration_s must be >= 0 (0 = no split)")
         for path in self.attach:
             if not Path(path).is_file():
-                raise ValueError(f"attach: file {path!r} not found")
+                raise ValueError(f"attach: {path!r} is " + ("a folder, not a file" if Path(path).is_dir()
+                                                            else "not found"))
 
 
 def software_version() -> str:

@@ -60,9 +60,10 @@ class RecoverReport:
         stretches = ", ".join(f"{a}-{b}" for a, b in self.damaged[:5]) + (" ..." if len(self.damaged) > 5 else "")
         unplaced = (f"; {self.unplaced_messages} messages read but left out, their topic's definition lost"
                     if self.unplaced_messages else "")
+        lost = (f"lost {self.lost_b} bytes in {len(self.damaged)} damaged or cut stretch(es) at bytes {stretches}"
+                if self.damaged else "nothing lost: the file ended at a record's end, without its summary")
         return (f"recovered {self.messages} messages in {self.chunks} chunks, {self.attachments} attachments, "
-                f"{self.metadata} metadata into {self.output} (last log time {self.last_log_time_ns} ns); lost "
-                f"{self.lost_b} bytes in {len(self.damaged)} damaged or cut stretch(es) at bytes {stretches}"
+                f"{self.metadata} metadata into {self.output} (last log time {self.last_log_time_ns} ns); {lost}"
                 + unplaced)
 
 

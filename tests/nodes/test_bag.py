@@ -17,7 +17,7 @@ from msgs import CameraInfo, DisplacementField, Image, MarkerArray, MessageError
 from nodes.bag.backlog import Backlog, Stamped
 from nodes.bag.codec import MESSAGE_ENCODING, RECORDING_END_META, join_frames, split_payload
 from nodes.bag.export import export, video_fps
-from nodes.bag.info import bag_info
+from nodes.bag.info import bag_info, format_info
 from nodes.bag.reader import BagError, BagReader, read_bag
 from nodes.bag.recover import recover, recover_in_place
 from nodes.bag.writer import BagWriter
@@ -162,6 +162,11 @@ def test_split_by_size_and_duration_repeats_attachments(tmp_path: Path, rng: np.
         assert [(m.topic, m.log_time_ns) for m in reader.messages()] == [(t, lt) for t, _, _, lt in messages]
         assert [a.file for a in reader.attachments()] == reader.files
         assert reader.topics()["/field"].count == 60
+        # `fv bag info` lists the launch file once, with the files holding it (it listed it once per file)
+        [attached] = bag_info(writer.output)["attachments"]
+        assert attached["name"] == "launch.yaml" and attached["files"] == [str(f) for f in reader.files]
+        assert f"  launch.yaml (application/yaml, 10 B) in {len(reader.files)} files" in format_info(
+            bag_info(writer.output)).splitlines()
 
 
 def test_latched_and_topic_filter_and_unknown_topic(bag: tuple[Path, list]) -> None:
@@ -195,6 +200,11 @@ def test_recover_keeps_every_complete_chunk(bag: tuple[Path, list], tmp_path: Pa
         assert report.attachments == 1 and report.metadata == 1
     whole = recover(file, tmp_path / "whole.mcap")
     assert whole.complete and whole.messages == len(messages) and whole.lost_b == 0
+    ended = tmp_path / "ended.mcap"  # cut where a chunk starts: no stretch lost ("lost 0 bytes ... at bytes ")
+    ended.write_bytes(data[:chunks[1].chunk_start_offset])
+    report = recover(ended, tmp_path / "ended_fixed.mcap")
+    assert not report.complete and report.damaged == [] and report.chunks == 1
+    assert report.summary_line().endswith("nothing lost: the file ended at a record's end, without its summary")
 
 
 def test_a_recovery_stopped_part_way_leaves_no_file(bag: tuple[Path, list], tmp_path: Path,

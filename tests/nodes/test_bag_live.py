@@ -571,6 +571,8 @@ def test_a_loop_over_nothing_ends_and_numbers_that_mean_nothing_are_refused(bus:
         BagRecord("rec", {"output": str(tmp_path / "r"), "topics": ["/a"], "max_bag_duration_s": float("inf")},
                   address=bus)
     assert not (tmp_path / "r").exists()
+    with pytest.raises(ValueError, match=f"attach: '{tmp_path}' is a folder, not a file"):  # it said "not found"
+        BagRecord("rec", {"output": str(tmp_path / "r"), "topics": ["/a"], "attach": [str(tmp_path)]}, address=bus)
     assert parse_size("1.5K") == 1536 and parse_size("0") == 0
     with pytest.raises(argparse.ArgumentTypeError, match="'0.1' is less than a byte"):
         parse_size("0.1")  # 0 bytes: "never split", without a word
