@@ -7,6 +7,7 @@ by a finalizer.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -93,6 +94,20 @@ def in_thread(node) -> threading.Thread:
     thread = threading.Thread(target=node.spin, kwargs={"install_signals": False}, daemon=True)
     thread.start()
     return thread
+
+
+@contextlib.contextmanager
+def recording(node: BagRecord, bus: BusAddress) -> Iterator[PublisherSocket]:
+    """``node`` recording in a thread, with a publisher of /a it has subscribed to; both ended after."""
+    thread = in_thread(node)
+    pub = PublisherSocket("src", bus)
+    try:
+        wait_subscribed(pub, ["/a"])
+        yield pub
+    finally:
+        pub.close()
+        node.stop()
+        thread.join(10)
 
 
 def play_to_the_end(bus: BusAddress, params: dict, topics: list[str],
@@ -1243,11 +1258,8 @@ def test_a_recording_in_progress_is_said_so_and_not_recovered(bus: BusAddress, t
     """`fv bag info` of a recording in progress called it unfinished or damaged, advising `fv bag recover`, which
     took the file away: the recorder wrote on into its `.broken` copy, and the bag kept the few messages before."""
     node = BagRecord("rec", {"output": str(tmp_path / "live"), "topics": ["/a"], "flush_period_s": 0.2}, address=bus)
-    thread = in_thread(node)
-    pub = PublisherSocket("src", bus)
     file = tmp_path / "live" / "live_0.mcap"
-    try:
-        wait_subscribed(pub, ["/a"])
+    with recording(node, bus) as pub:
         pub.publish("/a", SlipState(stamp_ns=1))
         wait_for(lambda: node.counters.get("recorded") == 1, 10.0, "a message flushed")
         with pytest.raises(BagError, match="still being written \\(a recording in progress\\)"):
@@ -1255,10 +1267,6 @@ def test_a_recording_in_progress_is_said_so_and_not_recovered(bus: BusAddress, t
         with pytest.raises(ValueError, match="is still being written"):
             recover_in_place(file)
         assert sorted(p.name for p in file.parent.iterdir()) == ["live_0.mcap"]
-    finally:
-        pub.close()
-        node.stop()
-        thread.join(10)
     assert BagReader(tmp_path / "live").message_count == 1
 
 
@@ -1268,22 +1276,13 @@ def test_a_bag_folder_removed_while_recording_ends_the_recording_naming_the_file
     closing summary ended in a thread's FileNotFoundError (no summary line, exit 0). Now the next flush ends it
     with an error naming the file, every message it held counted lost, and no `fv bag recover` advice."""
     node = BagRecord("rec", {"output": str(tmp_path / "gone"), "topics": ["/a"], "flush_period_s": 0.2}, address=bus)
-    thread = in_thread(node)
-    pub = PublisherSocket("src", bus)
-    try:
-        wait_subscribed(pub, ["/a"])
+    with caplog.at_level("INFO"), recording(node, bus) as pub:
         for i in range(20):
             pub.publish("/a", SlipState(stamp_ns=i))
         wait_for(lambda: node.counters.get("recorded") == 20, 10.0, "20 messages flushed")
         shutil.rmtree(tmp_path / "gone")
-        with caplog.at_level("INFO"):
-            pub.publish("/a", SlipState(stamp_ns=20))
-            wait_for(lambda: bool(node.error), 10.0, "the removal said")
-            node.stop()
-            thread.join(10)
-    finally:
-        pub.close()
-        node.stop()
+        pub.publish("/a", SlipState(stamp_ns=20))
+        wait_for(lambda: bool(node.error), 10.0, "the removal said")
     file = tmp_path / "gone" / "gone_0.mcap"
     assert node.state == "error" and f"removed while being written (its messages went with it): '{file}'" in node.message
     assert "21 messages received were not stored (/a 21)" in node.message, node.message
@@ -1323,10 +1322,7 @@ def test_a_disk_full_at_a_flush_counts_the_chunk_in_progress_lost_not_recorded(
     monkeypatch.setattr(writer_module, "open_mcap", filling_open)
     node = BagRecord("rec", {"output": str(tmp_path / "full"), "topics": ["/a"], "flush_period_s": 0.5,
                              "compression": "none"}, address=bus)
-    thread = in_thread(node)
-    pub = PublisherSocket("src", bus)
-    try:
-        wait_subscribed(pub, ["/a"])
+    with recording(node, bus) as pub:
         for i in range(20):
             pub.publish("/a", SlipState(stamp_ns=i))
             time.sleep(0.01)
@@ -1334,10 +1330,6 @@ def test_a_disk_full_at_a_flush_counts_the_chunk_in_progress_lost_not_recorded(
                  "20 messages in the chunk in progress")
         full.set()  # the disk is full before the next flush writes the chunk
         wait_for(lambda: bool(node.error), 10.0, "the writer's failure")
-    finally:
-        pub.close()
-        node.stop()
-        thread.join(10)
     file = tmp_path / "full" / "full_0.mcap"
     stored = recover(file, tmp_path / "kept.mcap").messages
     counts = {k: node.counters.get(k) for k in ("recorded", "lost", "dropped")}
