@@ -294,7 +294,7 @@ class SimSensor:
         for scene in self._scenes():
             runner = SceneRunner(scene, skin, self.params.contact)
             started = time.perf_counter()
-            for mech, u in _marker_mechanics(runner, self.markers_ref_mm, self.params.camera_distance_mm):
+            for mech, u in _marker_mechanics(runner, skin, self.params.camera_distance_mm):
                 if self._index < start:
                     self.renderer.skip(len(self.markers_ref_mm))
                     self._index += 1
@@ -308,23 +308,55 @@ class SimSensor:
             self._time_offset_s += scene.n_frames / scene.fps
 
 
-def _marker_mechanics(runner: SceneRunner, markers_ref_mm: np.ndarray,
-                     camera_distance_mm: float) -> Iterator[tuple[MechanicsFrame, np.ndarray]]:
-    """The frames of `runner` with the (N, 3) displacement (ux, uy, uz), mm, of the markers at rest at
-    `markers_ref_mm` (N, 2) mm.
+def _marker_mechanics(runner: SceneRunner, skin: SkinParams,
+                      camera_distance_mm: float) -> Iterator[tuple[MechanicsFrame, np.ndarray]]:
+    """The frames of `runner` with the (N, 3) displacement (ux, uy, uz), mm, of the markers of `skin` at rest
+    (`marker_grid_mm`, row-major).
 
     Raises:
         ValueError: naming the frame, as `SceneRunner` does, when a frame cannot be played: besides
             SceneRunner's, loads that push markers to the camera, `camera_distance_mm` from the skin (the
-            half-space skin has no thickness that would stop them), naming what pushes them.
+            half-space skin has no thickness that would stop them), naming what pushes them, and loads that
+            fold the skin (`_folded_cells`), naming them.
     """
+    markers_ref_mm = marker_grid_mm(skin)
     for mech in runner:
         u = runner.model.grid.sample(mech.state.displacement_mm, markers_ref_mm).T
         reaching = np.flatnonzero(u[:, 2] >= camera_distance_mm)
+        when = f"frame {mech.index} (t = {mech.command.stamp_s:.3f} s): "
         if reaching.size:
-            raise ValueError(f"frame {mech.index} (t = {mech.command.stamp_s:.3f} s): "
-                             + _pushed_to_camera(mech, runner.model, markers_ref_mm, reaching, camera_distance_mm))
+            raise ValueError(when + _pushed_to_camera(mech, runner.model, markers_ref_mm, reaching, camera_distance_mm))
+        folded = _folded_cells(markers_ref_mm + u[:, :2], (skin.n_markers_y, skin.n_markers_x))
+        if folded:
+            cells = (skin.n_markers_y - 1) * (skin.n_markers_x - 1)
+            raise ValueError(when + f"{_loads(mech)} fold the skin: {folded} of the {cells} cells between "
+                             "neighbouring markers turn over (markers pass each other), which no skin does; lower the "
+                             "shear or the load (or raise the skin's modulus)")
         yield mech, u
+
+
+def _folded_cells(markers_mm: np.ndarray, shape: tuple[int, int]) -> int:
+    """How many cells of the marker grid, whose markers (row-major, `shape` = (rows, columns)) lie at
+    `markers_mm` (N, 2) mm in the skin plane, are turned over: either of the cell's two triangles of
+    neighbouring markers has lost its positive area. The linear half-space moves markers through one another
+    under a shear it cannot carry (a 68 N shear of a sphere pressed with 60 N at friction 1.2), and wrote that
+    as the frame's truth."""
+    p = markers_mm.reshape(*shape, 2)
+    a, b, c, d = p[:-1, :-1], p[:-1, 1:], p[1:, :-1], p[1:, 1:]  # (row, col), (row, col + 1), (row + 1, col), ...
+
+    def area(p0: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:  # twice the signed area
+        (x1, y1), (x2, y2) = np.moveaxis(p1 - p0, -1, 0), np.moveaxis(p2 - p0, -1, 0)
+        return x1 * y2 - y1 * x2
+
+    return int(np.count_nonzero((area(a, b, c) <= 0) | (area(d, c, b) <= 0)))
+
+
+def _loads(mech: MechanicsFrame) -> str:
+    """The frame's loads as the contact carries them: "the normal load of 60 N and the shear of 68 N"."""
+    state = mech.state
+    shear = float(np.hypot(*state.force_N))
+    return (f"the normal load of {state.normal_N:g} N" + (f" and the shear of {shear:g} N" if shear else "")
+            + (f" and the torque of {abs(state.torque_Nmm):g} N*mm" if state.torque_Nmm else ""))
 
 
 def check_scene(scene: Scene, params: SensorParams | None = None, frames: int | None = None) -> None:
@@ -336,8 +368,7 @@ def check_scene(scene: Scene, params: SensorParams | None = None, frames: int | 
     0.19 s for twist_key.yaml."""
     params = params if params is not None else SensorParams()
     runner = SceneRunner(scene, params.skin, params.contact)
-    for _ in itertools.islice(_marker_mechanics(runner, marker_grid_mm(params.skin), params.camera_distance_mm),
-                              frames):
+    for _ in itertools.islice(_marker_mechanics(runner, params.skin, params.camera_distance_mm), frames):
         pass
 
 

@@ -270,6 +270,24 @@ def test_a_failed_sequence_leaves_no_folder_and_the_command_says_what_it_wrote(t
     assert f"--frame 500: the scene has {n_frames} frames" in capsys.readouterr().err
 
 
+def test_a_shear_that_folds_the_skin_is_refused_naming_the_loads() -> None:
+    """A sphere at friction 1.2 pressed with 60 N and sheared with 68 N was played and written as truth with
+    neighbouring markers passed through one another (the linear half-space has no limit to the strain); the
+    same scene without its last shear frames stays within the skin, and `check_scene` finds the fold too."""
+    from fv_algos.sim.sensor import check_scene
+    folding = {"object": {"shape": "sphere", "radius_mm": 10, "mu": 1.2}, "fps": 10,
+               "steps": [{"action": "press", "duration_s": 0.3, "normal_N": 60},
+                         {"action": "shear", "duration_s": 0.3, "force_N": [68, 0]},
+                         {"action": "hold", "duration_s": 0.1}]}
+    message = (r"^frame 6 \(t = 0.600 s\): the normal load of 60 N and the shear of 68 N fold the skin: \d+ of the 225 "
+               r"cells between neighbouring markers turn over \(markers pass each other\), which no skin does; lower")
+    with pytest.raises(ValueError, match=message):
+        _frames(0, folding)
+    with pytest.raises(ValueError, match=message):
+        check_scene(scene_from_dict(folding))
+    check_scene(scene_from_dict(folding), frames=6)  # the frames before, the shear still ramping: no fold
+
+
 def test_markers_pushed_to_the_camera_by_a_shear_name_the_shear() -> None:
     """A shear of 1e6 N on a sphere of mu 1e12 under 1 N said "the normal load of 1 N pushes 128 of the 256
     markers to the camera ... lower the load": the shear's coupling to the normal displacement pushed them."""
