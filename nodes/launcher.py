@@ -48,11 +48,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
+from msgs.param import ParamState
 from nodes import launch_checks
 from nodes.endpoints import BusAddress
 from nodes.exit_codes import CONFIG, CONFIG_WHILE_RUNNING, FAILED, OK, TEMPFAIL, on_stop_signals
 from nodes.launch_file import NodeSpec, load_launch, parse_arg_overrides
 from nodes.node import LAUNCH_ENV, STANDBY_READY
+from nodes.param_service import param_topics, set_params
 from nodes.parent_death import parent_env
 from nodes.proc_stats import process_alive, process_state
 
@@ -71,6 +73,7 @@ READY_POLL_S = 0.01  # how often a stop looks whether a process still starting t
 TERM_WAIT_S = 0.3  # of GRACE_S, left to a process sent SIGTERM without its handler yet, before it is killed
 STATUS_PERIOD_S = 1.0  # the launcher's own NodeStatus period
 SILENT_AFTER_S = 3.0  # a running node whose NodeStatus stopped this long is reported (nodes send one per second)
+PARAMS_AGAIN_TIMEOUT_S = 10.0  # how long a restarted node has to take the params set live before it (s)
 START_TRIES = 3  # starts in a row that end in a configuration error before the launch stops (a file still being
 # written may pass the next time; a bad param never does)
 LINES_KEPT = 20  # a process's last output lines kept: its error, the lines a waiting node does not repeat
@@ -93,6 +96,8 @@ class Child:
     tries printed (`_numbers_masked`), not echoed again. spare: the standby process (standby
     nodes), spare_ready: it said STANDBY_READY, spare_lines: its output lines, spare_at: when to
     start the next spare, spare_failures: spares in a row that exited before they were ready.
+    start_params, live_params, params_due: the params set live (`fv param set`), given again to each process
+    that takes the node's place (`Launch._read_param_states`).
     """
 
     spec: NodeSpec
@@ -115,6 +120,9 @@ class Child:
     spare_lines: list[str] = field(default_factory=list)
     spare_at: float | None = None
     spare_failures: int = 0
+    start_params: dict[str, Any] | None = None  # the params its first process started with (its ParamState)
+    live_params: dict[str, Any] = field(default_factory=dict)  # set live since (`fv param set`), kept over restarts
+    params_due: bool = False  # the current process has not been given `live_params` yet
 
 
 class Launch:
@@ -142,6 +150,7 @@ class Launch:
         self._address = None
         self._status_pub = None
         self._status_reader = None
+        self._param_reader = None  # the nodes' ParamState topics
         self._params = None  # NoParamService: `fv param` answered for launch_<stem>
         self._started = time.monotonic()
         self._started_ns = time.time_ns()  # given to every node (LAUNCH_ENV)
@@ -201,6 +210,7 @@ class Launch:
         child.reader = threading.Thread(target=self._pump, args=(child, child.proc.stdout, child.lines),
                                         name=f"out-{spec.name}", daemon=True)
         child.reader.start()
+        child.params_due = bool(child.live_params)
         if child.waiting_since is None:  # a waiting node's tries are said once, when it starts waiting
             self.say(f"started {spec.name} ({spec.kind}) pid {child.proc.pid}")
         if spec.standby and child.spare is None:
@@ -241,6 +251,7 @@ class Launch:
         child.proc, child.reader, child.lines = spare, child.spare_reader, child.spare_lines
         child.spare, child.spare_reader, child.spare_ready = None, None, False
         child.last_status_s = None
+        child.params_due = bool(child.live_params)
         child.spare_at = now + child.spec.respawn_delay_s
         self.say(f"{exited}; spare pid {spare.pid} took over (respawn {child.retries})")
         return True
@@ -272,6 +283,7 @@ class Launch:
             self._start_forwarder(address)
         self._status_pub = PublisherSocket(self.name, address)
         self._status_reader = TopicReader([STATUS_TOPIC], address)
+        self._param_reader = TopicReader([param_topics(c.spec.name)[1] for c in self.children], address)
         self._params = NoParamService(self.name, self._status_pub, address)
         try:
             for child in self.children:
@@ -352,6 +364,7 @@ class Launch:
             while not self._stop.is_set():
                 now = time.monotonic()
                 self._watch_forwarder(now)
+                self._read_param_states()
                 self._read_statuses(now)  # before the exits: a node that reported has started
                 for child in self.children:
                     if child.proc is not None and child.proc.poll() is not None:
@@ -461,10 +474,41 @@ class Launch:
             child = by_name.get(item.msg.node)
             if child is not None and child.proc is not None and item.msg.pid == child.proc.pid:
                 child.last_status_s = now
+                if child.params_due:
+                    child.params_due = False
+                    threading.Thread(target=self._set_live_params, args=(child.spec.name, dict(child.live_params)),
+                                     name=f"params-{child.spec.name}", daemon=True).start()
                 if child.waiting_since is not None:
                     self.say(f"{child.spec.name} is up (pid {item.msg.pid}) after waiting "
                              f"{now - child.waiting_since:.1f} s")
                     child.waiting_since, child.quiet = None, set()
+
+    def _read_param_states(self) -> None:
+        """Keep, per node, the params set live (`fv param set`, `nodes.client.set_param`) that differ from those its
+        first process started with: a process that takes its place (respawned, or a spare) starts with the launch
+        file's, and is given them again once it reports (`_set_live_params`). A tuned threshold went back to the
+        launch file's at a slip detector's respawn, without a word."""
+        by_topic = {param_topics(c.spec.name)[1]: c for c in self.children}
+        while (item := self._param_reader.recv(0.0)) is not None:
+            child, state = by_topic.get(item.topic), item.msg
+            if child is None or not isinstance(state, ParamState) or not state.accepted:
+                continue
+            if child.start_params is None and not state.request_id:
+                child.start_params = dict(state.params)
+            elif state.request_id and child.start_params is not None:
+                child.live_params = {k: state.params[k] for k in state.live
+                                     if k in state.params and state.params[k] != child.start_params.get(k)}
+
+    def _set_live_params(self, name: str, values: dict[str, Any]) -> None:
+        """Give node `name`'s new process the params set live before it (in a thread: it waits for the answer)."""
+        shown = ", ".join(f"{k} {v!r}" for k, v in sorted(values.items()))
+        try:
+            set_params(name, values, PARAMS_AGAIN_TIMEOUT_S, self._address)
+        except (ValueError, TimeoutError) as exc:  # ParamError is a ValueError
+            self.say(f"{name}: the params set live before its restart ({shown}) were not set again: {exc}; it runs "
+                     "with the launch file's")
+            return
+        self.say(f"{name}: the params set live before its restart set again: {shown}")
 
     def _check_nodes(self, now: float) -> list[tuple[str, str]]:
         """(state, message) per node in trouble: its process stopped or its NodeStatus
@@ -602,10 +646,10 @@ class Launch:
         for child in spares:
             self._end(child.spare, f"spare {child.spec.name}", deadline)
             child.spare = None
-        for sock in (self._status_reader, self._params, self._status_pub):
+        for sock in (self._status_reader, self._param_reader, self._params, self._status_pub):
             if sock is not None:
                 sock.close()
-        self._status_reader = self._params = self._status_pub = None
+        self._status_reader = self._param_reader = self._params = self._status_pub = None
         if self._forwarder_start is not None:  # a restart not answered yet: stopped and reaped, not said
             self._forwarder_start.stop()
             self._forwarder_start = None

@@ -535,6 +535,32 @@ def test_killed_tracker_respawns_and_pipeline_resumes(bus_env: Bus, tmp_path: Pa
     assert back["/markers"] < RECOVERY_S * slowdown, f"/markers back {back['/markers']:.2f} s after the kill"
 
 
+@pytest.mark.parametrize("standby", [False, True])
+def test_params_set_live_are_set_again_in_the_process_that_takes_a_node_s_place(bus_env: Bus, tmp_path: Path,
+                                                                               standby: bool) -> None:
+    """A threshold set with `fv param set` went back to the launch file's, without a word, when the node was
+    respawned (or its spare took over) after a crash; the launcher now sets it again, and says so."""
+    from nodes.client import get_params, set_param
+    run, out = launch(tmp_path, "nodes:\n  - {kind: slip_fusion, name: fusion, respawn: true, respawn_delay: 0.1, "
+                                f"standby: {str(standby).lower()}, params: {{inputs: [a, b], output: slip}}}}\n")
+    run.start()
+    try:
+        child = run.children[0]
+        assert set_param("fusion", "threshold", 0.7, timeout_s=20.0) == 0.7
+        if standby:
+            wait_for(lambda: child.spare is not None and child.spare_ready, 20.0, "spare ready")
+        first = run.pid("fusion")
+        os.kill(first, signal.SIGKILL)
+        wait_for(lambda: run.pid("fusion") not in (None, first), 10.0, "the node's next process")
+        wait_for(lambda: "set again" in out.getvalue(), 20.0, "the params set again")
+        assert get_params("fusion", timeout_s=10.0)["threshold"] == 0.7
+    finally:
+        run.stop()
+    took = "took over (respawn 1)" if standby else "respawn 1 in 0.1 s"
+    said = out.getvalue()
+    assert took in said and "fusion: the params set live before its restart set again: threshold 0.7" in said, said
+
+
 def test_standby_spare_takes_over_a_killed_node_at_once(bus_env: Bus, tmp_path: Path) -> None:
     """With `standby: true` a spare process, imports done, takes over when the node is
     killed (no cold start), and a new spare is started for the next time."""
