@@ -17,6 +17,8 @@ import time
 import uuid
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from msgs.param import ParamSet, ParamState
 from nodes.bus import PublisherSocket, TopicReader, node_name, validate_topic
 from nodes.endpoints import BusAddress, bus_address
@@ -165,6 +167,21 @@ def read_all_params(nodes: list[str], timeout_s: float = ANSWER_TIMEOUT_S,
     return found
 
 
+def _sendable(value: Any, name: str) -> Any:
+    """`value` of param `name` as a message carries it: numpy scalars and arrays (within lists, tuples and dicts
+    too) as their Python values (a np.float32 threshold ended `set_param` in msgpack's TypeError); ParamError
+    naming the param for an integer past 64 bits (msgpack's bare OverflowError)."""
+    if isinstance(value, (np.generic, np.ndarray)):
+        value = value.tolist()
+    if isinstance(value, (list, tuple)):
+        return [_sendable(item, name) for item in value]
+    if isinstance(value, dict):
+        return {key: _sendable(item, name) for key, item in value.items()}
+    if isinstance(value, int) and not -2**63 <= value < 2**64:
+        raise ParamError(f"param {name!r}: {value} does not fit the 64-bit integers a message carries", name)
+    return value
+
+
 def set_params(node: str, values: dict[str, Any], timeout_s: float = ANSWER_TIMEOUT_S,
                address: BusAddress | None = None) -> ParamState:
     """Ask the running node `node` (its name or path, `param_topics`) to set `values` ({name: value}) and wait
@@ -172,6 +189,7 @@ def set_params(node: str, values: dict[str, Any], timeout_s: float = ANSWER_TIME
     TimeoutError when the node (or the bus) does not answer within `timeout_s` s."""
     address = address or bus_address()
     set_topic, state_topic = param_topics(node)
+    values = {name: _sendable(value, name) for name, value in values.items()}
     request_id = uuid.uuid4().hex
     deadline = time.monotonic() + timeout_s
     with TopicReader([state_topic], address) as reader:

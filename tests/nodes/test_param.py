@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import numpy as np
 import pytest
 
 from msgs import SlipState
@@ -59,6 +60,10 @@ def test_set_applies_a_live_param_and_the_node_publishes_it(fusion) -> None:
     with pytest.raises(ParamError, match="param 'inputs' takes effect only at start"):
         set_param(FUSION, "inputs", ["/x", "/y"], timeout_s=10.0)
     assert fusion.params.threshold == 0.3 and fusion.params.inputs == ["a/slip", "b/slip"]
+    # a numpy scalar, as robot code computes it, is sent as its value (msgpack's TypeError before)
+    assert set_param(FUSION, "threshold", np.float32(0.25), timeout_s=10.0) == 0.25 == fusion.params.threshold
+    with pytest.raises(ParamError, match="param 'threshold': 1180591620717411303424 does not fit the 64-bit"):
+        set_param(FUSION, "threshold", 2**70, timeout_s=10.0)  # (msgpack's bare OverflowError before)
 
 
 @pytest.mark.parametrize("name, value, message", [
