@@ -46,7 +46,7 @@ import yaml
 
 from fv_algos.text_file import read_utf8
 from fv_algos.yaml_loader import YamlLoader
-from nodes.bus import absolute_namespace, namespaced_name
+from nodes.bus import absolute_namespace, namespaced_name, validate_topic
 from nodes.params import ParamError, build_params, parse_text
 
 TOP_KEYS = {"args", "include", "nodes"}
@@ -222,9 +222,10 @@ def typed_arg(text: CommandLineText, default: Any) -> Any:
 
 
 def load_launch(path: Path | str, args: dict[str, Any] | None = None, _stack: tuple[Path, ...] = (),
-                _namespace: str = "") -> list[NodeSpec]:
+                _namespace: str = "", _included_at: str = "") -> list[NodeSpec]:
     """Validated node specs of launch file `path` (includes expanded) with `args` given, included under the
-    absolute `_namespace` ("" for none).
+    absolute `_namespace` ("" for none) by the include entry at `_included_at` ("FILE:LINE"; "" for the file
+    launched).
 
     Checks everything a node would check at start (kinds, param names and types, arg
     references), so a bad file fails before any process starts.
@@ -242,7 +243,7 @@ def load_launch(path: Path | str, args: dict[str, Any] | None = None, _stack: tu
     if not isinstance(doc, _Dict):
         raise f.error(1, "(top level)", "a launch file is a mapping with keys args, include, nodes")
     f.check_keys(doc, TOP_KEYS, "")
-    values = _resolve_args(f, doc, dict(args or {}))
+    values = _resolve_args(f, doc, dict(args or {}), _included_at)
     specs: list[NodeSpec] = []
     for i, inc in enumerate(_section(f, doc, "include")):
         key = f"include[{i}]"
@@ -258,7 +259,7 @@ def load_launch(path: Path | str, args: dict[str, Any] | None = None, _stack: tu
         if not target.is_file():
             raise f.error(inc.lines["file"], f"{key}.file", f"{target} does not exist")
         namespace = _entry_namespace(f, inc, f"{key}.namespace", line, _namespace)
-        included = load_launch(target, inc_args, _stack + (path,), namespace)
+        included = load_launch(target, inc_args, _stack + (path,), namespace, f"{path}:{line}")
         specs += [replace(spec, included_at=f"{path}:{line}") for spec in included]
     for i, entry in enumerate(_section(f, doc, "nodes")):
         key = f"nodes[{i}]"
@@ -289,12 +290,16 @@ def _section(f: _File, doc: _Dict, name: str) -> _List:
     return f.expect(value, _List, doc.lines[name], name, "a list")
 
 
-def _resolve_args(f: _File, doc: _Dict, given: dict[str, Any]) -> dict[str, Any]:
+def _resolve_args(f: _File, doc: _Dict, given: dict[str, Any], included_at: str) -> dict[str, Any]:
+    """The values of the arguments `doc` declares, from `given` or their defaults; `included_at` ("FILE:LINE" of the
+    include entry that gives them, "" for the file launched) is named in the errors: the command-line hint of an
+    included file's missing argument was refused as undeclared where it was followed."""
     declared = doc.get("args") or _Dict()
     f.expect(declared, dict, doc.lines.get("args", 1), "args", "a mapping of argument names to defaults")
+    by = f" by the include entry at {included_at}" if included_at else ""
     for name in given:
         if name not in declared:
-            raise LaunchError(f"{f.path}: argument {name!r} given but not declared; declared: {sorted(declared)}")
+            raise LaunchError(f"{f.path}: argument {name!r} given{by} but not declared; declared: {sorted(declared)}")
     values = {}
     for name, spec in declared.items():
         key, line = f"args.{name}", declared.lines[name]
@@ -306,7 +311,9 @@ def _resolve_args(f: _File, doc: _Dict, given: dict[str, Any]) -> dict[str, Any]
         if isinstance(value, CommandLineText):
             value = typed_arg(value, default)
         if value is _NO_DEFAULT:
-            raise f.error(line, key, f"no default and not given (fv launch {f.path.name} {name}:=VALUE)")
+            hint = (f"give it in the args of the include entry at {included_at}" if included_at
+                    else f"fv launch {f.path.name} {name}:=VALUE")
+            raise f.error(line, key, f"no default and not given ({hint})")
         values[name] = value
     return values
 
@@ -315,9 +322,11 @@ def _substitute(f: _File, value: Any, args: dict[str, Any], key: str, line: int 
     """`value` with every `$(arg name)` replaced; keeps line numbers of containers."""
     if isinstance(value, _Dict):
         out = _Dict()
-        out.line, out.lines = value.line, value.lines
-        for k, v in value.items():
-            out[k] = _substitute(f, v, args, f"{key}.{k}", value.lines[k])
+        out.line, out.lines = value.line, {}
+        for k, v in value.items():  # a key too (`remap: {$(arg topic): /other}` was kept as written)
+            name = str(_substitute(f, k, args, f"{key}.{k}", value.lines[k])) if isinstance(k, str) else k
+            out[name] = _substitute(f, v, args, f"{key}.{name}", value.lines[k])
+            out.lines[name] = value.lines[k]
         return out
     if isinstance(value, _List):
         out_list = _List(_substitute(f, v, args, f"{key}[{i}]", value.lines[i]) for i, v in enumerate(value))
@@ -365,11 +374,24 @@ def _node_spec(f: _File, entry: _Dict, line: int, key: str, node_class: Any, out
             raise f.error(_line(params, pname, line), f"{key}.params.{pname}",
                           f"{pvalue!r} is not a plain YAML value (number, text, list, mapping)") from None
     remap = f.expect(entry.get("remap", {}), dict, lines.get("remap", line), f"{key}.remap", "a mapping FROM: TO")
-    for src, dst in remap.items():
-        f.expect(dst, str, _line(remap, src, line), f"{key}.remap.{src}", "a topic name")
+    for src, dst in remap.items():  # checked here, not as the node starts (the launch then stopped, `--check` passed)
+        at = _line(remap, src, line)
+        f.expect(src, str, at, f"{key}.remap", "a topic name")
+        f.expect(dst, str, at, f"{key}.remap.{src}", "a topic name")
+        if not src.strip() or " " in src or "\0" in src:
+            raise f.error(at, f"{key}.remap", f"{src!r} is not a topic name")
+        try:
+            validate_topic(dst)
+        except ValueError as exc:
+            raise f.error(at, f"{key}.remap.{src}", f"{exc} (a remap's target is an absolute topic)") from None
     env = f.expect(entry.get("env", {}), dict, lines.get("env", line), f"{key}.env", "a mapping NAME: value")
     for var, val in env.items():
-        f.expect(val, (str, int, float), _line(env, var, line), f"{key}.env.{var}", "text or a number")
+        at = _line(env, var, line)
+        f.expect(val, (str, int, float), at, f"{key}.env.{var}", "text or a number")
+        if not isinstance(var, str) or not re.fullmatch(r"[^=\0]+", var):
+            raise f.error(at, f"{key}.env", f"{var!r} is not an environment variable name (no '=' or NUL)")
+        if "\0" in str(val):
+            raise f.error(at, f"{key}.env.{var}", "a value holds no NUL character")
     delay = f.expect(entry.get("respawn_delay", DEFAULT_RESPAWN_DELAY_S), (int, float),
                      lines.get("respawn_delay", line), f"{key}.respawn_delay", "a number of seconds")
     if not math.isfinite(delay) or delay < 0:

@@ -744,13 +744,16 @@ def _signal_group(proc: subprocess.Popen, sig: int) -> None:
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("launch", help="run a launch file: fv launch FILE [name:=value ...]")
-    p.add_argument("file", type=Path, help="launch file (YAML), e.g. launch/demo.yaml")
+    # a missing file is said by _launch: argparse's error named the optional name:=value as required too
+    p.add_argument("file", type=Path, nargs="?", help="launch file (YAML), e.g. launch/demo.yaml")
     p.add_argument("args", nargs="*", metavar="name:=value", help="launch argument overrides")
     p.add_argument("--check", action="store_true", help="validate the file and list its nodes; start nothing")
     p.set_defaults(func=_launch, intermixed="args")
 
 
 def _launch(args: argparse.Namespace) -> int:
+    if args.file is None:
+        raise ValueError("no launch file given: fv launch FILE [name:=value ...]")
     launch = Launch.from_file(args.file, parse_arg_overrides(args.args))  # LaunchError: `fv` prints it, exit 2
     if args.check:
         for spec in launch.specs:

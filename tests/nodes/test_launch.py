@@ -81,6 +81,11 @@ def _refusal(path: Path) -> str:
     ("nodez: []\n", 1, "nodez"),
     ("include:\n  - file: missing.yaml\n", 2, "include[0].file"),
     ("nodes:\n  - kind: talker\n    namespace: left arm\n", 3, "nodes[0] (talker).namespace"),
+    # refused as the node started, after the forwarder had (`--check` passed them)
+    ("nodes:\n  - kind: talker\n    env: {\"A=B\": 1}\n", 3, "nodes[0] (talker).env: 'A=B' is not an environment"),
+    ("nodes:\n  - kind: talker\n    env: {A: \"x\\0y\"}\n", 3, "nodes[0] (talker).env.A: a value holds no NUL"),
+    ("nodes:\n  - kind: talker\n    remap: {/chatter: rel}\n", 3, "remap./chatter: topic 'rel': must start with '/'"),
+    ("nodes:\n  - kind: talker\n    remap: {/chatter: ''}\n", 3, "remap./chatter: topic '': must start with '/'"),
 ])
 def test_bad_launch_file_names_file_line_and_key(tmp_path: Path, text: str, line: int, key: str) -> None:
     path = _write(tmp_path, "bad.yaml", text)
@@ -104,10 +109,21 @@ def test_error_in_included_file_names_that_file(tmp_path: Path) -> None:
     assert f"{inner}:5:" in message and "rate_hz" in message
 
 
+def test_an_included_file_s_arguments_are_said_against_the_include_entry(tmp_path: Path) -> None:
+    """An included file's missing argument was said with the command line of that file as the fix
+    (`fv launch sub.yaml need:=VALUE`), which the launched file then refused as not declared."""
+    _write(tmp_path, "sub.yaml", "args:\n  need: {description: x}\nnodes:\n  - kind: talker\n")
+    outer = _write(tmp_path, "outer.yaml", "include:\n  - file: sub.yaml\n")
+    assert _refusal(outer).endswith(f"args.need: no default and not given (give it in the args of the include "
+                                    f"entry at {outer}:2)")
+    other = _write(tmp_path, "other.yaml", "include:\n  - {file: sub.yaml, args: {need: 1, x: 2}}\n")
+    assert f"argument 'x' given by the include entry at {other}:2 but not declared" in _refusal(other)
+
+
 def test_args_includes_and_overrides(tmp_path: Path) -> None:
     _write(tmp_path, "inner.yaml", "args: {rate: 1.0, ns: ''}\nnodes:\n  - kind: talker\n    name: inner_talker\n"
                                    "    namespace: $(arg ns)\n    params: {rate_hz: $(arg rate)}\n"
-                                   "    remap: {/chatter: $(arg ns)/chat}\n")
+                                   "    remap: {/chatter: $(arg ns)/chat, $(arg ns)/rate: /rate}\n")
     outer = _write(tmp_path, "outer.yaml",
                    "args:\n  rate: 4\n  side: left\ninclude:\n  - file: inner.yaml\n"
                    "    args: {rate: $(arg rate), ns: /$(arg side)}\n"
@@ -116,7 +132,7 @@ def test_args_includes_and_overrides(tmp_path: Path) -> None:
     specs = {s.name: s for s in load_launch(outer, {"rate": 7.5})}
     talker, listener = specs["left_inner_talker"], specs["listener"]
     assert talker.params == {"rate_hz": 7.5} and talker.namespace == "/left"
-    assert talker.remap == {"/chatter": "/left/chat"}
+    assert talker.remap == {"/chatter": "/left/chat", "/left/rate": "/rate"}  # a key too (it was kept as written)
     assert listener.env == {"OMP_NUM_THREADS": "1"} and listener.respawn and listener.max_retries == 2
     assert listener.required and listener.respawn_delay_s == 1.0
     assert talker.argv()[:4] == ["node", "talker", "--name", "left_inner_talker"]
