@@ -267,7 +267,31 @@ def load_launch(path: Path | str, args: dict[str, Any] | None = None, _stack: tu
         entry = _substitute(f, f.expect(entry, _Dict, line, key, "a mapping with at least `kind`"), values, key)
         specs.append(_node_spec(f, entry, line, key, node_class, _namespace))
     _check_unique(specs)
-    return specs
+    return specs if _stack else _resolve_start_after(specs)
+
+
+def _resolve_start_after(specs: list[NodeSpec]) -> list[NodeSpec]:
+    """`specs` with each node's `start_after` names (a camera's, a bag player's: the nodes it waits for) resolved
+    against the launch's nodes: a name of a node of the launch stands; else a name relative to the node's
+    namespace (`tracker` in a file included under `left` is `left_tracker`, a node of that file) becomes that
+    node's name. LaunchError naming the entry for a name that is neither: such a camera waited its whole
+    `start_timeout_s` (30 s) for a node that never came (`pipeline.yaml` included under a namespace)."""
+    names = {spec.name for spec in specs}
+    out = []
+    for spec in specs:
+        awaited = spec.params.get("start_after")
+        if not awaited:
+            out.append(spec)
+            continue
+        resolved = []
+        for name in awaited:
+            relative = namespaced_name(spec.namespace, name)
+            if name not in names and relative not in names:
+                raise LaunchError(f"{spec.source}: {spec.name}'s start_after names {name!r}, no node of this launch "
+                                  f"(its nodes: {', '.join(sorted(names))})")
+            resolved.append(name if name in names else relative)
+        out.append(replace(spec, params={**spec.params, "start_after": resolved}))
+    return out
 
 
 def _entry_namespace(f: _File, entry: _Dict, key: str, line: int, outer: str) -> str:

@@ -274,6 +274,20 @@ def test_the_cameras_of_the_shipped_pipelines_wait_for_the_nodes_that_take_a_ref
     assert set(source.params["start_after"]) == {"tracker", "interpolator", "slip_detector"}
 
 
+def test_start_after_names_resolve_in_the_namespace_of_their_file(tmp_path: Path) -> None:
+    """`pipeline.yaml` included under a namespace: its camera waited for `tracker`, `interpolator` and
+    `slip_detector`, no nodes of that launch (they are `left_tracker` ...), its whole 30 s, reporting ok. Its
+    names now resolve in its namespace; a name that is no node of the launch is refused, naming the entry."""
+    outer = _write(tmp_path, "outer.yaml", f"include:\n  - {{file: {REPO / 'launch' / 'pipeline.yaml'}, "
+                                           "namespace: left}\n")
+    camera = {s.name: s for s in load_launch(outer)}["left_camera"]
+    assert camera.params["start_after"] == ["left_tracker", "left_interpolator", "left_slip_detector"]
+    lone = _write(tmp_path, "lone.yaml", "nodes:\n  - {kind: camera, params: {start_after: [tracker]}}\n")
+    with pytest.raises(LaunchError, match=rf"{lone}:2: camera's start_after names 'tracker', no node of this launch "
+                                          r"\(its nodes: camera\)"):
+        load_launch(lone)
+
+
 @pytest.mark.parametrize("name, args", [("pipeline.yaml", {}), ("view.yaml", {}), ("video.yaml", {"video": "clip.avi"}),
                                         ("gelsight_mini.yaml", {}), ("replay.yaml", {"bag": "run1"}),
                                         ("video_pair.yaml", {"left": "a.avi", "right": "b.avi"}),
