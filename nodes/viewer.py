@@ -54,7 +54,12 @@ class ViewerParams:
     def __post_init__(self) -> None:
         if not 0 <= self.port <= 65535:
             raise ValueError(f"port {self.port} is not in 0..65535 (0 = any free port)")
-        for name in ("rate_hz", "history_s", "arrow_scale", "stale_s"):
+        if not self.host.strip():  # it served on every interface, saying "live view on http://:PORT/"
+            raise ValueError("host is empty: give an address (127.0.0.1 for this machine alone, 0.0.0.0 for every "
+                             "interface)")
+        if not 0.1 <= self.rate_hz <= 60:  # the page waits 1 / rate_hz s: 1e-9 overflowed its timer, polling flat out
+            raise ValueError(f"rate_hz {self.rate_hz} is not in 0.1..60 (page updates per second)")
+        for name in ("history_s", "arrow_scale", "stale_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} {getattr(self, name)} must be > 0")
         if self.field_range_px < 0:

@@ -247,6 +247,8 @@ def test_a_taken_port_is_a_clear_error(bus: Bus) -> None:
 
 
 @pytest.mark.parametrize("params", [{"port": 70000}, {"rate_hz": 0.0}, {"history_s": -1.0},
+                                    {"rate_hz": 1e-9}, {"rate_hz": 1e3},  # 1e-9: the page's timer overflowed
+                                    {"host": ""},  # it served on every interface, said as "http://:PORT/"
                                     {"field_range_px": -1.0}, {"jpeg_quality": 0}, {"view_height_px": 10}])
 def test_bad_params_are_refused(params: dict) -> None:
     with pytest.raises(ValueError):
