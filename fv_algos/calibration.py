@@ -224,11 +224,15 @@ def _not_found_error(n_found: int, n_views: int, rejected: dict[str, str], param
     parts = [f"{len(names)} x {why} ({', '.join(names[:3])}{', ...' if len(names) > 3 else ''})"
              for why, names in by_reason.items()]
     cols, rows = params.board.inner_corners
-    return ValueError(
-        f"chessboard usable in {n_found} of {n_views} views, need at least {params.min_views}"
-        f"{'; rejected: ' + '; '.join(parts) if parts else ''}. The board size counts INNER corners: {cols}x{rows} "
-        f"is a board of {cols + 1}x{rows + 1} squares"
-    )
+    hint = (f". The board size counts INNER corners: {cols}x{rows} is a board of {cols + 1}x{rows + 1} squares"
+            if _not_found(params.board) in by_reason else "")  # (said of duplicate views too, found in every one)
+    return ValueError(f"chessboard usable in {n_found} of {n_views} views, need at least {params.min_views}"
+                      f"{'; rejected: ' + '; '.join(parts) if parts else ''}{hint}")
+
+
+def _not_found(board: Chessboard) -> str:
+    """Why a view is rejected when `board` is not found in it."""
+    return f"chessboard with {board.inner_corners[0]}x{board.inner_corners[1]} inner corners not found"
 
 
 @dataclass(frozen=True)
@@ -354,7 +358,7 @@ def calibrate_fisheye(views: Sequence[tuple[str, np.ndarray]], params: Calibrati
             continue
         corners = find_chessboard_corners(gray, board, params.subpix_half_window_px)
         if corners is None:
-            rejected[name] = f"chessboard with {board.inner_corners[0]}x{board.inner_corners[1]} inner corners not found"
+            rejected[name] = _not_found(board)
             continue
         same = [other for other, seen in zip(used, image_points)
                 if np.sqrt(np.mean(np.sum((corners - seen) ** 2, axis=1))) < SAME_VIEW_PX]

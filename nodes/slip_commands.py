@@ -21,7 +21,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("dataset", help="generate slip datasets")
     kinds = p.add_subparsers(dest="dataset_kind", required=True, metavar="KIND")
     q = kinds.add_parser("sim", help="simulated sequences through the real perception pipeline (paper protocol)")
-    q.add_argument("--out", type=output_file, required=True, help="output .npz (float16 fields)")
+    q.add_argument("--out", type=output_with_suffix(".npz"), required=True, help="output .npz (float16 fields)")
     q.add_argument("--sequences", type=int, default=1600, help="raw sequences, half slip (default 1600); with "
                    "--grasps, the grasps")
     q.add_argument("--grasps", action="store_true", help="whole grasps as the main job plays them (pressed from rest, "

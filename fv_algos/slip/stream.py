@@ -18,6 +18,7 @@ from itertools import islice
 import numpy as np
 
 from fv_algos.perception import Perception, PerceptionParams
+from fv_algos.sim.scene import MAX_SCENE_FRAMES
 from fv_algos.sim.sensor import SimSensor
 from fv_algos.slip.classifier import SlipClassifier
 
@@ -33,12 +34,16 @@ def judge_stream(classifier: SlipClassifier, seconds: float, fps: float, seed: i
     judged whose window's truth changes within it), accuracy there and on the other frames
     (``steady_accuracy``), ``slip_before_called_slip`` (of the windows held at their last field but
     slipping earlier in them, the share called slip: the window's lag)}; an accuracy or share is None
-    without such frames. ValueError when the stream is shorter than one window.
+    without such frames. ValueError when the stream is shorter than one window, or longer than
+    MAX_SCENE_FRAMES (about 11 ms a frame here: `--stream 3 --fps 1e5` ran for about an hour without a word).
     """
     window = classifier.config.window
     frames = int(round(seconds * fps))
     if frames < window:
         raise ValueError(f"{seconds} s at {fps} fps is {frames} frames, fewer than the model's window of {window}")
+    if frames > MAX_SCENE_FRAMES:
+        raise ValueError(f"{seconds} s at {fps} fps is {frames} frames, more than the {MAX_SCENE_FRAMES} a stream "
+                         "is judged over (a scene's limit too): judge fewer seconds or frames per second")
     perception = Perception(PerceptionParams.preset(preset))  # type: ignore[arg-type]
     fields: deque[np.ndarray] = deque(maxlen=window)
     window_truth: deque[bool] = deque(maxlen=window)

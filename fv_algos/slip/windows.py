@@ -263,7 +263,9 @@ def split_windows(windows: WindowSet, kind: str = "random", test_fraction: float
         test_mask = np.isin(groups, held)
     train, test = np.flatnonzero(~test_mask), np.flatnonzero(test_mask)
     if train.size == 0 or test.size == 0:
-        raise ValueError(f"{kind!r} split with test_fraction={test_fraction} leaves an empty side ({train.size}/{test.size})")
+        shown = "paper" if kind == "random" else kind  # as `fv train --split` names it (it read 'random')
+        raise ValueError(f"{shown!r} split with test_fraction={test_fraction} leaves an empty side (train {train.size} "
+                         f"/ test {test.size} windows)")
     return Split(windows, train, test, kind)
 
 

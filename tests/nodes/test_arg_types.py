@@ -60,6 +60,7 @@ def test_a_file_system_error_in_a_command_is_one_line_naming_it(monkeypatch: pyt
     (["train", "--data", "d.npz", "--out", "r", "--export", "adir"], "--export: adir must end in .pt"),  # same
     (["eval", "--trials", "t", "--model", "gelsight", "--online", "--plot", "p.txt"], "--plot: p.txt must end in .png"),
     (["sim", "--scene", "s.yaml", "--out", "o", "--preview", "p.txt"], "--preview: p.txt must end in .png"),
+    (["dataset", "sim", "--out", "x.txt"], "--out: x.txt must end in .npz"),  # written to x.txt.npz
     (["view", "--bag", "b", "--out", "o.png", "--at", "nan"], "--at: nan is not a finite number >= 0"),
     (["real", "train", "--trials", "t", "--out", "m1.json"], "--out: m1.json must end in .pt"),  # the record
     (["real", "train", "--trials", "t", "--out", "m.pt", "--lr", "inf"], "--lr: inf is not a finite number > 0"),

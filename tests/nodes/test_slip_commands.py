@@ -132,6 +132,9 @@ def test_eval_json_has_table1_inflation_and_variants(data: Path, tmp_path: Path,
 def test_bad_input_gives_clear_errors(data: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     assert main(["eval", "--data", str(data), "--out", str(tmp_path), "--splits", "diagonal"]) == 2
     assert "unknown ['diagonal']" in capsys.readouterr().err
+    assert main(["train", "--data", str(data), "--out", str(tmp_path / "p"), "--split", "paper", "--test-fraction",
+                 "0.0001", *TINY]) == 2  # the split was named 'random', which no option is
+    assert "'paper' split with test_fraction=0.0001 leaves an empty side (train " in capsys.readouterr().err
     assert main(["train", "--data", str(tmp_path / "missing.npz"), "--out", str(tmp_path)]) == 2
     assert "not found" in capsys.readouterr().err
     assert main(["train", "--data", str(data), "--out", str(tmp_path), "--model", "transformer", *TINY]) == 2
@@ -234,6 +237,8 @@ def test_the_main_jobs_endless_random_grasps_are_judged_as_their_truth(capsys) -
     assert lag["slip_before_called_slip"] <= 0.3
     assert main(["eval", "--stream", "0.2", "--model", default]) == 2
     assert "0.2 s at 30.0 fps is 6 frames, fewer than the model's window of 10" in capsys.readouterr().err
+    assert main(["eval", "--stream", "3", "--fps", "1e5", "--model", default]) == 2  # ran an hour without a word
+    assert "3.0 s at 100000.0 fps is 300000 frames, more than the 100000" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("other", [["--trials", "recordings"], ["--data", "sim.npz"]])
