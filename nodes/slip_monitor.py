@@ -28,6 +28,10 @@ class SlipMonitorParams:
     every_s: float = 1.0
     frames: list[str] = field(default_factory=list)
 
+    def __post_init__(self) -> None:
+        if not self.every_s >= 0:  # -1 was taken as 0 without a word
+            raise ValueError(f"every_s {self.every_s} must be >= 0 (0 = changes only)")
+
 
 class SlipMonitor(Node):
     """Human-readable slip decisions, e.g. ``t=3.20s  SLIP     p=0.97  latency 9.1 ms``."""

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from msgs import Image, SlipState
-from nodes.slip_monitor import SlipMonitor
+from nodes.slip_monitor import SlipMonitor, SlipMonitorParams
 
 RECORDED_NS = 1_700_000_000_000_000_000  # a capture stamp from a session recorded long ago
 
@@ -54,3 +54,9 @@ def test_a_replayed_decision_whose_frame_was_not_seen_says_so(capsys) -> None:
     node.on_slip(SlipState(stamp_ns=RECORDED_NS, probability=0.1, pub_ns=time.time_ns()))
     assert "latency  n/a (frame not seen)" in capsys.readouterr().out
     node.close()
+
+
+def test_a_negative_period_is_refused() -> None:
+    """every_s -1 was taken as 0 (changes only) without a word."""
+    with pytest.raises(ValueError, match="every_s -1.0 must be >= 0"):
+        SlipMonitorParams(every_s=-1.0)
