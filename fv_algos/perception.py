@@ -26,7 +26,7 @@ from fv_algos.detection import (
     estimate_marker_params,
 )
 from fv_algos.field import MAX_MARKERS, DisplacementField, FieldInterpolator, FieldParams
-from fv_algos.reference_markers import checked_reference
+from fv_algos.reference_markers import checked_reference, point_rows
 from fv_algos.tracking import Tracker, TrackerParams, TrackState
 
 PresetName = Literal["paper", "default", "fastest"]
@@ -80,7 +80,7 @@ def resumable_reference(reference_px: np.ndarray) -> np.ndarray:
     track against: ValueError naming what is wrong for fewer than 3 markers (no field) and for what
     `fv_algos.reference_markers.checked_reference` refuses (another shape, non-finite coordinates, a
     marker listed twice)."""
-    ref = np.asarray(reference_px, dtype=np.float64).reshape(-1, 2)
+    ref = point_rows(reference_px, "reference_px")
     if ref.shape[0] < 3:
         raise ValueError(f"reference_px holds {ref.shape[0]} markers, need >= 3")
     return checked_reference(ref, "reference_px")

@@ -12,6 +12,18 @@ _COINCIDENT_PX = 1e-3
 _MAX_COORD_PX = 1e6
 
 
+def point_rows(points_px: np.ndarray, name: str) -> np.ndarray:
+    """(N, 2) float64 view or copy of marker positions `points_px` (px); an empty array of any shape is (0, 2).
+    ValueError naming `name` for another shape: read as (-1, 2), a (4, 3) array became 6 markers of
+    garbage, tracked without a word."""
+    points = np.asarray(points_px, dtype=np.float64)
+    if points.size == 0:
+        return points.reshape(0, 2)
+    if points.ndim != 2 or points.shape[1] != 2:
+        raise ValueError(f"{name} must have shape (N, 2), got {points.shape}")
+    return points
+
+
 def checked_reference(points_px: np.ndarray, name: str) -> np.ndarray:
     """(N, 2) float64 copy of reference marker positions `points_px` (px), N >= 1.
 

@@ -14,7 +14,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from fv_algos.detection import Detections
-from fv_algos.reference_markers import checked_reference
+from fv_algos.reference_markers import checked_reference, point_rows
 
 
 # Rejecting an implausible match changes its neighbours' medians, so the check is repeated.
@@ -126,14 +126,6 @@ class TrackState:
         return self.current_px - self.reference_px
 
 
-def _checked_points(points: np.ndarray, name: str) -> np.ndarray:
-    """(N, 2) float64 copy of `points`; ValueError naming `name` when the shape is wrong."""
-    array = np.asarray(points, dtype=np.float64)
-    if array.ndim != 2 or array.shape[1] != 2:
-        raise ValueError(f"{name} must have shape (N, 2), got {array.shape}")
-    return array.copy()
-
-
 def neighbour_graph(reference_px: np.ndarray, neighbours: int) -> tuple[np.ndarray, np.ndarray]:
     """k nearest reference neighbours of each marker.
 
@@ -225,8 +217,8 @@ def neighbour_consistency(
     field passes, a swapped or wrongly matched marker, off by ~one pitch, does not).
     Returns (N,) bool, True = inconsistent. Non-finite rows count as not valid.
     """
-    ref = _checked_points(reference_px, "reference_px")
-    cur = _checked_points(current_px, "current_px")
+    ref = point_rows(reference_px, "reference_px")
+    cur = point_rows(current_px, "current_px")
     mask = np.asarray(valid, dtype=bool)
     if cur.shape != ref.shape or mask.shape != (ref.shape[0],):
         raise ValueError(f"shapes disagree: reference {ref.shape}, current {cur.shape}, valid {mask.shape}")
@@ -315,7 +307,7 @@ class Tracker:
 
     def step(self, detections: Detections) -> TrackState:
         """Match one frame's detections (rows with non-finite coordinates are ignored)."""
-        det = np.asarray(detections.centres_px, dtype=np.float64).reshape(-1, 2)
+        det = point_rows(detections.centres_px, "detections.centres_px")
         areas = np.asarray(detections.areas_px2, dtype=np.float64).reshape(-1)
         if areas.shape[0] != det.shape[0]:
             raise ValueError(f"detections: {det.shape[0]} centres but {areas.shape[0]} areas")

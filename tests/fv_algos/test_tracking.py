@@ -393,3 +393,16 @@ def test_neighbour_consistency_flags_a_swap_not_a_smooth_field() -> None:
     assert flags.sum() == 2
     with pytest.raises(ValueError, match="shapes"):
         neighbour_consistency(REF, smooth[:5], valid)
+
+
+def test_marker_arrays_of_another_shape_are_refused_by_name() -> None:
+    """Read as (-1, 2), a (4, 3) reference became 6 markers of garbage that `Perception.resume` tracked (162
+    markers for 108 on a real frame, 57 valid), and (4, 3) detections 6 matches: now a ValueError naming it."""
+    from fv_algos.perception import resumable_reference
+    wrong = np.column_stack([REF[:4], np.arange(4.0)])
+    with pytest.raises(ValueError, match=r"reference_px must have shape \(N, 2\), got \(4, 3\)"):
+        resumable_reference(wrong)
+    with pytest.raises(ValueError, match=r"detections.centres_px must have shape \(N, 2\), got \(4, 3\)"):
+        Tracker(_det(REF, None)).step(Detections(wrong, np.full(6, AREA)))
+    state = Tracker(_det(REF, None)).step(Detections(np.zeros(0), np.zeros(0)))  # none seen: an empty frame
+    assert not state.valid.any()
