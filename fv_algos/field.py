@@ -26,6 +26,7 @@ Kernel = Literal["thin_plate_spline", "multiquadric", "inverse_multiquadric", "g
 # does by default: it is the most any of these kernels needs, and it reproduces uniform
 # translation and linear strain exactly.
 MAX_MARKERS = 400  # the most markers a pipeline takes by default: the RBF solve grows as N^3 (3000 took 19 s)
+MAX_SMOOTHING = 1e12  # past it the balanced RBF system overflows (1e300); from about 1e6 the field is a plane fit
 _KERNELS = ("thin_plate_spline", "multiquadric", "inverse_multiquadric", "gaussian", "linear", "cubic")
 _SCALED = ("multiquadric", "inverse_multiquadric", "gaussian")
 _POLY_TERMS = 3
@@ -78,8 +79,9 @@ class FieldParams:
             raise ValueError(f"FieldParams.grid_shape must be (H, W) with both >= 2, got {self.grid_shape}")
         if self.width_px is not None and not (np.isfinite(self.width_px) and self.width_px > 0.0):
             raise ValueError(f"FieldParams.width_px must be None or finite > 0, got {self.width_px}")
-        if not (np.isfinite(self.smoothing) and self.smoothing >= 0.0):
-            raise ValueError(f"FieldParams.smoothing must be finite >= 0, got {self.smoothing}")
+        if not 0.0 <= self.smoothing <= MAX_SMOOTHING:
+            raise ValueError(f"FieldParams.smoothing must be in [0, {MAX_SMOOTHING:g}] (from about 1e6 on the field is "
+                             f"the markers' least-squares plane), got {self.smoothing}")
         if not 0.0 < self.rcond < 1.0:
             raise ValueError(f"FieldParams.rcond must be in (0, 1), got {self.rcond}")
         if self.min_markers < 1:
@@ -160,7 +162,7 @@ def rbf_system(
     interpolant does not depend on it), plus a linear polynomial. The symmetric system
     A = [[K + smoothing I, P], [P^T, 0]] is inverted by an eigen pseudo-inverse (eigenvalues
     below rcond x the largest magnitude dropped) so collinear or coincident markers stay
-    finite. Returns (inverse (N+3, N+3), evaluation (G, N+3) float64, condition number of A):
+    finite. Returns (inverse (N+3, N+3), evaluation (G, N+3) float64, condition number of A as balanced):
     grid values = evaluation @ inverse[:, :N] @ marker values.
     """
     n = markers_px.shape[0]
@@ -172,11 +174,19 @@ def rbf_system(
     basis = _linear_basis(markers_px, centre, extent)
     system[:n, n:] = basis
     system[n:, :n] = basis.T
+    # Balanced: the polynomial rows and columns scaled by 1 + smoothing (the kernel block's entries are about 1
+    # plus the smoothing), and the inverse scaled back. Unbalanced, a large smoothing put the polynomial block's
+    # eigenvalues (about |P|^2 / smoothing) below rcond x the largest: they were dropped and the field came out
+    # zero, flagged valid (smoothing 1e8). Balanced, theirs are about |P|^2 (1 + smoothing). No smoothing: a
+    # scale of 1, the same system as before.
+    scale = np.ones(n + _POLY_TERMS)
+    scale[n:] = 1.0 + smoothing
+    system *= scale[:, None] * scale[None, :]
     eigenvalues, vectors = np.linalg.eigh(system)
     magnitude = np.abs(eigenvalues)
     largest = magnitude.max()
     keep = magnitude > rcond * largest if largest > 0.0 else np.zeros_like(magnitude, dtype=bool)
-    inverse = (vectors[:, keep] / eigenvalues[keep]) @ vectors[:, keep].T
+    inverse = scale[:, None] * ((vectors[:, keep] / eigenvalues[keep]) @ vectors[:, keep].T) * scale[None, :]
     evaluation = np.hstack(
         [
             _kernel(_distances(grid_points_px, markers_px), kernel, width),

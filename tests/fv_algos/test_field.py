@@ -182,3 +182,22 @@ def test_bad_input_raises() -> None:
         FieldInterpolator(np.array([[np.nan, 0.0], [1.0, 1.0]]))
     with pytest.raises(ValueError, match="current_px"):
         FieldInterpolator(REF).interpolate(REF[:5], VALID)
+
+
+@pytest.mark.parametrize("method", ["rbf_operator", "rbf_refit"])
+def test_a_large_smoothing_tends_to_the_markers_plane_fit_not_to_zero(method: str) -> None:
+    """With smoothing 1e8 the operator's pseudo-inverse dropped the polynomial block (its eigenvalues fell below
+    rcond x the kernel block's): a uniform shift of 1 px came out as a zero field, flagged valid. A smoothing past
+    MAX_SMOOTHING, where the balanced system overflows, is refused."""
+    from fv_algos.field import MAX_SMOOTHING
+    ref = np.stack(np.meshgrid(np.arange(10) * 25.0 + 30, np.arange(10) * 25.0 + 30), -1).reshape(-1, 2)
+    wavy = np.column_stack([np.sin(ref[:, 0] / 40), np.cos(ref[:, 1] / 50)])
+    spreads = []
+    for smoothing in (1e6, 1e8, MAX_SMOOTHING):
+        interpolator = FieldInterpolator(ref, FieldParams(smoothing=smoothing, method=method))
+        shifted = interpolator.interpolate(ref + [1.0, 0.0], np.ones(len(ref), bool))
+        assert shifted.valid and np.allclose(shifted.field[..., 0], 1.0) and np.allclose(shifted.field[..., 1], 0.0)
+        spreads.append(interpolator.interpolate(ref + wavy, np.ones(len(ref), bool)).field[..., 0].std())
+    assert np.allclose(spreads, spreads[-1], rtol=1e-2) and spreads[-1] > 0.1  # the plane fit of a wavy field
+    with pytest.raises(ValueError, match="smoothing must be in"):
+        FieldParams(smoothing=MAX_SMOOTHING * 10)
