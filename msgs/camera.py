@@ -43,9 +43,10 @@ class Image(Message):
             raise ValueError(f"frame_index: {self.frame_index} is not >= -1")
         if self.encoding not in ENCODING_CHANNELS:
             raise ValueError(f"encoding: {self.encoding!r} is not one of {sorted(ENCODING_CHANNELS)}")
-        channels = 1 if self.data.ndim == 2 else self.data.shape[2]
-        if channels != ENCODING_CHANNELS[self.encoding]:
-            raise ValueError(f"data: shape {self.data.shape} does not match encoding {self.encoding!r}")
+        # mono8 (H, W), colour (H, W, 3): mono8 data of (H, W, 1) was taken, and the tracker refused every such frame
+        if self.data.shape[2:] != (() if ENCODING_CHANNELS[self.encoding] == 1 else (3,)):  # (2 or 3 dims: ARRAYS)
+            raise ValueError(f"data: shape {self.data.shape} does not match encoding {self.encoding!r} ((H, W) for "
+                             "mono8, (H, W, 3) for bgr8 and rgb8)")
         if self.data.dtype != np.uint8:
             raise ValueError(f"data: dtype {self.data.dtype} is not uint8")
         if not self.data.size:

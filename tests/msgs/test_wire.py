@@ -335,3 +335,12 @@ def test_check_message_sends_numpy_scalars_as_python_values() -> None:
         check_message(SlipState(probability=np.complex64(1j)))
     with pytest.raises(ValueError, match=r"^SlipState\.slip: 1 is not a bool"):
         check_message(SlipState(slip=np.int8(1)))
+
+
+@pytest.mark.parametrize("encoding, shape", [("mono8", (4, 5, 1)), ("bgr8", (4, 5)), ("rgb8", (4, 5, 4))])
+def test_image_data_of_another_shape_than_its_encoding_s_is_refused(encoding: str, shape: tuple[int, ...]) -> None:
+    """mono8 data of (H, W, 1) was taken, and the tracker refused every such frame as no image."""
+    msg = Image(encoding=encoding, data=np.zeros(shape, np.uint8))
+    with pytest.raises(MessageError, match=rf"shape \({shape[0]}, .*does not match encoding '{encoding}'") as err:
+        msgs.decode(_frames(msg), "/camera/image")
+    assert err.value.field == "data"
