@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass, field
@@ -92,6 +93,19 @@ def node_name(path: str) -> str:
     if not name:
         raise ValueError(f"{path!r} is not a node name or path (slip_detector, /left/slip_detector)")
     return namespaced_name(namespace, name)
+
+
+def check_timeout(timeout_s: float | None) -> None:
+    """ValueError for a wait (s) that is not > 0: 0 or -1 raised at the first wait, nan never (infinity and None:
+    no timeout)."""
+    if timeout_s is not None and not timeout_s > 0:
+        raise ValueError(f"timeout_s {timeout_s} must be > 0 s (None: no timeout)")
+
+
+def poll_ms(wait_s: float | None) -> int | None:
+    """A wait of `wait_s` seconds as ZeroMQ's poll takes it: whole ms, None (for ever) for None or infinity
+    (`int(inf)` ended a wait for ever, `timeout_s=float('inf')`, in an OverflowError)."""
+    return None if wait_s is None or wait_s == math.inf else int(wait_s * 1000)
 
 
 def resolve_topic(topic: str, namespace: str = "", remap: dict[str, str] | None = None) -> str:
@@ -285,7 +299,7 @@ class PublisherSocket:
             self._drain_subscriptions()
             while not self.connected:
                 remaining = deadline - time.monotonic()
-                if remaining <= 0 or not self._sock.poll(int(remaining * 1000)):
+                if remaining <= 0 or not self._sock.poll(poll_ms(remaining)):
                     return False
                 self._drain_subscriptions()
             return True
@@ -403,7 +417,7 @@ class TopicReader:
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while True:
             wait = None if deadline is None else max(0.0, deadline - time.monotonic())
-            if not self._sock.poll(None if wait is None else int(wait * 1000)):
+            if not self._sock.poll(poll_ms(wait)):
                 return None
             frames = self._sock.recv_multipart(copy=False)
             node = "?"

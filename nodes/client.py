@@ -53,7 +53,7 @@ from typing import Any, Callable, Iterator, Sequence, TypeVar
 from msgs import (CameraInfo, ContactSummary, DisplacementField, GraspStart, Image, MarkerArray, Message, NodeStatus,
                   SlipState)
 from msgs.wire import check_message
-from nodes.bus import PublisherSocket, TopicReader, absolute_namespace, resolve_topic, validate_topic
+from nodes.bus import PublisherSocket, TopicReader, absolute_namespace, check_timeout, resolve_topic, validate_topic
 from nodes.endpoints import BusAddress
 from nodes.forwarder import ping, silent_forwarder
 from nodes.param_service import ANSWER_TIMEOUT_S, read_params, set_params
@@ -125,12 +125,6 @@ class SilenceError(TimeoutError):
         return type(self), (self.topic, self.timeout_s, self.address, self.bus_answers, self._silent)
 
 
-def check_timeout(timeout_s: float | None) -> None:
-    """ValueError for a silence allowed (s) that is not > 0: 0 or -1 raised at the first wait, nan never."""
-    if timeout_s is not None and not timeout_s > 0:
-        raise ValueError(f"timeout_s {timeout_s} must be > 0 s (None: no timeout)")
-
-
 _C = TypeVar("_C", bound="_Closing")
 
 
@@ -163,6 +157,9 @@ class Subscription(_Closing):
     def __init__(self, topic: str, msg_type: type[Message] | None = None, *, timeout_s: float | None = None,
                  latest: bool = False, address: BusAddress | None = None) -> None:
         check_timeout(timeout_s)
+        if msg_type is not None and not (isinstance(msg_type, type) and issubclass(msg_type, Message)):
+            raise TypeError(f"msg_type {msg_type!r} is not a message class (msgs.SlipState, ...; None: the topic's "
+                            "own): a listener's thread died on it at the first message")
         self.topic = validate_topic(topic)  # '' (an unset variable) would be every topic
         self.msg_type = expected_type(topic) if msg_type is None else msg_type
         self.timeout_s = timeout_s
@@ -240,6 +237,7 @@ def subscribe(topic: str, msg_type: type[Message] | None = None, *, timeout_s: f
 def wait_for_message(topic: str, msg_type: type[Message] | None = None, timeout_s: float = 5.0,
                      address: BusAddress | None = None) -> Message:
     """The next message on `topic` (a latched one arrives at once); TimeoutError after `timeout_s`."""
+    check_timeout(timeout_s)
     with Subscription(topic, msg_type, address=address) as sub:
         msg = sub.recv(timeout_s)
         if msg is None:
@@ -356,6 +354,7 @@ class Publisher(_Closing):
     def __init__(self, topic: str, *, name: str | None = None, latched: bool = False, connect_timeout_s: float = 2.0,
                  address: BusAddress | None = None) -> None:
         self.topic = validate_topic(topic)  # "slip" was published where no subscriber can ask for it
+        check_timeout(connect_timeout_s)
         self.latched = latched
         self._sock = PublisherSocket(default_name() if name is None else name, address)
         if not self._sock.wait_connected(connect_timeout_s):
@@ -404,11 +403,14 @@ def reset_grasp(*, confirm: Sequence[str] = (), timeout_s: float = 1.0, connect_
     """Start a new grasp: one message on /tracker/reset (call it when the gripper closes). Every
     tracker takes its next frame as the reference; the slip detectors judge the grasp from there.
 
-    confirm: the namespaces of the trackers that must say they took it ("/" for the one-camera launch files, "/left"
+    confirm: the namespace, or namespaces, of the trackers that must say they took it ("/" for the one-camera launch files, "/left"
     and "/right", or "left" and "right" as launch files write them, for a pair's), each on `GRASP_START_TOPIC`
     in its namespace (a `GraspStart` stamped as this reset). TimeoutError naming those that did not within
     `timeout_s` s: a tracker that is not running (respawning as the reset came) never takes it, and the bus
     keeps no reset for it; call again."""
+    check_timeout(timeout_s)
+    check_timeout(connect_timeout_s)
+    confirm = [confirm] if isinstance(confirm, str) else confirm  # one namespace ("/left" was read as /, l, e, f, t)
     topics = {resolve_topic(GRASP_START_TOPIC, absolute_namespace(ns)): ns for ns in confirm}
     stamp_ns = time.time_ns()
     with (TopicReader(sorted(topics), address) if topics else contextlib.nullcontext()) as reader, advertise(

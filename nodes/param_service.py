@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from msgs.param import ParamSet, ParamState
-from nodes.bus import PublisherSocket, TopicReader, node_name, validate_topic
+from nodes.bus import PublisherSocket, TopicReader, check_timeout, node_name, validate_topic
 from nodes.endpoints import BusAddress, bus_address
 from nodes.params import ParamError, build_params
 
@@ -156,6 +156,7 @@ def read_all_params(nodes: list[str], timeout_s: float = ANSWER_TIMEOUT_S,
                     address: BusAddress | None = None) -> dict[str, ParamState | None]:
     """{node: its ParamState, or None when it gave none within `timeout_s` s} of each node in `nodes` (names or
     paths, `param_topics`)."""
+    check_timeout(timeout_s)
     topics = {param_topics(n)[1]: n for n in nodes}
     found: dict[str, ParamState | None] = dict.fromkeys(nodes)
     deadline = time.monotonic() + timeout_s
@@ -189,6 +190,10 @@ def set_params(node: str, values: dict[str, Any], timeout_s: float = ANSWER_TIME
     TimeoutError when the node (or the bus) does not answer within `timeout_s` s."""
     address = address or bus_address()
     set_topic, state_topic = param_topics(node)
+    check_timeout(timeout_s)  # 0, negative and NaN answered "did not answer within nan s" at once
+    unnamed = [name for name in values if not isinstance(name, str)]
+    if unnamed:  # the node dropped the request as malformed, and this waited its whole timeout
+        raise ParamError(f"param name {unnamed[0]!r} is not text", None)
     values = {name: _sendable(value, name) for name, value in values.items()}
     request_id = uuid.uuid4().hex
     deadline = time.monotonic() + timeout_s

@@ -23,6 +23,7 @@ from nodes.bus import PublisherSocket, SeqTracker, TopicReader, envelope, parse_
 from nodes.endpoints import BUS_ENV, CURVE_ENV, bus_address, make_keys, secure_server
 from nodes.forwarder import (Forwarder, ForwarderRunning, ForwarderStart, ensure_forwarder, lock_path, ping,
                              silent_forwarder)
+from nodes.params import ParamError
 from tests.nodes.conftest import REPO, Bus, poll_until, run_fv, wait_for
 
 
@@ -837,6 +838,36 @@ def test_a_listener_refuses_a_timeout_it_cannot_keep(bus: Bus, timeout_s: float 
 
     with pytest.raises(ValueError, match=match):
         listen("/slip", print, timeout_s=timeout_s, on_timeout=print).close()
+
+
+def test_client_arguments_robot_code_gets_wrong_are_said_at_the_call(bus: Bus) -> None:
+    """A msg_type that is no message class killed a listener's thread at its first message, without a word to
+    the caller; `reset_grasp(confirm="/left")` waited on /, l, e, f, t; a param name that is no text was dropped
+    by the node, the call waiting its whole timeout; a timeout of infinity (no timeout) ended in an
+    OverflowError, and 0, -1 or NaN of the calls that did not check it were a TimeoutError at once."""
+    from nodes.client import get_params, listen, reset_grasp, set_param, subscribe, wait_for_message
+
+    for bad in ("SlipState", int):
+        with pytest.raises(TypeError, match="is not a message class"):
+            listen("/slip", print, bad)
+    with pytest.raises(TimeoutError, match=r"within 0.3 s in /left \(on /left/markers/grasp_start\)"):
+        reset_grasp(confirm="/left", timeout_s=0.3)
+    with pytest.raises(ParamError, match="param name 5 is not text"):
+        set_param("slip_detector", 5, 1)
+    for call in (lambda t: wait_for_message("/slip", timeout_s=t), lambda t: get_params("slip_detector", timeout_s=t),
+                 lambda t: reset_grasp(timeout_s=t)):
+        for timeout_s in (0.0, -1.0, float("nan")):
+            with pytest.raises(ValueError, match="must be > 0 s"):
+                call(timeout_s)
+    pub = PublisherSocket("det", bus.address)
+    assert pub.wait_connected(2.0)
+    with subscribe("/slip", timeout_s=float("inf")) as forever:
+        stop = threading.Event()
+        thread = _publish_until(stop, pub, [("/slip", SlipState(slip=True))])
+        assert next(iter(forever)).slip and forever.recv(float("inf")).slip
+        stop.set()
+        thread.join()
+    pub.close()
 
 
 def test_closing_a_listener_whose_callback_still_runs_says_so(bus: Bus, caplog: pytest.LogCaptureFixture) -> None:
