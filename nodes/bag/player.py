@@ -91,6 +91,9 @@ class BagPlayParams:
     reference_frame: as_recorded_by, the replay tracker's `reference_frame`: how many of a live camera's
     frames before the first answered one are played (the last ones), so that it takes its reference there.
     keyboard: space/enter on the terminal toggles pause (when stdin is a terminal).
+    end_wait_s: without flow control, how long the player waits after the bag's last message before it ends:
+    time for the pipeline to judge the last frames (a replay launch ends with its player; a pair replay's
+    fusion, stopped with it, had not yet voted the last state of one finger in 2 of 6 runs).
     """
 
     path: str = ""
@@ -113,14 +116,17 @@ class BagPlayParams:
     as_recorded_by: str | list[str] = ""
     reference_frame: int = 1
     keyboard: bool = False
+    end_wait_s: float = 0.0
 
     def __post_init__(self) -> None:
         if not self.path:
             raise ValueError("path: give the bag to play")
         if self.rate <= 0:
             raise ValueError(f"rate {self.rate} must be > 0")
-        if min(self.start_offset_s, self.duration_s, self.subscriber_timeout_s, self.start_timeout_s) < 0:
-            raise ValueError("start_offset_s, duration_s, subscriber_timeout_s and start_timeout_s must be >= 0")
+        if min(self.start_offset_s, self.duration_s, self.subscriber_timeout_s, self.start_timeout_s,
+               self.end_wait_s) < 0:
+            raise ValueError("start_offset_s, duration_s, subscriber_timeout_s, start_timeout_s and end_wait_s must "
+                             "be >= 0")
         if self.sync_window < 1 or self.sync_timeout_s <= 0:
             raise ValueError("sync_window must be >= 1 and sync_timeout_s > 0")
         if self.reference_frame < 0:
@@ -377,6 +383,8 @@ class BagPlay(Node):
                     break
                 self.counters["loops"] += 1
             self._await_sync(1)
+            if self._sync is None:  # (with flow control the last answers have come)
+                self._stop.wait(self.params.end_wait_s)
             paused_s = self.clock.paused_s - paused_s
             self.log.info("%s", self.summary_line(time.monotonic() - started - paused_s, paused_s))
         except BagError as exc:

@@ -124,6 +124,23 @@ def play_to_the_end(bus: BusAddress, params: dict, topics: list[str],
     return node, got
 
 
+def test_a_player_without_flow_control_waits_end_wait_s_after_its_last_message(bus: BusAddress,
+                                                                               tmp_path: Path) -> None:
+    """A replay launch ends with its player: a pair replay's fusion, stopped as the player ended on its last
+    frame, had not voted one finger's last state in 2 of 6 runs. The player now waits `end_wait_s` (the
+    replay launch files' 1 s) after the bag's last message before it ends."""
+    write_bag(tmp_path / "b", sample_messages(5, np.random.default_rng(3)))
+    with TopicReader(["/slip"], bus) as reader:
+        node = BagPlay("play", {"path": str(tmp_path / "b"), "fast": True, "topics": ["/slip"], "end_wait_s": 0.8,
+                                "wait_for_subscribers": False}, address=bus)
+        thread = in_thread(node)
+        for _ in range(5):
+            assert reader.recv(5.0) is not None
+        last_s = time.monotonic()
+        thread.join(10)
+    assert time.monotonic() - last_s >= 0.7 and node.error is None
+
+
 def test_kill_9_then_recover_keeps_every_completed_chunk(bus: BusAddress, spawn: Spawn, tmp_path: Path) -> None:
     flush_s = 0.2
     rec = spawn("bag", "record", "/camera/image", "/slip", "-o", str(tmp_path / "crash"), "--chunk-size", "64K",
