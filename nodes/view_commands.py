@@ -127,9 +127,12 @@ class _Session:
         self.topics, self.style = topics, style
         known = self.bag.topics()
         if topics.image not in known:
+            images = sorted(t for t, info in known.items() if info.type_name == Image.TYPE)
+            fix = (f"draw one of its images with --image-topic {images[0]} (and that camera's --markers-topic, "
+                   "--field-topic, --slip-topic)" if images else
+                   f"record one with `fv bag record {topics.image} {topics.markers} {topics.field} {topics.slip}`")
             raise BagError(bag_path, f"has no {topics.image} topic, so nothing to draw on (topics: {sorted(known)}); "
-                                     f"record one with `fv bag record {topics.image} {topics.markers} {topics.field} "
-                                     f"{topics.slip}`")
+                                     + fix)
         if known[topics.image].type_name != Image.TYPE:
             raise BagError(bag_path, f"{topics.image} holds {known[topics.image].type_name}, not Image")
         length_s = self.bag.duration_s

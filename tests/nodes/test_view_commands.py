@@ -103,3 +103,12 @@ def test_errors_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture, args
     assert main(["view", *args]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("fv view: error:") and message in err and "\n" not in err, err
+
+
+def test_a_bag_of_other_image_topics_names_the_option_that_draws_one(tmp_path: Path, capsys) -> None:
+    """A pair's bag (/left/camera/image ...) was told to record /camera/image, which it holds under another name."""
+    messages = [("/left" + topic, False, msg, T0_NS + k * FRAME_NS) for k in range(N_FRAMES)
+                for topic, msg in synthetic(k, k / N_FRAMES)]
+    write_bag(tmp_path / "pair", sorted(messages, key=lambda m: m[3]))
+    assert main(["view", "--bag", str(tmp_path / "pair"), "--out", str(tmp_path / "x.png")]) == 2
+    assert "draw one of its images with --image-topic /left/camera/image" in capsys.readouterr().err
