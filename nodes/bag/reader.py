@@ -20,6 +20,7 @@ from functools import cached_property
 from pathlib import Path
 from typing import IO, Any, Iterator
 
+import numpy as np
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader, make_reader
 from mcap.records import Channel
@@ -321,8 +322,15 @@ class BagReader:
 
     def messages(self, topics: list[str] | None = None, start_ns: int | None = None,
                  end_ns: int | None = None) -> Iterator[BagMessage]:
-        """Undecoded messages in log-time order; `topics` None = all; log time in
-        [start_ns, end_ns)."""
+        """Undecoded messages in log-time order; `topics` None = all (one topic may be given as text); log time in
+        [start_ns, end_ns). ValueError naming them for bounds that are no whole ns or end before they start (the
+        reader's own error blamed the file as damaged; NaN read every message)."""
+        for name, bound in (("start_ns", start_ns), ("end_ns", end_ns)):
+            if bound is not None and not isinstance(bound, (int, np.integer)):
+                raise ValueError(f"{name} {bound!r} is not a whole number of ns")
+        if start_ns is not None and end_ns is not None and end_ns < start_ns:
+            raise ValueError(f"end_ns {end_ns} is before start_ns {start_ns}")
+        topics = [topics] if isinstance(topics, str) else topics  # ("/slip" was read as its letters)
         known = self.topics()
         for topic in topics or ():
             if topic not in known:

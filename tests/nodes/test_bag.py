@@ -169,6 +169,18 @@ def test_split_by_size_and_duration_repeats_attachments(tmp_path: Path, rng: np.
             bag_info(writer.output)).splitlines()
 
 
+def test_read_arguments_of_no_meaning_are_refused_by_name(bag: tuple[Path, list]) -> None:
+    """Bounds that end before they start were the reader's error blaming the file as damaged (`fv bag recover`),
+    NaN read every message, and one topic given as text was read as its letters (`has no topic '/'`)."""
+    path, messages = bag
+    reader = BagReader(path)
+    with pytest.raises(ValueError, match="end_ns 1000 is before start_ns 2000"):
+        list(reader.messages(start_ns=2000, end_ns=1000))
+    with pytest.raises(ValueError, match="end_ns nan is not a whole number of ns"):
+        list(reader.messages(end_ns=float("nan")))
+    assert [t for t, _, _ in read_bag(path, "/slip")] == ["/slip"] * sum(m[0] == "/slip" for m in messages)
+
+
 def test_latched_and_topic_filter_and_unknown_topic(bag: tuple[Path, list]) -> None:
     path, _ = bag
     assert [t for t, _, _ in read_bag(path, ["/camera/info", "/slip"])][:2] == ["/camera/info", "/slip"]
