@@ -165,6 +165,7 @@ class Subscription(_Closing):
         self.timeout_s = timeout_s
         self.latest = latest
         self.wrong_type = 0
+        self._closed = False
         self._logged_s: dict[str, float] = {}  # kind of dropped message -> when it was last logged (monotonic s)
         self._reader = TopicReader([topic], address)
 
@@ -179,6 +180,8 @@ class Subscription(_Closing):
 
     def _next(self, timeout_s: float | None) -> Message | None:
         """The next message of the expected type within `timeout_s`, or None."""
+        if self._closed:  # (ZeroMQ's "Operation not supported" before)
+            raise RuntimeError(f"the subscription to {self.topic} is closed")
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while True:
             malformed = self._reader.malformed
@@ -225,6 +228,7 @@ class Subscription(_Closing):
         return self._reader.seq.gaps
 
     def close(self) -> None:
+        self._closed = True
         self._reader.close()
 
 
@@ -373,6 +377,8 @@ class Publisher(_Closing):
         """Send `msg` (stamped with seq, pub_ns and node); ValueError "Type.field: reason" for a message
         subscribers would drop (`SlipState.probability: 1.5 is not in [0, 1]`). A numpy scalar of a
         scalar field is sent, and left on `msg`, as its plain Python value."""
+        if self._closed.is_set():  # (ZeroMQ's "Operation not supported" before)
+            raise RuntimeError(f"the publisher of {self.topic} is closed")
         check_message(msg)
         self._sock.publish(self.topic, msg, self.latched)
 

@@ -845,7 +845,7 @@ def test_client_arguments_robot_code_gets_wrong_are_said_at_the_call(bus: Bus) -
     the caller; `reset_grasp(confirm="/left")` waited on /, l, e, f, t; a param name that is no text was dropped
     by the node, the call waiting its whole timeout; a timeout of infinity (no timeout) ended in an
     OverflowError, and 0, -1 or NaN of the calls that did not check it were a TimeoutError at once."""
-    from nodes.client import get_params, listen, reset_grasp, set_param, subscribe, wait_for_message
+    from nodes.client import advertise, get_params, listen, reset_grasp, set_param, subscribe, wait_for_message
 
     for bad in ("SlipState", int):
         with pytest.raises(TypeError, match="is not a message class"):
@@ -868,6 +868,12 @@ def test_client_arguments_robot_code_gets_wrong_are_said_at_the_call(bus: Bus) -
         stop.set()
         thread.join()
     pub.close()
+    with pytest.raises(RuntimeError, match="the subscription to /slip is closed"):  # ZeroMQ's "Operation not supported"
+        forever.recv(0.1)
+    with advertise("/x") as closed:
+        pass
+    with pytest.raises(RuntimeError, match="the publisher of /x is closed"):
+        closed.publish(SlipState())
 
 
 def test_closing_a_listener_whose_callback_still_runs_says_so(bus: Bus, caplog: pytest.LogCaptureFixture) -> None:
