@@ -169,11 +169,23 @@ def check_message(msg: Message) -> None:
         for name, kind in HEADER_KINDS.items():
             if not _is_kind(getattr(msg, name), kind):
                 raise MessageError("?", msg.TYPE, name, f"{getattr(msg, name)!r:.40} is not {kind.__name__}")
+            if kind is str:  # (the header's ints are range-checked by `_validate`)
+                _check_sendable(msg, name, getattr(msg, name))
         for name, value in _scalar_values(type(msg), msg.scalar_fields()).items():
             setattr(msg, name, value)
+            _check_sendable(msg, name, value)
         _validate(msg)
     except MessageError as exc:
         raise ValueError(f"{exc.type_name}.{exc.field}: {exc.reason}") from None
+
+
+def _check_sendable(msg: Message, name: str, value: Any) -> None:
+    """MessageError for a field `value` msgpack cannot carry: an int past 64 bits, a lone surrogate in text, a
+    numpy value in a dict (they ended `publish` in msgpack's own OverflowError, UnicodeEncodeError or TypeError)."""
+    try:
+        msgpack.packb(value, use_bin_type=True)
+    except (OverflowError, TypeError, ValueError) as exc:  # (UnicodeEncodeError is a ValueError)
+        raise MessageError("?", msg.TYPE, name, f"{value!r:.40} cannot be sent ({exc})") from None
 
 
 def _is_kind(value: Any, kind: type) -> bool:

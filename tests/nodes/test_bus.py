@@ -18,7 +18,7 @@ import pytest
 import zmq
 
 import msgs
-from msgs import CameraInfo, NodeStatus, SlipState
+from msgs import CameraInfo, MarkerArray, NodeStatus, SlipState
 from nodes.bus import PublisherSocket, SeqTracker, TopicReader, envelope, parse_envelope
 from nodes.endpoints import BUS_ENV, CURVE_ENV, bus_address, make_keys, secure_server
 from nodes.forwarder import (Forwarder, ForwarderRunning, ForwarderStart, ensure_forwarder, lock_path, ping,
@@ -629,6 +629,11 @@ def test_client_publish_refuses_what_subscribers_would_drop(bus: Bus) -> None:
             pub.publish(SlipState(probability=1.5))
         with pytest.raises(ValueError, match=r"^SlipState\.slip: 1 is not a bool"):
             pub.publish(SlipState(slip=np.int64(1)))
+        # what msgpack cannot carry ended in its own OverflowError, UnicodeEncodeError or TypeError
+        with pytest.raises(ValueError, match=r"^MarkerArray\.width: 1180591620717411303424 cannot be sent"):
+            pub.publish(MarkerArray(width=2**70, height=1))
+        with pytest.raises(ValueError, match=r"^SlipState\.frame_id: '\\udcff' cannot be sent"):
+            pub.publish(SlipState(frame_id="\udcff"))
         for _ in range(40):  # until the reader's subscription has reached the forwarder
             pub.publish(SlipState(slip=np.bool_(True), probability=np.float32(0.75), stamp_ns=np.int64(5)))
             if (got := reader.recv(0.05)) is not None:
