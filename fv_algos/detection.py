@@ -350,6 +350,8 @@ def estimate_marker_params(image: np.ndarray, min_markers: int = 4) -> MarkerPar
     the nearest blob, contrast from the median blob peak contrast to a median-filtered
     background. Raises ValueError when fewer than `min_markers` consistent blobs exist.
     """
+    if min_markers < 1:  # ("shows 0 consistent marker blobs, need >= 0" before)
+        raise ValueError(f"min_markers {min_markers} must be >= 1")
     best: tuple[float, int, Polarity, np.ndarray, np.ndarray, np.ndarray] | None = None
     gray = to_gray(image)
     for polarity in ("dark", "light"):

@@ -75,8 +75,9 @@ class FieldParams:
             raise ValueError(f"FieldParams.method must be rbf_operator, rbf_refit or griddata, got {self.method!r}")
         if self.kernel not in _KERNELS:
             raise ValueError(f"FieldParams.kernel must be one of {_KERNELS}, got {self.kernel!r}")
-        if len(self.grid_shape) != 2 or min(self.grid_shape) < 2:
-            raise ValueError(f"FieldParams.grid_shape must be (H, W) with both >= 2, got {self.grid_shape}")
+        if (len(self.grid_shape) != 2 or not all(isinstance(n, (int, np.integer)) for n in self.grid_shape)
+                or min(self.grid_shape) < 2):  # (2.5, 3) passed, then failed in numpy as "'float' object ..."
+            raise ValueError(f"FieldParams.grid_shape must be (H, W), whole numbers both >= 2, got {self.grid_shape}")
         if self.width_px is not None and not (np.isfinite(self.width_px) and self.width_px > 0.0):
             raise ValueError(f"FieldParams.width_px must be None or finite > 0, got {self.width_px}")
         if not 0.0 <= self.smoothing <= MAX_SMOOTHING:

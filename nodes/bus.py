@@ -66,6 +66,8 @@ def subscription_prefixes(topic: str, gone: bool = False) -> list[bytes]:
 
 
 def validate_topic(topic: str) -> str:
+    if not isinstance(topic, str):  # (an AttributeError of NoneType's startswith before)
+        raise TypeError(f"topic {topic!r} is not text")
     if not topic.startswith("/") or "\0" in topic or " " in topic or topic.endswith("/") and topic != "/":
         raise ValueError(f"topic {topic!r}: must start with '/', hold no spaces or NUL, and not end with '/'")
     return topic

@@ -269,6 +269,8 @@ class Listener(_Closing):
         check_timeout(timeout_s)
         if on_timeout is not None and timeout_s is None:
             raise ValueError("on_timeout is never called without timeout_s (the silence, s, that calls it)")
+        if not callable(callback) or (on_timeout is not None and not callable(on_timeout)):  # (each message logged a
+            raise TypeError(f"callback {callback!r} and on_timeout must be callable")           # TypeError before)
         self.topic = topic
         self.callback = callback
         self.timeout_s = timeout_s

@@ -255,3 +255,9 @@ def test_real_light_markers_all_found(real_data: Path) -> None:
         xs = np.sort(found.centres_px[:, 0])
         columns = np.diff(xs) > 0.5 * marker.pitch_px
         assert columns.sum() == 7
+
+
+def test_a_marker_count_below_one_is_refused() -> None:
+    """min_markers 0 said "shows 0 consistent marker blobs, need >= 0" of a blank frame."""
+    with pytest.raises(ValueError, match="min_markers 0 must be >= 1"):
+        estimate_marker_params(np.zeros((60, 80), np.uint8), min_markers=0)

@@ -201,3 +201,9 @@ def test_a_large_smoothing_tends_to_the_markers_plane_fit_not_to_zero(method: st
     assert np.allclose(spreads, spreads[-1], rtol=1e-2) and spreads[-1] > 0.1  # the plane fit of a wavy field
     with pytest.raises(ValueError, match="smoothing must be in"):
         FieldParams(smoothing=MAX_SMOOTHING * 10)
+
+
+def test_a_grid_shape_of_no_whole_numbers_is_refused_by_name() -> None:
+    """(2.5, 3) passed the check and failed later in numpy ("'float' object cannot be interpreted as an integer")."""
+    with pytest.raises(ValueError, match=r"grid_shape must be \(H, W\), whole numbers both >= 2, got \(2.5, 3\)"):
+        FieldParams(grid_shape=(2.5, 3))

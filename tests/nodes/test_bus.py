@@ -855,6 +855,10 @@ def test_client_arguments_robot_code_gets_wrong_are_said_at_the_call(bus: Bus) -
     for bad in ("SlipState", int):
         with pytest.raises(TypeError, match="is not a message class"):
             listen("/slip", print, bad)
+    with pytest.raises(TypeError, match="callback None and on_timeout must be callable"):
+        listen("/slip", None)
+    with pytest.raises(TypeError, match="topic None is not text"):  # an AttributeError of NoneType before
+        subscribe(None)
     with pytest.raises(TimeoutError, match=r"within 0.3 s in /left \(on /left/markers/grasp_start\)"):
         reset_grasp(confirm="/left", timeout_s=0.3)
     with pytest.raises(ParamError, match="param name 5 is not text"):
