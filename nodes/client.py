@@ -269,8 +269,8 @@ class Listener(_Closing):
         check_timeout(timeout_s)
         if on_timeout is not None and timeout_s is None:
             raise ValueError("on_timeout is never called without timeout_s (the silence, s, that calls it)")
-        if not callable(callback) or (on_timeout is not None and not callable(on_timeout)):  # (each message logged a
-            raise TypeError(f"callback {callback!r} and on_timeout must be callable")           # TypeError before)
+        if not callable(callback) or (on_timeout is not None and not callable(on_timeout)):  # (each message logged
+            raise TypeError(f"callback {callback!r} and on_timeout must be callable")  # a TypeError before)
         self.topic = topic
         self.callback = callback
         self.timeout_s = timeout_s
@@ -411,9 +411,9 @@ def reset_grasp(*, confirm: Sequence[str] = (), timeout_s: float = 1.0, connect_
     """Start a new grasp: one message on /tracker/reset (call it when the gripper closes). Every
     tracker takes its next frame as the reference; the slip detectors judge the grasp from there.
 
-    confirm: the namespace, or namespaces, of the trackers that must say they took it ("/" for the one-camera launch files, "/left"
-    and "/right", or "left" and "right" as launch files write them, for a pair's), each on `GRASP_START_TOPIC`
-    in its namespace (a `GraspStart` stamped as this reset). TimeoutError naming those that did not within
+    confirm: the namespace, or namespaces, of the trackers that must say they took it ("/" for the one-camera
+    launch files, "/left" and "/right", or "left" and "right" as launch files write them, for a pair's), each on
+    `GRASP_START_TOPIC` in its namespace (a `GraspStart` stamped as this reset). TimeoutError naming those that did not within
     `timeout_s` s: a tracker that is not running (respawning as the reset came) never takes it, and the bus
     keeps no reset for it; call again."""
     check_timeout(timeout_s)

@@ -151,6 +151,7 @@ class Launch:
         self._status_pub = None
         self._status_reader = None
         self._param_reader = None  # the nodes' ParamState topics
+        self._by_param_topic = {param_topics(c.spec.name)[1]: c for c in self.children}  # their nodes
         self._params = None  # NoParamService: `fv param` answered for launch_<stem>
         self._started = time.monotonic()
         self._started_ns = time.time_ns()  # given to every node (LAUNCH_ENV)
@@ -283,7 +284,7 @@ class Launch:
             self._start_forwarder(address)
         self._status_pub = PublisherSocket(self.name, address)
         self._status_reader = TopicReader([STATUS_TOPIC], address)
-        self._param_reader = TopicReader([param_topics(c.spec.name)[1] for c in self.children], address)
+        self._param_reader = TopicReader(list(self._by_param_topic), address)
         self._params = NoParamService(self.name, self._status_pub, address)
         try:
             for child in self.children:
@@ -488,9 +489,8 @@ class Launch:
         first process started with: a process that takes its place (respawned, or a spare) starts with the launch
         file's, and is given them again once it reports (`_set_live_params`). A tuned threshold went back to the
         launch file's at a slip detector's respawn, without a word."""
-        by_topic = {param_topics(c.spec.name)[1]: c for c in self.children}
         while (item := self._param_reader.recv(0.0)) is not None:
-            child, state = by_topic.get(item.topic), item.msg
+            child, state = self._by_param_topic.get(item.topic), item.msg
             if child is None or not isinstance(state, ParamState) or not state.accepted:
                 continue
             if child.start_params is None and not state.request_id:

@@ -355,7 +355,7 @@ def _cv(args: argparse.Namespace) -> int:
         print(json.dumps(report, indent=2))
     else:
         for r in report["folds"]:
-            window = (f"window acc {_figure(r['window_accuracy'])}  " if "window_accuracy" in r else "")
+            window = f"window acc {_figure(r['window_accuracy'])}  " if "window_accuracy" in r else ""
             print(f"fold {r['fold']}: trials {r['n_trials']:3d}  {window}"
                   f"trial acc {r['trial_accuracy']:.3f}  objects {', '.join(r['objects'])}")
         s = report["summary"]
@@ -467,7 +467,7 @@ def _check_cv_report(report: dict | None, method: str, config: dict, later: tupl
         raise ValueError(f"--cv-report: the report's networks were trained otherwise: {'; '.join(differ)}")
 
 
-def _check_cv_trials(report: dict | None, trials: list) -> None:
+def _check_cv_trials(report: dict | None, trials: list[Trial]) -> None:
     """ValueError when ``report`` (an `fv real cv --out` report to record beside a model; None: none) cross-validated
     other trials than ``trials``, the training's: its folds' objects and trial count must be theirs (another set's
     figures were recorded as this model's). Checked once the table is read, before any video is."""

@@ -81,7 +81,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--repeats", type=positive_int, default=50, help="timed calls per ms/window figure (default 50)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=_eval)
-    p.set_defaults(option_defaults={dest: p.get_default(dest) for dest in set().union(*_EVAL_READS.values())})
+    p.set_defaults(option_defaults={dest: p.get_default(dest) for dest in _EVAL_OPTIONS})
 
 
 STREAM_FPS = 30.0  # Hz: `fv eval --stream`'s camera rate by default, the pipeline's
@@ -94,12 +94,13 @@ _EVAL_READS = {
     "trials": frozenset({"model", "cache", "workers", "crop", "size", "online", "alarm", "plot", "no_progress"}),
     "stream": frozenset({"model", "fps", "seed"}),
 }
+_EVAL_OPTIONS = frozenset().union(*_EVAL_READS.values())
 
 
 def _refuse_unread(args: argparse.Namespace, mode: str) -> None:
     """Refuse, naming each and the evaluations that read it, the options given to fv eval (other than their
     defaults) that its ``mode`` evaluation ("data", "trials" or "stream") does not read."""
-    unread = sorted(dest for dest in set().union(*_EVAL_READS.values()) - _EVAL_READS[mode]
+    unread = sorted(dest for dest in _EVAL_OPTIONS - _EVAL_READS[mode]
                     if getattr(args, dest) != args.option_defaults[dest])
     if not unread:
         return

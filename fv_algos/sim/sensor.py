@@ -351,12 +351,19 @@ def _folded_cells(markers_mm: np.ndarray, shape: tuple[int, int]) -> int:
     return int(np.count_nonzero((area(a, b, c) <= 0) | (area(d, c, b) <= 0)))
 
 
+def _load_words(state: ContactState) -> dict[str, str]:
+    """The frame's loads as the contact carries them, in words: {"load": "the normal load of 60 N", "shear": "the
+    shear of 68 N", "torque": "the torque of 0 N*mm"}."""
+    return {"load": f"the normal load of {state.normal_N:g} N",
+            "shear": f"the shear of {float(np.hypot(*state.force_N)):g} N",
+            "torque": f"the torque of {abs(state.torque_Nmm):g} N*mm"}
+
+
 def _loads(mech: MechanicsFrame) -> str:
-    """The frame's loads as the contact carries them: "the normal load of 60 N and the shear of 68 N"."""
-    state = mech.state
-    shear = float(np.hypot(*state.force_N))
-    return (f"the normal load of {state.normal_N:g} N" + (f" and the shear of {shear:g} N" if shear else "")
-            + (f" and the torque of {abs(state.torque_Nmm):g} N*mm" if state.torque_Nmm else ""))
+    """The frame's non-zero loads in words: "the normal load of 60 N and the shear of 68 N"."""
+    state, words = mech.state, _load_words(mech.state)
+    carried = {"load": True, "shear": bool(np.any(state.force_N)), "torque": bool(state.torque_Nmm)}
+    return " and ".join(words[name] for name, present in carried.items() if present)
 
 
 def check_scene(scene: Scene, params: SensorParams | None = None, frames: int | None = None) -> None:
@@ -380,14 +387,13 @@ def _pushed_to_camera(mech: MechanicsFrame, model: ContactModel, markers_ref_mm:
     the pressure alone would push fewer of them. Loads as the contact carries them."""
     state, command = mech.state, mech.command
     reach = f"{len(rows)} of the {len(markers_ref_mm)} markers to the camera, {camera_distance_mm:g} mm from the skin"
-    load = f"the normal load of {state.normal_N:g} N"
+    words = _load_words(state)
+    load = words["load"]
     uz = model.grid.sample(model.halfspace.normal_displacement_mm(state.pressure_mpa), markers_ref_mm[rows])
     by_load = int(np.count_nonzero(uz >= camera_distance_mm))
-    causes = {}
-    if any(command.loads.force_N) or command.motion == "slide":
-        causes["shear"] = f"the shear of {float(np.hypot(*state.force_N)):g} N"
-    if command.loads.torque_Nmm or command.motion == "spin":
-        causes["torque"] = f"the torque of {abs(state.torque_Nmm):g} N*mm"
+    asked = {"shear": any(command.loads.force_N) or command.motion == "slide",
+             "torque": bool(command.loads.torque_Nmm) or command.motion == "spin"}
+    causes = {cause: words[cause] for cause, given in asked.items() if given}
     if by_load == len(rows) or not causes:
         return f"{load} pushes {reach}; lower the load"
     verb = "pushes" if len(causes) == 1 else "push"

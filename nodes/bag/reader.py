@@ -166,13 +166,13 @@ class _File:
                 _refuse_being_written(path)
                 raise BagError(path, f"unfinished or damaged MCAP ({type(exc).__name__}: {str(exc) or 'cut short'}); "
                                      f"a crashed recording? run `fv bag recover {path}`") from None
-        if summary is None or summary.statistics is None:
-            _refuse_being_written(path)
-            raise BagError(path, f"MCAP without summary; run `fv bag recover {path}` to index it")
-        with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
-            if not summary_crc_matches(data, self.size_b - len(MCAP_MAGIC) - FOOTER.size):
-                raise BagError(path, f"damaged summary (it does not match its CRC); run `fv bag recover {path}` to "
-                                     "index it again")
+            if summary is None or summary.statistics is None:
+                _refuse_being_written(path)
+                raise BagError(path, f"MCAP without summary; run `fv bag recover {path}` to index it")
+            with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
+                if not summary_crc_matches(data, self.size_b - len(MCAP_MAGIC) - FOOTER.size):
+                    raise BagError(path, f"damaged summary (it does not match its CRC); run `fv bag recover {path}` "
+                                         "to index it again")
         self.summary: Summary = summary
         for channel in summary.channels.values():
             if channel.message_encoding != MESSAGE_ENCODING:
